@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Installs what is missing (a virtual environment with ROS 2 Jazzy from PyPI and the package),
+# then runs:  ./ar-tracking.sh demo | test | <any ar-tracking arguments>
+set -euo pipefail
+cd "$(dirname "$0")"
+VENV="${AR_TRACKING_VENV:-.venv}"
+PY="${PYTHON:-python3}"
+
+if ! command -v "$PY" >/dev/null 2>&1; then
+  echo "ar-tracking.sh: $PY not found; install Python 3.10 or newer" >&2; exit 1
+fi
+if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
+  echo "ar-tracking.sh: Python 3.10 or newer is needed ($("$PY" --version 2>&1))" >&2; exit 1
+fi
+if [ ! -x "$VENV/bin/python" ]; then
+  if ! "$PY" -m venv "$VENV" >/dev/null 2>&1; then
+    # Debian/Ubuntu ship venv separately.
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+      apt-get update -qq && apt-get install -y -qq python3-venv >/dev/null
+      rm -rf "$VENV"; "$PY" -m venv "$VENV"
+    else
+      echo "ar-tracking.sh: cannot create a virtual environment; install python3-venv" >&2; exit 1
+    fi
+  fi
+fi
+# Reinstall when the package's dependencies change.
+STAMP="$VENV/.ar_tracking-$(cat setup.py | "$VENV/bin/python" -c 'import hashlib,sys; print(hashlib.sha1(sys.stdin.buffer.read()).hexdigest()[:12])')"
+if [ ! -f "$STAMP" ]; then
+  echo "ar-tracking.sh: installing ar_tracking and ROS 2 Jazzy (PyPI) into $VENV ..." >&2
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e '.[ros,test,bench]'
+  rm -f "$VENV"/.ar_tracking-*; touch "$STAMP"
+fi
+
+cmd="${1:-demo}"; [ $# -gt 0 ] && shift
+case "$cmd" in
+  test) exec "$VENV/bin/python" -m pytest "$@" ;;
+  *)    exec "$VENV/bin/ar-tracking" "$cmd" "$@" ;;
+esac

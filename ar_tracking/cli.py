@@ -1,0 +1,272 @@
+"""``ar-tracking``: make bags, run the graph on a bag, evaluate, benchmark, demo.
+
+Every error the user can cause (a missing or damaged bag, a bad params file, an unknown
+scenario) ends in one line on stderr and a non-zero exit code, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+EXIT_USAGE = 2
+EXIT_FAILED = 1
+
+logger = logging.getLogger('ar_tracking')
+
+
+def _progress_bar(enabled: bool, desc: str) -> tuple[Callable[[int, int], None] | None, Callable[[], None]]:
+    """A tqdm progress callback (done, total) and a closer; disabled when not wanted."""
+    if not enabled:
+        return None, lambda: None
+    from tqdm import tqdm
+
+    bar: dict[str, Any] = {}
+
+    def update(done: int, total: int) -> None:
+        if 'b' not in bar:
+            bar['b'] = tqdm(total=total, desc=desc, unit='msg', file=sys.stderr, leave=False, mininterval=0.5)
+        b = bar['b']
+        b.update(done - b.n)
+
+    def close() -> None:
+        if 'b' in bar:
+            bar['b'].close()
+
+    return update, close
+
+
+# --- commands ------------------------------------------------------------------------------
+
+def cmd_make_bag(args: argparse.Namespace) -> int:
+    from .sim.bagmaker import make_bag
+
+    update, close = _progress_bar(not args.quiet and sys.stderr.isatty(), 'make-bag')
+    progress = (lambda f: update(int(f * 1000), 1000)) if update else None
+    try:
+        path = make_bag(
+            args.scenario, args.out, seed=args.seed, duration_s=args.duration, session=args.session,
+            storage=args.storage, image_format=args.image_format, overwrite=True, progress=progress,
+        )
+    finally:
+        close()
+    print(path)
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .ros.runner import GraphRunner
+
+    bag = Path(args.bag)
+    out = Path(args.out) if args.out else Path('out') / (bag.name.split('.')[0] + '.out.mcap')
+    params = list(args.params_file or [])
+    sidecar = _sidecar_params(bag)
+    if sidecar is not None and not args.no_sidecar:
+        logger.info('using calibration %s (disable with --no-sidecar)', sidecar)
+        params.insert(0, sidecar)
+    update, close = _progress_bar(not args.quiet and sys.stderr.isatty(), 'run')
+    try:
+        result = GraphRunner(
+            bag, out, params_files=params, nodes=args.nodes, rate=args.rate, storage=args.storage,
+            copy_images=args.copy_images, executor=args.executor, progress=update,
+        ).run()
+    finally:
+        close()
+    summary = {
+        'out': str(result.out_path), 'nodes': result.nodes, 'input_messages': result.input_messages,
+        'output_messages': result.output_messages, 'wall_s': round(result.wall_s, 3),
+        'bag_duration_s': round(result.bag_duration_s, 3), 'realtime_factor': round(result.realtime_factor, 2),
+        'interrupted': result.interrupted,
+    }
+    print(json.dumps(summary) if args.json else
+          f'{result.out_path}: {result.output_messages} messages from {", ".join(result.nodes)} '
+          f'({result.input_messages} inputs, {result.wall_s:.1f} s, {result.realtime_factor:.1f}x realtime)'
+          + (' - interrupted' if result.interrupted else ''))
+    return 130 if result.interrupted else 0
+
+
+def _sidecar_params(bag: Path) -> Path | None:
+    """The calibration file make-bag writes next to a bag: <bag stem>.params.yaml."""
+    stem = bag.name[: -len(bag.suffix)] if bag.suffix else bag.name
+    candidate = bag.with_name(stem + '.params.yaml')
+    return candidate if candidate.is_file() else None
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .eval.metrics import evaluate_bag
+    from .eval.report import write_report
+
+    metrics = evaluate_bag(args.bag)
+    if args.json:
+        print(json.dumps(metrics, indent=None if args.compact else 2, sort_keys=True))
+        if not args.report:
+            return 0
+    report = Path(args.report) if args.report else Path(args.bag).with_suffix('.report.html')
+    written = write_report(args.bag, report, metrics)
+    if not args.json:
+        _print_metrics(metrics)
+        print(f'report: {written}')
+    return 0
+
+
+def _print_metrics(metrics: dict[str, Any]) -> None:
+    rows = metrics.get('orientation', {})
+    if not rows:
+        print('no orientation estimates in the bag')
+    for topic, m in sorted(rows.items()):
+        if 'error' in m:
+            print(f'{topic:32s} {m["error"]}')
+            continue
+        print(
+            f'{topic:32s} rmse {m["rmse_deg"]:.2f} deg  heading {m["heading_rmse_deg"]:.2f}  '
+            f'tilt {m["tilt_rmse_deg"]:.2f}  max {m["max_deg"]:.2f}  n {m["n"]}'
+        )
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    return run_demo(Path(args.workdir), quiet=args.quiet)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .eval.bench import run_bench
+
+    results = run_bench(Path(args.workdir), duration_s=args.duration, areas=args.areas)
+    text = json.dumps(results, indent=2, sort_keys=True)
+    if args.out:
+        Path(args.out).write_text(text + '\n')
+    print(text)
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Play a bag on its topics (the bag_replay node with command-line options)."""
+    from .nodes.bag_replay import main as replay_main
+
+    ros_args = ['--ros-args', '-p', f'bag_path:={args.bag}', '-p', f'rate:={float(args.rate)}',
+                '-p', f'start_offset_s:={float(args.start_offset)}', '-p', f'loop:={str(args.loop).lower()}']
+    if args.topics:
+        ros_args += ['-p', 'topics:=[' + ','.join(args.topics) + ']']
+    if args.remap:
+        ros_args += ['-p', 'remap:=[' + ','.join(f'"{r}"' for r in args.remap) + ']']
+    return replay_main(['bag_replay'] + ros_args)
+
+
+# --- parser --------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='ar-tracking',
+        description='AR tracking on ROS 2: make bags, run the node graph on them, evaluate, benchmark.',
+    )
+    parser.add_argument('-v', '--verbose', action='store_true', help='log debug messages')
+    sub = parser.add_subparsers(dest='command', required=True)
+
+    p = sub.add_parser('make-bag', help='simulate a scenario into a bag with ground truth')
+    p.add_argument('scenario', help='scenario name, e.g. rotation_sweep')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--duration', type=float, default=60.0, help='seconds (default 60)')
+    p.add_argument('--session', default='authoring', choices=['authoring', 'browsing'])
+    p.add_argument('--out', '-o', required=True, help='output bag (.mcap file, or a directory with --storage sqlite3)')
+    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
+    p.add_argument('--image-format', default='raw', choices=['raw', 'compressed'])
+    p.add_argument('--quiet', '-q', action='store_true')
+    p.set_defaults(func=cmd_make_bag)
+
+    p = sub.add_parser('run', help='run every node that can run on a bag; record the outputs')
+    p.add_argument('bag')
+    p.add_argument('--out', '-o', help='output bag (default out/<bag>.out.mcap)')
+    p.add_argument('--rate', type=float, default=0.0,
+                   help='0 (default): lockstep, reproducible; R > 0: realtime at R x bag speed with /clock')
+    p.add_argument('--params-file', action='append', help='ROS 2 params file (repeatable; later wins)')
+    p.add_argument('--no-sidecar', action='store_true', help='ignore <bag>.params.yaml next to the bag')
+    p.add_argument('--nodes', nargs='+', help='only these nodes')
+    p.add_argument('--storage', choices=['mcap', 'sqlite3'])
+    p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
+    p.add_argument('--executor', default='single', choices=['single', 'events'], help='rclpy executor (lockstep)')
+    p.add_argument('--json', action='store_true', help='print the run summary as JSON')
+    p.add_argument('--quiet', '-q', action='store_true')
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser('evaluate', help='metrics of an output bag against its ground truth')
+    p.add_argument('bag')
+    p.add_argument('--json', action='store_true', help='print the metrics as one JSON object')
+    p.add_argument('--compact', action='store_true', help='JSON on one line')
+    p.add_argument('--report', help='write the report here (.html or .png); default <bag>.report.html')
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser('demo', help='the whole job on the sample bag, ending in a report')
+    p.add_argument('--workdir', default='out/demo')
+    p.add_argument('--quiet', '-q', action='store_true')
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser('bench', help='speed of the graph and the cores on this machine, as JSON')
+    p.add_argument('--workdir', default='out/bench')
+    p.add_argument('--duration', type=float, default=60.0, help='length of the benchmark bag, s')
+    p.add_argument('--areas', nargs='+', help='only these areas (graph, orientation, ...)')
+    p.add_argument('--json', action='store_true', help='(the output is always JSON)')
+    p.add_argument('--out', '-o', help='also write the JSON here')
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser('replay', help='publish a bag on its topics (like ros2 bag play)')
+    p.add_argument('bag')
+    p.add_argument('--rate', type=float, default=1.0)
+    p.add_argument('--start-offset', type=float, default=0.0, help='seconds to skip')
+    p.add_argument('--loop', action='store_true')
+    p.add_argument('--topics', nargs='+', help='only these bag topics')
+    p.add_argument('--remap', nargs='+', help='from:=to remappings of bag topics')
+    p.set_defaults(func=cmd_replay)
+    return parser
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """Exception families that are the user's input, reported as one line."""
+    from .io.bags import BagError
+    from .ros.params import ParamsError
+
+    errors: list[type[BaseException]] = [BagError, ParamsError, FileNotFoundError, PermissionError]
+    try:
+        from .eval.metrics import EvaluationError
+
+        errors.append(EvaluationError)
+    except ImportError:
+        pass
+    try:
+        from .sim.bagmaker import SimError
+
+        errors.append(SimError)
+    except ImportError:
+        pass
+    try:
+        from .ros.runner import RunError
+
+        errors.append(RunError)
+    except ImportError:
+        pass
+    return tuple(errors)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format='%(levelname)s %(name)s: %(message)s',
+        stream=sys.stderr,
+    )
+    try:
+        return int(args.func(args) or 0)
+    except _user_errors() as exc:
+        print(f'ar-tracking {args.command}: error: {exc}', file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        print(f'ar-tracking {args.command}: interrupted', file=sys.stderr)
+        return 130
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,136 @@
+"""Rotation helpers shared by the cores, the simulator and the evaluation.
+
+Conventions (../shared/DESIGN.md section 3):
+
+* ``R_a_b`` is the 3x3 matrix that rotates vectors from frame b into frame a
+  (``v_a = R_a_b @ v_b``). A TransformStamped with frame_id a and child_frame_id b carries R_a_b.
+* Quaternion arrays say their order in their name: ``quat_xyzw`` (ROS messages, scipy) or
+  ``quat_wxyz`` (gtsam, most filter papers).
+* World frame ``enu``: x east, y north, z up. ``camera_optical``: z forward, x right, y down.
+
+Everything here is plain numpy/scipy and works on single rotations or stacks of shape (N, 3, 3).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation, Slerp
+
+Array = NDArray[np.float64]
+
+
+def quat_xyzw_to_matrix(quat_xyzw: Array) -> Array:
+    """Rotation matrix (or stack) from quaternions in (x, y, z, w) order; normalises them."""
+    return Rotation.from_quat(np.asarray(quat_xyzw, dtype=float)).as_matrix()
+
+
+def matrix_to_quat_xyzw(R: Array) -> Array:
+    """Quaternion(s) in (x, y, z, w) order with w >= 0 (a canonical sign, for reproducibility)."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
+    q = np.asarray(q)
+    flip = q[..., 3] < 0
+    q[flip] = -q[flip]
+    return q
+
+
+def quat_wxyz_to_xyzw(quat_wxyz: Array) -> Array:
+    q = np.asarray(quat_wxyz, dtype=float)
+    return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+
+def quat_xyzw_to_wxyz(quat_xyzw: Array) -> Array:
+    q = np.asarray(quat_xyzw, dtype=float)
+    return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
+
+
+def is_valid_quat(quat: Array, tol: float = 1e-3) -> bool:
+    """Finite and of unit norm within ``tol`` (any component order)."""
+    q = np.asarray(quat, dtype=float)
+    return bool(np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) < tol)
+
+
+def rot_x(angle_rad: float) -> Array:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=float)
+
+
+def rot_y(angle_rad: float) -> Array:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=float)
+
+
+def rot_z(angle_rad: float) -> Array:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=float)
+
+
+def angle_of(R: Array) -> Array:
+    """Rotation angle in radians of a matrix (or stack), robust near 0 and pi."""
+    R = np.asarray(R, dtype=float)
+    return np.linalg.norm(Rotation.from_matrix(R).as_rotvec(), axis=-1)
+
+
+def heading_tilt_error_deg(R_w_est: Array, R_w_true: Array) -> tuple[Array, Array, Array]:
+    """Split the orientation error into heading and tilt, in degrees.
+
+    The world-frame error ``E = R_w_est @ R_w_true^T`` is decomposed (swing-twist about the
+    world's up axis) into ``E = Rz(heading) @ E_tilt``: the heading error is the rotation about
+    up (signed, in (-180, 180]), the tilt error the angle of the remaining rotation, whose axis
+    is horizontal. Returns (total, heading, tilt) arrays.
+    """
+    E = np.asarray(R_w_est, dtype=float) @ np.swapaxes(np.asarray(R_w_true, dtype=float), -1, -2)
+    q = Rotation.from_matrix(E).as_quat()  # x, y, z, w
+    q = np.atleast_2d(q)
+    # Twist about z: the projection of the quaternion onto (0, 0, z, w).
+    heading = 2.0 * np.arctan2(q[:, 2], q[:, 3])
+    heading = (heading + np.pi) % (2.0 * np.pi) - np.pi
+    twist_inv = Rotation.from_rotvec(np.stack([0 * heading, 0 * heading, -heading], axis=-1))
+    tilt = (twist_inv * Rotation.from_quat(q)).magnitude()
+    total = Rotation.from_quat(q).magnitude()
+    shape = np.shape(E)[:-2]
+    return (
+        np.degrees(total).reshape(shape),
+        np.degrees(heading).reshape(shape),
+        np.degrees(tilt).reshape(shape),
+    )
+
+
+def camera_heading_pitch_roll_deg(R_enu_cam: Array) -> tuple[Array, Array, Array]:
+    """What a person calls the camera's heading, pitch and roll, in degrees.
+
+    heading: compass azimuth of the optical axis (z), clockwise from north, in [0, 360);
+    pitch: elevation of the optical axis above the horizon;
+    roll: rotation about the optical axis, 0 when the image x axis is horizontal, positive when
+    the image turns clockwise as seen by the user (right side down).
+    """
+    R = np.asarray(R_enu_cam, dtype=float)
+    z = R[..., :, 2]  # optical axis in ENU
+    x = R[..., :, 0]  # image right in ENU
+    heading = np.degrees(np.arctan2(z[..., 0], z[..., 1])) % 360.0
+    pitch = np.degrees(np.arcsin(np.clip(z[..., 2], -1.0, 1.0)))
+    # Roll: angle of the image x axis below the horizontal plane, measured about z.
+    up = np.array([0.0, 0.0, 1.0])
+    horiz_right = np.cross(z, up)  # right-hand horizontal vector perpendicular to the view
+    norm = np.linalg.norm(horiz_right, axis=-1, keepdims=True)
+    horiz_right = horiz_right / np.where(norm < 1e-9, 1.0, norm)
+    cos_r = np.sum(x * horiz_right, axis=-1)
+    sin_r = -x[..., 2]
+    roll = np.degrees(np.arctan2(sin_r, cos_r))
+    return heading, pitch, roll
+
+
+def interpolate_rotations(times: Array, R: Array, query_times: Array) -> tuple[Array, Array]:
+    """Slerp a rotation sequence at query times.
+
+    Returns (matrices at the valid queries, boolean mask of queries inside [times[0], times[-1]]).
+    ``times`` must be strictly increasing (duplicates are dropped, keeping the first).
+    """
+    times = np.asarray(times, dtype=float)
+    query_times = np.asarray(query_times, dtype=float)
+    keep = np.concatenate([[True], np.diff(times) > 0])
+    times, R = times[keep], np.asarray(R)[keep]
+    inside = (query_times >= times[0]) & (query_times <= times[-1])
+    if len(times) < 2:
+        return np.repeat(R[:1], int(inside.sum()), axis=0), inside
+    slerp = Slerp(times, Rotation.from_matrix(R))
+    return slerp(query_times[inside]).as_matrix(), inside

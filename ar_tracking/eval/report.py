@@ -1,0 +1,277 @@
+"""The evaluation report: one figure of the orientations over time, as PNG or in an HTML page.
+
+The figure has four panels sharing the time axis: the camera's heading, pitch and roll (what a
+person calls them, see ``camera_heading_pitch_roll_deg``) for the ground truth (black) and each
+estimate, and the heading error of each estimate, with the simulated magnetic disturbance
+(compass deflection) shaded behind it when the bag has one, because a heading error that
+follows the disturbance tells a magnetometer problem from a filter problem at a glance.
+
+The HTML page embeds the PNG as base64 so that it is one self-contained file to attach to an
+issue or open offline.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ar_tracking.core.rotations import camera_heading_pitch_roll_deg
+from ar_tracking.eval.metrics import (
+    BagOrientations,
+    EvaluationError,
+    OrientationSeries,
+    evaluate_orientations,
+    load_orientations,
+    orientation_errors,
+    topic_key,
+)
+
+logger = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+FIGSIZE_IN = (12.0, 10.0)
+DPI = 100
+#: Lines are thinned to at most this many points: enough for a 1200-pixel-wide figure.
+MAX_PLOT_POINTS = 4000
+#: Smallest y range of a panel, so that flat lines stay flat.
+MIN_Y_SPAN_DEG = 2.0
+TRUTH_COLOUR = 'black'
+DISTURBANCE_COLOUR = 'tab:gray'
+
+
+def write_report(bag: str | Path, out: str | Path, metrics: dict | None = None) -> Path:
+    """Write the evaluation report of ``bag`` to ``out`` and return the path written.
+
+    ``out`` ending in ``.png`` gives the figure alone; ending in ``.html`` (or ``.htm``) a page
+    with the metrics table and the figure embedded. ``metrics`` (the dict of
+    :func:`~ar_tracking.eval.metrics.evaluate_bag`) is computed when not given.
+    """
+    out = Path(out)
+    kind = out.suffix.lower()
+    if kind not in ('.png', '.html', '.htm'):
+        raise EvaluationError(f'{out}: a report ends in .png or .html')
+    data = load_orientations(bag)
+    if metrics is None:
+        metrics = evaluate_orientations(data)
+    png = render_figure_png(data, metrics)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if kind == '.png':
+        out.write_bytes(png)
+    else:
+        out.write_text(render_html(data.path, metrics, png), encoding='utf-8')
+    logger.info('report written to %s', out)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Figure.
+
+
+def render_figure_png(data: BagOrientations, metrics: dict) -> bytes:
+    """The four-panel figure as PNG bytes (Agg backend: no display needed)."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(4, 1, figsize=FIGSIZE_IN, dpi=DPI, sharex=True)
+    try:
+        t0 = int(data.truth.stamps_ns[0])
+        _plot_attitudes(axes[:3], data, t0)
+        _plot_heading_errors(axes[3], data, t0)
+        _label_axes(axes)
+        fig.suptitle(_title(data.path, metrics), fontsize=11)
+        fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format='png', dpi=DPI)
+        return buf.getvalue()
+    finally:
+        plt.close(fig)
+
+
+def _seconds(stamps_ns: NDArray[np.int64], t0: int) -> Array:
+    """Seconds since t0, computed in integers first so that epoch stamps keep precision."""
+    return (np.asarray(stamps_ns, dtype=np.int64) - t0) * 1e-9
+
+
+def _thin(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every k-th element so that a line has at most MAX_PLOT_POINTS points."""
+    step = max(1, int(np.ceil(len(arrays[0]) / MAX_PLOT_POINTS)))
+    return tuple(a[::step] for a in arrays)
+
+
+def _wrap180(deg: Array) -> Array:
+    return (np.asarray(deg) + 180.0) % 360.0 - 180.0
+
+
+def _unwrapped_heading(heading_deg: Array) -> Array:
+    """Heading without 360-degree jumps, so that 359 -> 1 is drawn as a 2-degree step."""
+    return np.degrees(np.unwrap(np.radians(heading_deg)))
+
+
+def _heading_near(truth_t: Array, truth_heading: Array, t: Array, heading_deg: Array) -> Array:
+    """An estimate's heading placed on the same unwrapped branch as the truth at its times."""
+    reference = np.interp(t, truth_t, truth_heading)
+    return reference + _wrap180(heading_deg - reference)
+
+
+def _estimates_to_plot(data: BagOrientations) -> list[tuple[str, OrientationSeries]]:
+    return [
+        (topic, est.series)
+        for topic, est in data.estimates.items()
+        if est.error is None and len(est.series) > 0
+    ]
+
+
+def _colour(i: int) -> str:
+    return f'C{i % 10}'
+
+
+def _plot_attitudes(axes: Any, data: BagOrientations, t0: int) -> None:
+    truth_t = _seconds(data.truth.stamps_ns, t0)
+    heading, pitch, roll = camera_heading_pitch_roll_deg(data.truth.R_enu_cam)
+    truth_heading = _unwrapped_heading(heading)
+    for ax, values in zip(axes, (truth_heading, pitch, roll)):
+        t, v = _thin(truth_t, values)
+        ax.plot(t, v, color=TRUTH_COLOUR, linewidth=1.5, label='ground truth')
+    for i, (topic, series) in enumerate(_estimates_to_plot(data)):
+        t = _seconds(series.stamps_ns, t0)
+        h, p, r = camera_heading_pitch_roll_deg(series.R_enu_cam)
+        h = _heading_near(truth_t, truth_heading, t, h)
+        for ax, values in zip(axes, (h, p, r)):
+            tt, v = _thin(t, values)
+            ax.plot(tt, v, color=_colour(i), linewidth=1.0, label=topic_key(topic))
+
+
+def _plot_heading_errors(ax: Any, data: BagOrientations, t0: int) -> None:
+    if data.disturbance is not None:
+        stamps, deflection_rad = data.disturbance
+        t, d = _thin(_seconds(stamps, t0), np.degrees(deflection_rad))
+        ax.fill_between(t, 0.0, d, color=DISTURBANCE_COLOUR, alpha=0.3, linewidth=0,
+                        label='magnetic disturbance (compass deflection)')
+    for i, (topic, series) in enumerate(_estimates_to_plot(data)):
+        errors = orientation_errors(data.truth, series)
+        if len(errors.heading_deg) == 0:
+            continue
+        t, e = _thin(_seconds(errors.stamps_ns, t0), errors.heading_deg)
+        ax.plot(t, e, color=_colour(i), linewidth=1.0, label=topic_key(topic))
+    ax.axhline(0.0, color=TRUTH_COLOUR, linewidth=0.5)
+
+
+def _ensure_span(ax: Any, span: float) -> None:
+    """Widen the y range to at least ``span`` so that a constant line (e.g. roll 0 with
+    1e-14 of rounding noise) is not blown up into apparent noise."""
+    low, high = ax.get_ylim()
+    if high - low < span:
+        middle = 0.5 * (low + high)
+        ax.set_ylim(middle - 0.5 * span, middle + 0.5 * span)
+
+
+def _label_axes(axes: Any) -> None:
+    labels = (
+        'heading [deg]\n(compass, unwrapped)',
+        'pitch [deg]',
+        'roll [deg]',
+        'heading error [deg]\n(about up, CCW +)',
+    )
+    for ax, label in zip(axes, labels):
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+        _ensure_span(ax, MIN_Y_SPAN_DEG)
+    axes[0].legend(loc='upper right', fontsize=8)
+    if axes[3].get_legend_handles_labels()[0]:
+        axes[3].legend(loc='upper right', fontsize=8)
+    axes[3].set_xlabel('time since the first ground-truth stamp [s]')
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    return '-' if value is None else f'{value:.{digits}f}'
+
+
+def _title(bag: Path, metrics: dict) -> str:
+    """Bag name and one line per topic with its RMSE split (at most a few topics)."""
+    lines = [bag.name]
+    entries = list(metrics.get('orientation', {}).items())
+    for key, m in entries[:6]:
+        if 'error' in m:
+            lines.append(f'{key}: {m["error"]}')
+        else:
+            lines.append(
+                f'{key}: RMSE {_fmt(m.get("rmse_deg"))} deg (heading '
+                f'{_fmt(m.get("heading_rmse_deg"))}, tilt {_fmt(m.get("tilt_rmse_deg"))}), '
+                f'max {_fmt(m.get("max_deg"))} deg, n={m.get("n", 0)}'
+            )
+    if len(entries) > 6:
+        lines.append(f'... and {len(entries) - 6} more topics')
+    return '\n'.join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# HTML.
+
+_STYLE = """
+body { font-family: sans-serif; margin: 2em; color: #222; }
+table { border-collapse: collapse; margin: 1em 0; }
+th, td { border: 1px solid #bbb; padding: 0.3em 0.8em; text-align: right; }
+th:first-child, td:first-child { text-align: left; }
+img { max-width: 100%; }
+"""
+
+_COLUMNS = (
+    ('rmse_deg', 'RMSE [deg]'),
+    ('heading_rmse_deg', 'heading RMSE [deg]'),
+    ('tilt_rmse_deg', 'tilt RMSE [deg]'),
+    ('max_deg', 'max [deg]'),
+    ('n', 'n'),
+)
+
+
+def _table_rows(metrics: dict) -> list[str]:
+    rows = []
+    for key, m in metrics.get('orientation', {}).items():
+        cells = [f'<td>{html.escape(key)}</td>']
+        if 'error' in m:
+            cells.append(f'<td colspan="{len(_COLUMNS)}">{html.escape(m["error"])}</td>')
+        else:
+            for name, _ in _COLUMNS:
+                value = m.get(name)
+                text = str(value) if name == 'n' else _fmt(value, 3)
+                cells.append(f'<td>{text}</td>')
+        rows.append('<tr>' + ''.join(cells) + '</tr>')
+    return rows
+
+
+def render_html(bag: Path, metrics: dict, png: bytes) -> str:
+    """A self-contained page: title, bag summary, metrics table and the embedded figure."""
+    name = html.escape(bag.name)
+    info = metrics.get('bag', {})
+    header = ''.join(f'<th>{html.escape(label)}</th>' for _, label in _COLUMNS)
+    rows = _table_rows(metrics) or [
+        f'<tr><td colspan="{len(_COLUMNS) + 1}">no orientation estimates</td></tr>'
+    ]
+    image = base64.b64encode(png).decode('ascii')
+    return '\n'.join([
+        '<!DOCTYPE html>',
+        '<html lang="en"><head><meta charset="utf-8">',
+        f'<title>ar_tracking evaluation: {name}</title>',
+        f'<style>{_STYLE}</style></head><body>',
+        f'<h1>Orientation evaluation: {name}</h1>',
+        f'<p>Bag {html.escape(str(info.get("path", bag)))}, '
+        f'{_fmt(info.get("duration_s"), 1)} s, {info.get("topics", "?")} topics. '
+        'Errors are of the camera orientation against the ground truth, interpolated at each '
+        'estimate\'s header stamp; heading is about the world\'s up axis, tilt the rest.</p>',
+        '<table>',
+        f'<tr><th>topic</th>{header}</tr>',
+        *rows,
+        '</table>',
+        f'<img alt="orientation over time for {name}" src="data:image/png;base64,{image}">',
+        '</body></html>',
+        '',
+    ])

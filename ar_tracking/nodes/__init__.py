@@ -1,0 +1,1 @@
+"""ar_tracking."""

@@ -1,0 +1,99 @@
+"""bag_replay: publishes the topics of any bag (rosbag2 sqlite3 / mcap, ROS 1) on their topics.
+
+Like ``ros2 bag play`` for machines without the ROS CLI: a rate factor, a start offset, looping,
+topic selection and remapping (``remap`` parameter or the usual ``--ros-args -r``), and
+``/clock`` from the bag's time so that other nodes can run with ``use_sim_time``. Messages are
+published as the raw CDR bytes of the bag (no deserialize/serialize round). Bag topics are
+published under relative names, so a node namespace applies to them.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from rosgraph_msgs.msg import Clock
+
+from ..io.bags import BagError, BagReader
+from ..io.replay import ReplayOptions, ScheduledMessage, parse_remaps
+from ..ros.conversions import ConversionError, message_class, to_stamp
+from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, TrackingNode, run_node
+from ..ros.player import BagPlayer
+
+#: Topics that keep their absolute name and are latched (late joiners get them).
+LATCHED_TOPICS = ('/tf_static', '/ground_truth/annotations')
+
+
+class BagReplayNode(TrackingNode):
+    """Replays a bag; subclasses change the name and the default topic selection."""
+
+    DEFAULT_TOPICS: list[str] = []
+
+    def __init__(self, node_name: str = 'bag_replay', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        p = self.param
+        bag_path: str = p('bag_path', '', 'Bag to play: rosbag2 directory, .mcap, .db3 or ROS 1 .bag', read_only=True)
+        options = ReplayOptions(
+            rate=p('rate', 1.0, 'Playback rate factor (0: as fast as possible)', min_value=0.0, max_value=1000.0, read_only=True),
+            start_offset_s=p('start_offset_s', 0.0, 'Skip this much of the bag, s', min_value=0.0, max_value=1e7, read_only=True),
+            loop=p('loop', False, 'Play again from the start offset when the bag ends', read_only=True),
+            topics=list(p('topics', self.DEFAULT_TOPICS or [''], 'Bag topics to play (empty: all)', read_only=True)),
+            remap=parse_remaps([r for r in p('remap', [''], 'Remappings from:=to applied to bag topics', read_only=True) if r]),
+        )
+        options.topics = [t for t in options.topics if t]
+        self.publish_clock: bool = p('publish_clock', True, 'Publish /clock from the bag time', read_only=True)
+        if not bag_path:
+            raise ValueError('parameter bag_path is required (-p bag_path:=/path/to/bag)')
+        try:
+            with BagReader(bag_path) as bag:
+                types = bag.topics
+        except BagError as exc:
+            raise ValueError(str(exc)) from exc
+        if self.DEFAULT_TOPICS and options.topics == self.DEFAULT_TOPICS:
+            options.topics = [t for t in options.topics if t in types]  # whichever of them exist
+            if not options.topics:
+                raise ValueError(f'{bag_path}: none of {", ".join(self.DEFAULT_TOPICS)} in the bag')
+        self.publishers_by_topic: dict[str, Any] = {}
+        for topic in options.topics or list(types):
+            if topic not in types:
+                raise ValueError(f'{bag_path}: no topic {topic} in the bag')
+            try:
+                cls = message_class(types[topic])
+            except ConversionError as exc:
+                self.get_logger().warning(f'{topic}: {exc}; not played')
+                continue
+            name = options.remap.get(topic, topic)
+            latched = topic in LATCHED_TOPICS
+            if not latched and name.startswith('/'):
+                name = name[1:]  # relative, so that the node's namespace applies
+            self.publishers_by_topic[topic] = self.advertise(cls, name, LATCHED_QOS if latched else RELIABLE_QOS)
+        options.topics = list(self.publishers_by_topic)
+        self.clock_pub = self.advertise(Clock, '/clock', RELIABLE_QOS) if self.publish_clock else None
+        self._clock = Clock()
+        self.player = BagPlayer(bag_path, options, self._publish, self._done)
+        self.get_logger().info(
+            f'playing {len(options.topics)} topics of {bag_path} at rate {options.rate:g}'
+            + (' (looping)' if options.loop else '')
+        )
+        self.player.start()
+
+    def _publish(self, item: ScheduledMessage) -> None:
+        if self.clock_pub is not None:
+            to_stamp(item.message.log_time_ns, self._clock.clock)
+            self.clock_pub.publish(self._clock)
+        self.publishers_by_topic[item.message.topic].publish(item.message.rawdata)
+
+    def _done(self, error: str | None) -> None:
+        if error:
+            self.get_logger().error(error)
+        else:
+            self.get_logger().info(f'replay finished: {self.player.published} messages')
+
+    def close(self) -> None:
+        self.player.stop()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(BagReplayNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

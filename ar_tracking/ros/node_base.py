@@ -1,0 +1,225 @@
+"""What every ar_tracking node shares: parameters with descriptors, guarded callbacks, timing.
+
+A node subclasses :class:`TrackingNode` and uses
+
+* ``self.param(name, default, description, ...)`` to declare a parameter with a description and
+  a range (CONVENTIONS habit 7) and read its value;
+* ``self.subscribe(...)`` / ``self.advertise(...)`` instead of create_subscription /
+  create_publisher. Subscriptions are wrapped so that a callback that raises logs one throttled
+  line and the message is skipped (DESIGN sec. 7: a message it cannot use never crashes the
+  graph), their processing time is recorded (for ``ar-tracking bench``), and the lockstep runner
+  can count deliveries and publications (:class:`LockstepHooks`).
+"""
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+#: Sensor subscriptions: best effort, keep last 5 (a reliable publisher still reaches them).
+SENSOR_QOS = qos_profile_sensor_data
+#: Estimates and products: reliable, keep last 10.
+RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+#: Latched products (maps, static data): reliable + transient local, depth 1.
+LATCHED_QOS = QoSProfile(
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+)
+
+
+@dataclass
+class LockstepHooks:
+    """Callbacks the lockstep runner installs to know when a message is fully processed."""
+
+    delivered: Callable[[str], None]
+    published: Callable[[str], None]
+
+
+class _CountingPublisher:
+    """A publisher proxy that reports each publish to the lockstep hooks (if any)."""
+
+    def __init__(self, node: 'TrackingNode', publisher: Any) -> None:
+        self._node = node
+        self._publisher = publisher
+
+    def publish(self, msg: Any) -> None:
+        self._publisher.publish(msg)
+        hooks = self._node.lockstep_hooks
+        if hooks is not None:
+            hooks.published(self._publisher.topic_name)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._publisher, name)
+
+
+@dataclass
+class CallbackStats:
+    """Processing time of each callback call, in milliseconds (bench: p50 / p95)."""
+
+    durations_ms: list[float] = field(default_factory=list)
+    failures: int = 0
+
+
+class TrackingNode(Node):
+    """Base class of the ar_tracking nodes (see module docstring)."""
+
+    #: Topics the node subscribes to -> message type (relative names, for the runner).
+    INPUTS: dict[str, str] = {}
+    #: Topics the node publishes -> message type (relative names, for the runner and recorder).
+    OUTPUTS: dict[str, str] = {}
+
+    def __init__(self, node_name: str, **kwargs: Any) -> None:
+        kwargs.setdefault('automatically_declare_parameters_from_overrides', False)
+        super().__init__(node_name, **kwargs)
+        self.lockstep_hooks: LockstepHooks | None = None
+        self.callback_stats: dict[str, CallbackStats] = defaultdict(CallbackStats)
+        self._validators: dict[str, Callable[[Any], str | None]] = {}
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    # -- parameters ------------------------------------------------------------------------
+
+    def param(
+        self,
+        name: str,
+        default: Any,
+        description: str,
+        *,
+        min_value: float | None = None,
+        max_value: float | None = None,
+        read_only: bool = False,
+        validate: Callable[[Any], str | None] | None = None,
+    ) -> Any:
+        """Declare a parameter with a description (and a range for numbers); return its value.
+
+        ``validate`` returns None for an acceptable value or the reason it is rejected; it runs
+        for the initial value and for every later change (a rejected change leaves the state).
+        """
+        descriptor = ParameterDescriptor(description=description, read_only=read_only)
+        if min_value is not None or max_value is not None:
+            lo = -1e300 if min_value is None else min_value
+            hi = 1e300 if max_value is None else max_value
+            if isinstance(default, bool):
+                pass
+            elif isinstance(default, int):
+                descriptor.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+            else:
+                descriptor.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        self._coerce_override(name, default)
+        value = self.declare_parameter(name, default, descriptor).value
+        if validate is not None:
+            reason = validate(value)
+            if reason is not None:
+                raise ValueError(f'parameter {name}: {reason}')
+            self._validators[name] = validate
+        return value
+
+    def _coerce_override(self, name: str, default: Any) -> None:
+        """Accept 1 for 1.0 (and [0, 0, 0] for a float array) in params files."""
+        override = self._parameter_overrides.get(name)
+        if override is None:
+            return
+        value = override.value
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            self._parameter_overrides[name] = Parameter(name, value=float(value))
+        elif (
+            isinstance(default, list)
+            and default
+            and isinstance(default[0], float)
+            and isinstance(value, (list, tuple))
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        ):
+            self._parameter_overrides[name] = Parameter(name, value=[float(v) for v in value])
+
+    def _on_set_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:
+        for p in params:
+            check = self._validators.get(p.name)
+            if check is not None:
+                reason = check(p.value)
+                if reason is not None:
+                    return SetParametersResult(successful=False, reason=f'{p.name}: {reason}')
+        return SetParametersResult(successful=True)
+
+    # -- topics ----------------------------------------------------------------------------
+
+    def subscribe(
+        self,
+        msg_type: Any,
+        topic: str,
+        callback: Callable[[Any], None],
+        qos: QoSProfile = SENSOR_QOS,
+        *,
+        raw: bool = False,
+    ) -> Any:
+        """create_subscription with a guarded, timed callback (see module docstring)."""
+        stats = self.callback_stats[topic]
+        logger = self.get_logger()
+
+        def guarded(msg: Any) -> None:
+            start = time.perf_counter()
+            try:
+                callback(msg)
+            except Exception as exc:  # never let one bad message end the graph
+                stats.failures += 1
+                logger.error(
+                    f'{topic}: message skipped, {type(exc).__name__}: {exc}',
+                    throttle_duration_sec=5.0,
+                )
+            finally:
+                stats.durations_ms.append((time.perf_counter() - start) * 1e3)
+                hooks = self.lockstep_hooks
+                if hooks is not None:
+                    hooks.delivered(subscription.topic_name)
+
+        subscription = self.create_subscription(msg_type, topic, guarded, qos, raw=raw)
+        return subscription
+
+    def advertise(self, msg_type: Any, topic: str, qos: QoSProfile = RELIABLE_QOS) -> _CountingPublisher:
+        """create_publisher, counted for the lockstep runner."""
+        return _CountingPublisher(self, self.create_publisher(msg_type, topic, qos))
+
+    # -- logging ---------------------------------------------------------------------------
+
+    def warn_throttled(self, text: str, period_s: float = 5.0) -> None:
+        """One warning line, at most once per period for the same call site."""
+        self.get_logger().warning(text, throttle_duration_sec=period_s)
+
+
+def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+    """main() body of every node executable (CONVENTIONS habit 12)."""
+    import sys
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:  # a rejected parameter: one line, non-zero exit
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            close = getattr(node, 'close', None)
+            if callable(close):
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

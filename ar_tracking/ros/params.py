@@ -1,0 +1,71 @@
+"""Parameter files: the packaged config/<node>.yaml defaults and user params files (ROS 2 format).
+
+A params file maps node names (or ``/**`` for every node) to ``ros__parameters``. Values are
+turned into rclpy ``Parameter`` overrides for in-process nodes; numbers written as integers
+where a node declares floats are accepted (TrackingNode coerces them).
+"""
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ParamsError(Exception):
+    """A params file cannot be read: one line for the user."""
+
+
+def packaged_config(node_name: str) -> Path | None:
+    """Path of config/<node>.yaml as installed with the package (None if there is none)."""
+    try:
+        ref = resources.files('ar_tracking.config').joinpath(f'{node_name}.yaml')
+    except ModuleNotFoundError:
+        return None
+    path = Path(str(ref))
+    return path if path.is_file() else None
+
+
+def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
+    """node name -> {parameter: value} from one ROS 2 params file."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError as exc:
+        raise ParamsError(f'{path}: no such params file') from exc
+    except (OSError, yaml.YAMLError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ParamsError(f'{path}: not a YAML params file ({first})') from exc
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ParamsError(f'{path}: a params file maps node names to ros__parameters')
+    out: dict[str, dict[str, Any]] = {}
+    for node, body in data.items():
+        if not isinstance(body, dict) or not isinstance(body.get('ros__parameters', {}), dict):
+            raise ParamsError(f'{path}: {node} has no ros__parameters mapping')
+        out[str(node).lstrip('/')] = dict(body.get('ros__parameters') or {})
+    return out
+
+
+def params_for_node(node_name: str, files: list[str | Path], use_packaged: bool = True) -> dict[str, Any]:
+    """Merged parameters of one node: packaged config first, then each file in order."""
+    merged: dict[str, Any] = {}
+    sources: list[str | Path] = []
+    packaged = packaged_config(node_name) if use_packaged else None
+    if packaged is not None:
+        sources.append(packaged)
+    sources.extend(files)
+    for src in sources:
+        table = load_params_file(src)
+        for key in ('**', node_name):
+            merged.update(table.get(key, {}))
+    return merged
+
+
+def to_overrides(params: dict[str, Any]) -> list[Any]:
+    """rclpy Parameter objects for ``parameter_overrides``."""
+    from rclpy.parameter import Parameter
+
+    return [Parameter(name, value=value) for name, value in params.items()]

@@ -1,0 +1,457 @@
+"""The graph runner behind ``ar-tracking run``: every node that can run on a bag, one output bag.
+
+Two clocks (DESIGN sec. 4):
+
+* **lockstep** (default): all nodes in one process on a private rclpy Context. The runner
+  publishes one input message, then spins until every subscription that should receive it -
+  and, recursively, every message the nodes publish in response - has been delivered and
+  processed. Only then does the next input go out. Outputs are written with the log time of the
+  input that caused them, in a fixed order, so two runs give byte-identical output bags.
+* **realtime** (``rate > 0``): the bag is played at ``rate`` times its speed with ``/clock``;
+  nodes use sim time and whatever they cannot keep up with is dropped, like on a device.
+
+Inputs the evaluation needs (ground truth, static transforms, the non-image sensor topics) are
+copied into the output bag; images only on request. The output bag is closed cleanly on every
+exit path, Ctrl-C included, with everything processed so far.
+"""
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import signal
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from ..io.bags import BagError, BagMessage, BagReader, BagWriter
+from .params import params_for_node, to_overrides
+
+logger = logging.getLogger(__name__)
+
+#: The processing nodes the runner can start: name -> "module:Class". Replay nodes are not
+#: listed: in the runner, the runner itself plays the bag.
+GRAPH_NODES: dict[str, str] = {
+    'imu_magnetometer': 'ar_tracking.nodes.imu_magnetometer:ImuMagnetometerNode',
+}
+
+#: Topics copied from the input bag to the output by default (prefix match).
+COPY_PREFIXES = ('/ground_truth/', '/tf_static', '/tf', '/gps/', '/imu/')
+IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
+
+
+class RunError(Exception):
+    """The graph cannot run on this bag: one line for the user."""
+
+
+@dataclass
+class RunResult:
+    out_path: Path
+    input_messages: int = 0
+    output_messages: int = 0
+    wall_s: float = 0.0
+    bag_duration_s: float = 0.0
+    interrupted: bool = False
+    lost_deliveries: int = 0
+    nodes: list[str] = field(default_factory=list)
+    #: node name -> input topic -> processing times in ms
+    timings_ms: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.bag_duration_s / self.wall_s if self.wall_s > 0 else float('inf')
+
+
+def load_node_class(spec: str) -> Any:
+    module, _, cls = spec.partition(':')
+    return getattr(importlib.import_module(module), cls)
+
+
+def plan_nodes(bag_topics: Iterable[str], only: Iterable[str] | None = None) -> tuple[list[str], dict[str, str]]:
+    """Which nodes can run: those whose inputs are in the bag or produced by a node that runs.
+
+    Returns (node names in start order, reasons for the ones left out).
+    """
+    available = {t.lstrip('/') for t in bag_topics}
+    wanted = list(only) if only else list(GRAPH_NODES)
+    unknown = [n for n in wanted if n not in GRAPH_NODES]
+    if unknown:
+        raise RunError(f'unknown node(s) {", ".join(unknown)}; known: {", ".join(GRAPH_NODES)}')
+    started: list[str] = []
+    pending = list(wanted)
+    progress = True
+    while progress:
+        progress = False
+        for name in list(pending):
+            cls = load_node_class(GRAPH_NODES[name])
+            needed = getattr(cls, 'REQUIRED_INPUTS', None) or cls.INPUTS
+            if all(t in available for t in needed):
+                started.append(name)
+                available.update(cls.OUTPUTS)
+                pending.remove(name)
+                progress = True
+    reasons = {}
+    for name in pending:
+        cls = load_node_class(GRAPH_NODES[name])
+        needed = getattr(cls, 'REQUIRED_INPUTS', None) or cls.INPUTS
+        missing = [t for t in needed if t not in available]
+        reasons[name] = f'needs {", ".join(missing)}'
+    return started, reasons
+
+
+def _domain_id() -> int:
+    """A DDS domain for the private graph, so two runs on one machine do not hear each other."""
+    env = os.environ.get('AR_TRACKING_DOMAIN_ID')
+    if env:
+        return int(env)
+    return 100 + os.getpid() % 100
+
+
+class _Recorder:
+    """Collects node outputs during one lockstep step, then writes them in a fixed order."""
+
+    def __init__(self, writer: BagWriter, topic_types: dict[str, str]) -> None:
+        self.writer = writer
+        self.topic_types = topic_types
+        self.order = {t: i for i, t in enumerate(sorted(topic_types))}
+        self.pending: list[tuple[int, int, str, bytes]] = []
+        self.count = 0
+        self.lock = threading.Lock()
+
+    def add(self, topic: str, raw: bytes) -> None:
+        with self.lock:
+            self.pending.append((self.order.get(topic, 1 << 30), len(self.pending), topic, raw))
+
+    def flush(self, log_time_ns: int) -> None:
+        with self.lock:
+            items, self.pending = sorted(self.pending), []
+        for _, _, topic, raw in items:
+            self.writer.write(topic, log_time_ns, raw, msgtype=self.topic_types[topic])
+            self.count += 1
+
+
+class GraphRunner:
+    """Runs the node graph on one bag and records the outputs (see the module docstring)."""
+
+    def __init__(
+        self,
+        bag: str | Path,
+        out: str | Path,
+        *,
+        params_files: list[str | Path] | None = None,
+        nodes: list[str] | None = None,
+        rate: float = 0.0,
+        storage: str | None = None,
+        copy_images: bool = False,
+        executor: str = 'single',
+        progress: Callable[[int, int], None] | None = None,
+        step_timeout_s: float = 10.0,
+        max_messages: int | None = None,
+    ) -> None:
+        self.bag_path = Path(bag)
+        self.out_path = Path(out)
+        self.params_files = list(params_files or [])
+        self.only_nodes = nodes
+        self.rate = rate
+        self.storage = storage
+        self.copy_images = copy_images
+        self.executor_kind = executor
+        self.progress = progress
+        self.step_timeout_s = step_timeout_s
+        self.max_messages = max_messages
+        self._delivered = 0
+        self._expected = 0
+        self._sub_counts: dict[str, int] = defaultdict(int)
+
+    # -- hooks used by TrackingNode ---------------------------------------------------------
+
+    def _on_delivered(self, topic: str) -> None:
+        self._delivered += 1
+
+    def _on_published(self, topic: str) -> None:
+        self._expected += self._sub_counts.get(topic, 0)
+
+    # -- setup ------------------------------------------------------------------------------
+
+    def run(self) -> RunResult:
+        import rclpy
+        from rclpy.context import Context
+
+        if self.rate < 0:
+            raise RunError('rate must be >= 0 (0 = lockstep)')
+        reader = BagReader(self.bag_path)
+        reader.open()
+        try:
+            return self._run_with(reader, rclpy, Context())
+        finally:
+            reader.close()
+
+    def _run_with(self, reader: BagReader, rclpy: Any, context: Any) -> RunResult:
+        from .node_base import LockstepHooks, RELIABLE_QOS, TrackingNode
+        from .conversions import message_class
+
+        bag_types = reader.topics
+        names, skipped = plan_nodes(bag_types, self.only_nodes)
+        for name, why in skipped.items():
+            logger.warning('%s not started: %s', name, why)
+        if not names:
+            raise RunError(
+                f'{self.bag_path}: no node can run on this bag '
+                f'(topics: {", ".join(sorted(bag_types)) or "none"})'
+            )
+        os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+        rclpy.init(context=context, domain_id=_domain_id())
+        nodes: list[Any] = []
+        writer = None
+        result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names)
+        hooks = LockstepHooks(self._on_delivered, self._on_published)
+        realtime = self.rate > 0
+        try:
+            for name in names:
+                cls = load_node_class(GRAPH_NODES[name])
+                params = params_for_node(name, self.params_files)
+                if realtime:
+                    params['use_sim_time'] = True
+                try:
+                    node = cls(context=context, parameter_overrides=to_overrides(params))
+                except Exception as exc:  # a rejected parameter, a bad params file value
+                    raise RunError(f'{name}: cannot start ({exc})') from exc
+                node.lockstep_hooks = None if realtime else hooks
+                nodes.append(node)
+
+            consumed = {t for n in nodes for t in type(n).INPUTS}
+            feeder = TrackingNode('graph_feeder', context=context)
+            feeder.lockstep_hooks = None if realtime else hooks
+            nodes.append(feeder)
+            feed_pubs: dict[str, Any] = {}
+            for topic, msgtype in bag_types.items():
+                if topic.lstrip('/') in consumed:
+                    feed_pubs[topic] = feeder.advertise(message_class(msgtype), topic, RELIABLE_QOS)
+            clock_pub = None
+            if realtime:
+                from rosgraph_msgs.msg import Clock
+
+                clock_pub = feeder.advertise(Clock, '/clock', RELIABLE_QOS)
+
+            output_types: dict[str, str] = {}
+            for n in nodes[:-1]:
+                for topic, msgtype in type(n).OUTPUTS.items():
+                    output_types['/' + topic.lstrip('/')] = msgtype
+            recorder_node = TrackingNode('graph_recorder', context=context)
+            recorder_node.lockstep_hooks = None if realtime else hooks
+            nodes.append(recorder_node)
+
+            copy_topics = {
+                t for t, ty in bag_types.items()
+                if (t.startswith(COPY_PREFIXES) or t.lstrip('/') in consumed)
+                and (self.copy_images or ty not in IMAGE_TYPES)
+                and t not in output_types
+            }
+            writer = BagWriter(self.out_path, storage=self.storage, overwrite=True)  # type: ignore[arg-type]
+            writer.open()
+            recorder = _Recorder(writer, output_types)
+            clock_ns = [reader.start_ns]
+
+            def make_cb(topic: str) -> Callable[[bytes], None]:
+                if realtime:
+                    def record_now(raw: bytes) -> None:
+                        with recorder.lock:
+                            writer.write(topic, clock_ns[0], raw, msgtype=output_types[topic])
+                            recorder.count += 1
+                    return record_now
+                return lambda raw: recorder.add(topic, raw)
+
+            for topic, msgtype in sorted(output_types.items()):
+                recorder_node.subscribe(message_class(msgtype), topic, make_cb(topic), RELIABLE_QOS, raw=True)
+
+            for n in nodes:
+                for sub in n.subscriptions:
+                    self._sub_counts[sub.topic_name] += 1
+            executor = self._make_executor(rclpy, context, realtime)
+            for n in nodes:
+                executor.add_node(n)
+            self._wait_for_discovery(executor, nodes)
+
+            total = reader.message_count(set(feed_pubs) | copy_topics)
+            if self.max_messages is not None:
+                total = min(total, self.max_messages)
+            start = time.perf_counter()
+            try:
+                with _sigterm_as_interrupt():
+                    if realtime:
+                        self._play_realtime(reader, executor, feed_pubs, clock_pub, copy_topics, writer, recorder, clock_ns, result, total)
+                    else:
+                        self._play_lockstep(reader, executor, feed_pubs, copy_topics, writer, recorder, result, total)
+            except KeyboardInterrupt:
+                result.interrupted = True
+                logger.warning('interrupted: closing %s with what was processed', self.out_path)
+            result.wall_s = time.perf_counter() - start
+            result.output_messages = recorder.count
+            for n in nodes[:-2]:
+                result.timings_ms[n.get_name()] = {
+                    t: list(s.durations_ms) for t, s in n.callback_stats.items()
+                }
+            executor.shutdown(timeout_sec=1.0) if hasattr(executor, 'shutdown') else None
+        finally:
+            if writer is not None:
+                writer.close()
+            for n in nodes:
+                close = getattr(n, 'close', None)
+                if callable(close):
+                    close()
+                n.destroy_node()
+            rclpy.try_shutdown(context=context)
+        return result
+
+    def _make_executor(self, rclpy: Any, context: Any, realtime: bool) -> Any:
+        from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+
+        if realtime:
+            return MultiThreadedExecutor(num_threads=2, context=context)
+        if self.executor_kind == 'events':
+            from rclpy.experimental import EventsExecutor
+
+            return EventsExecutor(context=context)
+        return SingleThreadedExecutor(context=context)
+
+    def _wait_for_discovery(self, executor: Any, nodes: list[Any], timeout_s: float = 15.0) -> None:
+        """Spin until every publisher sees the subscriptions of its topic in this graph."""
+        deadline = time.monotonic() + timeout_s
+        pubs = [p for n in nodes for p in n.publishers if self._sub_counts.get(p.topic_name, 0)]
+        while time.monotonic() < deadline:
+            if all(p.get_subscription_count() >= self._sub_counts[p.topic_name] for p in pubs):
+                # Every reader matched; let the writers' side settle too.
+                executor.spin_once(timeout_sec=0.01)
+                return
+            executor.spin_once(timeout_sec=0.02)
+        missing = [p.topic_name for p in pubs if p.get_subscription_count() < self._sub_counts[p.topic_name]]
+        raise RunError(f'nodes did not connect within {timeout_s:g} s on {", ".join(missing)}')
+
+    # -- lockstep --------------------------------------------------------------------------
+
+    def _play_lockstep(
+        self,
+        reader: BagReader,
+        executor: Any,
+        feed_pubs: dict[str, Any],
+        copy_topics: set[str],
+        writer: BagWriter,
+        recorder: _Recorder,
+        result: RunResult,
+        total: int,
+    ) -> None:
+        done = 0
+        for msg in reader.messages(set(feed_pubs) | copy_topics):
+            if self.max_messages is not None and done >= self.max_messages:
+                break
+            if msg.topic in copy_topics:
+                writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
+            pub = feed_pubs.get(msg.topic)
+            if pub is not None:
+                pub.publish(msg.rawdata)
+                result.input_messages += 1
+                self._settle(executor, result)
+                recorder.flush(msg.log_time_ns)
+            done += 1
+            if self.progress is not None:
+                self.progress(done, total)
+
+    def _settle(self, executor: Any, result: RunResult) -> None:
+        """Spin until every expected delivery happened (or give up after the step timeout)."""
+        deadline = None
+        while self._delivered < self._expected:
+            executor.spin_once(timeout_sec=0.05)
+            if self._delivered >= self._expected:
+                break
+            now = time.monotonic()
+            if deadline is None:
+                deadline = now + self.step_timeout_s
+            elif now > deadline:
+                lost = self._expected - self._delivered
+                result.lost_deliveries += lost
+                logger.warning('%d message deliveries did not happen within %.1f s', lost, self.step_timeout_s)
+                self._delivered = self._expected
+                break
+
+    # -- realtime --------------------------------------------------------------------------
+
+    def _play_realtime(
+        self,
+        reader: BagReader,
+        executor: Any,
+        feed_pubs: dict[str, Any],
+        clock_pub: Any,
+        copy_topics: set[str],
+        writer: BagWriter,
+        recorder: _Recorder,
+        clock_ns: list[int],
+        result: RunResult,
+        total: int,
+    ) -> None:
+        from rosgraph_msgs.msg import Clock
+
+        from .conversions import to_stamp
+
+        clock = Clock()
+        finished = threading.Event()
+        errors: list[BaseException] = []
+
+        def play() -> None:
+            done = 0
+            try:
+                start_wall = time.monotonic()
+                for msg in reader.messages(set(feed_pubs) | copy_topics):
+                    if finished.is_set() or (self.max_messages is not None and done >= self.max_messages):
+                        break
+                    due = start_wall + (msg.log_time_ns - reader.start_ns) * 1e-9 / self.rate
+                    delay = due - time.monotonic()
+                    if delay > 0 and finished.wait(delay):
+                        break
+                    clock_ns[0] = msg.log_time_ns
+                    clock_pub.publish(to_stamp(msg.log_time_ns, clock.clock) and clock)
+                    if msg.topic in copy_topics:
+                        with recorder.lock:
+                            writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
+                    pub = feed_pubs.get(msg.topic)
+                    if pub is not None:
+                        pub.publish(msg.rawdata)
+                        result.input_messages += 1
+                    done += 1
+                    if self.progress is not None:
+                        self.progress(done, total)
+            except BaseException as exc:  # reported in the main thread
+                errors.append(exc)
+            finally:
+                finished.set()
+
+        thread = threading.Thread(target=play, name='graph_player', daemon=True)
+        thread.start()
+        try:
+            while not finished.is_set():
+                executor.spin_once(timeout_sec=0.05)
+            drain_until = time.monotonic() + 0.5
+            while time.monotonic() < drain_until:
+                executor.spin_once(timeout_sec=0.05)
+        finally:
+            finished.set()
+            thread.join(2.0)
+        if errors:
+            raise errors[0]
+
+
+class _sigterm_as_interrupt:
+    """Within the block, SIGTERM ends the run like Ctrl-C (the output bag is closed cleanly)."""
+
+    def __enter__(self) -> None:
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            def handler(signum: int, frame: Any) -> None:
+                raise KeyboardInterrupt
+            self.previous = signal.signal(signal.SIGTERM, handler)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.previous is not None:
+            signal.signal(signal.SIGTERM, self.previous)
