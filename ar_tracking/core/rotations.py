@@ -114,7 +114,8 @@ def camera_heading_pitch_roll_deg(R_enu_cam: Array) -> tuple[Array, Array, Array
     norm = np.linalg.norm(horiz_right, axis=-1, keepdims=True)
     horiz_right = horiz_right / np.where(norm < 1e-9, 1.0, norm)
     cos_r = np.sum(x * horiz_right, axis=-1)
-    sin_r = -x[..., 2]
+    # image down at zero roll (z x right), not world down: -x_z would be sin(roll) * cos(pitch)
+    sin_r = np.sum(x * np.cross(z, horiz_right), axis=-1)
     roll = np.degrees(np.arctan2(sin_r, cos_r))
     return heading, pitch, roll
 

@@ -251,7 +251,10 @@ class BagWriter:
                     f'{self.path}: topic {topic} already has type {self._channels[topic][1]}'
                 )
             return
-        msg_class(msgtype)  # unknown types fail here with a clear message
+        try:
+            msg_class(msgtype)  # unknown types fail here with a clear message
+        except BagError as exc:
+            raise BagError(f'{self.path}: {exc}') from exc
         if self.storage == 'mcap':
             msgdef, _ = TYPESTORE.generate_msgdef(msgtype, ros_version=2)
             schema_id = self._impl.register_schema(
@@ -275,9 +278,8 @@ class BagWriter:
         else:
             msgtype = msgtype or msg.__msgtype__
             rawdata = serialize(msg)
-        if topic not in self._channels:
-            assert msgtype is not None
-            self.add_topic(topic, msgtype)
+        if msgtype is not None:
+            self.add_topic(topic, msgtype)  # declares the topic, or checks it keeps one type
         channel, _ = self._channels[topic]
         log_time_ns = int(log_time_ns)
         if self.storage == 'mcap':

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from sensor_msgs.msg import Imu, MagneticField
 
+from ..core.stamp_pairing import NearestStampPairer
 from ..core.imu_orientation import FieldModel, GravityFieldOrientation, ImuCalibration
 from ..io.replay import ReplayOptions, ScheduledMessage
 from ..ros.conversions import (
@@ -76,8 +77,7 @@ class ImuMagnetometerNode(TrackingNode):
         self.R_world_enu = WORLD_FROM_ENU[self.world_frame]
         self.imu_guard = StampGuard(reset_s)
         self.mag_guard = StampGuard(reset_s)
-        self.last_mag: tuple[int, np.ndarray] | None = None
-        self.pending: tuple[int, np.ndarray, Imu] | None = None  # IMU sample waiting for its field
+        self.pairer: NearestStampPairer[tuple[np.ndarray, Imu], np.ndarray] = NearestStampPairer(self.max_mag_age_ns)
         self.published = 0
 
         self.pub_data = self.advertise(Imu, 'imu/data', RELIABLE_QOS)
@@ -145,8 +145,7 @@ class ImuMagnetometerNode(TrackingNode):
         if verdict is StampVerdict.RESET:
             self.get_logger().warning(f'{what}: {verdict.value} (bag loop?), starting over')
             self.core.reset()
-            self.last_mag = None
-            self.pending = None
+            self.pairer.reset()
             (self.mag_guard if guard is self.imu_guard else self.imu_guard).reset()
             return True
         self.warn_throttled(f'{what}: {verdict.value}, message dropped')
@@ -161,10 +160,8 @@ class ImuMagnetometerNode(TrackingNode):
             return None
         if not self._stamp_ok(self.mag_guard, msg, 'imu/mag'):
             return None
-        current = (stamp_ns(msg.header), raw)
-        if self.pending is not None:
-            self._emit_with_best(self.pending, current)
-        self.last_mag = current
+        for _, (accel, calibrated), mag in self.pairer.add_secondary(stamp_ns(msg.header), raw):
+            self._emit(accel, calibrated, mag)
         out = MagneticField()
         out.header = msg.header
         set_vector3(out.magnetic_field, self.core.calibration.mag(raw))
@@ -193,35 +190,23 @@ class ImuMagnetometerNode(TrackingNode):
         calibrated.linear_acceleration_covariance = msg.linear_acceleration_covariance
         set_covariance(calibrated.orientation_covariance, None)
 
-        # Pair with the field sample closest in stamp: use the stored one if it is not older
-        # than this sample, else wait for the next field sample (sensors often stamp both alike
-        # and deliver them in either order).
-        if self.pending is not None:
-            self._emit_with_best(self.pending, None)
-        sample = (stamp_ns(msg.header), accel, calibrated)
-        if self.last_mag is not None and self.last_mag[0] >= sample[0]:
-            self._emit_with_best(sample, None)
-        else:
-            self.pending = sample
+        # Pair with the field sample nearest in stamp, whatever order the two streams arrive in.
+        for _, (sample_accel, sample_msg), mag in self.pairer.add_primary(stamp_ns(msg.header), (accel, calibrated)):
+            self._emit(sample_accel, sample_msg, mag)
         return calibrated
 
-    def _emit_with_best(self, sample: tuple[int, np.ndarray, Imu], newer: tuple[int, np.ndarray] | None) -> None:
-        """Publish imu/data for an IMU sample with the closest field sample within max age."""
-        self.pending = None
-        t = sample[0]
-        candidates = [m for m in (self.last_mag, newer) if m is not None and abs(m[0] - t) <= self.max_mag_age_ns]
-        if not candidates:
+    def _emit(self, accel: np.ndarray, calibrated: Imu, mag: np.ndarray | None) -> None:
+        """Publish imu/data for one IMU sample and its paired raw field sample."""
+        if mag is None:
             self.warn_throttled(
                 f'no magnetometer sample within {self.max_mag_age_ns * 1e-9:.3g} s of the IMU; '
                 'imu/data not published'
             )
             return
-        mag = min(candidates, key=lambda m: abs(m[0] - t))
-        estimate = self.core.estimate(sample[1], mag[1])
+        estimate = self.core.estimate(accel, mag)
         if estimate is None:
             self.warn_throttled('gravity and field do not define an orientation (zero or parallel); skipped')
             return
-        calibrated = sample[2]
         out = Imu()
         out.header = calibrated.header
         out.angular_velocity = calibrated.angular_velocity

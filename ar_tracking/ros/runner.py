@@ -17,6 +17,7 @@ exit path, Ctrl-C included, with everything processed so far.
 from __future__ import annotations
 
 import importlib
+import itertools
 import logging
 import os
 import signal
@@ -102,12 +103,17 @@ def plan_nodes(bag_topics: Iterable[str], only: Iterable[str] | None = None) -> 
     return started, reasons
 
 
+_runs_in_process = itertools.count()
+
+
 def _domain_id() -> int:
-    """A DDS domain for the private graph, so two runs on one machine do not hear each other."""
+    """A DDS domain for the private graph, so that two runs on one machine (or two runs one
+    after the other in one process, while DDS still tears down the first) never hear each other.
+    """
     env = os.environ.get('AR_TRACKING_DOMAIN_ID')
     if env:
         return int(env)
-    return 100 + os.getpid() % 100
+    return 101 + (os.getpid() * 7 + next(_runs_in_process)) % 100
 
 
 class _Recorder:
@@ -206,6 +212,7 @@ class GraphRunner:
         rclpy.init(context=context, domain_id=_domain_id())
         nodes: list[Any] = []
         writer = None
+        executor = None
         result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names)
         hooks = LockstepHooks(self._on_delivered, self._on_published)
         realtime = self.rate > 0
@@ -294,8 +301,9 @@ class GraphRunner:
                 result.timings_ms[n.get_name()] = {
                     t: list(s.durations_ms) for t, s in n.callback_stats.items()
                 }
-            executor.shutdown(timeout_sec=1.0) if hasattr(executor, 'shutdown') else None
         finally:
+            if executor is not None:
+                executor.shutdown(timeout_sec=2.0)
             if writer is not None:
                 writer.close()
             for n in nodes:
@@ -307,10 +315,10 @@ class GraphRunner:
         return result
 
     def _make_executor(self, rclpy: Any, context: Any, realtime: bool) -> Any:
-        from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
 
-        if realtime:
-            return MultiThreadedExecutor(num_threads=2, context=context)
+        # Realtime runs use the same executors: the player has its own thread, and a
+        # MultiThreadedExecutor's per-callback overhead drops messages at IMU rates.
         if self.executor_kind == 'events':
             from rclpy.experimental import EventsExecutor
 

@@ -1,0 +1,40 @@
+"""Shared test fixtures: private rclpy contexts, small bags, the shared real-data folder."""
+from __future__ import annotations
+
+import itertools
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import pytest
+
+#: Real recordings (../shared/data beside the repository) when present.
+SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
+
+_domain_ids = itertools.count(150 + os.getpid() % 50)
+
+
+@pytest.fixture
+def ros_context() -> Iterator[Any]:
+    """An initialised private rclpy Context on its own DDS domain, shut down afterwards."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.context import Context
+
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    context = Context()
+    rclpy.init(context=context, domain_id=next(_domain_ids) % 230)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def spin_until(executor: Any, predicate: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Spin an executor until the predicate holds or the deadline passes; returns the predicate."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.02)
+    return predicate()

@@ -1,0 +1,321 @@
+"""Bag writing and reading without ROS: round trips in both storages and clear errors."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ar_tracking.io.bags import (
+    BagError,
+    BagReader,
+    BagWriter,
+    deserialize,
+    msg_class,
+    ns_to_stamp,
+    serialize,
+    stamp_to_ns,
+)
+
+SEC = 1_000_000_000
+MS = 1_000_000
+T0 = 1_700_000_000 * SEC
+
+String = msg_class('std_msgs/msg/String')
+Header = msg_class('std_msgs/msg/Header')
+Vector3 = msg_class('geometry_msgs/msg/Vector3')
+Quaternion = msg_class('geometry_msgs/msg/Quaternion')
+Imu = msg_class('sensor_msgs/msg/Imu')
+Image = msg_class('sensor_msgs/msg/Image')
+
+
+def imu(i: int, stamp_ns: int) -> object:
+    return Imu(
+        header=Header(stamp=ns_to_stamp(stamp_ns), frame_id='imu'),
+        orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.full(9, float(i)),
+        angular_velocity=Vector3(x=0.1 * i, y=0.0, z=-0.1),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=Vector3(x=0.0, y=0.0, z=9.81),
+        linear_acceleration_covariance=np.zeros(9),
+    )
+
+
+def image(i: int, stamp_ns: int, rng: np.random.Generator, size: int = 32) -> object:
+    return Image(
+        header=Header(stamp=ns_to_stamp(stamp_ns), frame_id='camera_optical'),
+        height=size,
+        width=size,
+        encoding='mono8',
+        is_bigendian=0,
+        step=size,
+        data=rng.integers(0, 256, size * size, dtype=np.uint8),
+    )
+
+
+#: The written content: (topic, log time ns) per message. IMU at 100 Hz, images at 30 Hz,
+#: text at 2 Hz, written topic by topic (not in time order) to check the reader merges them.
+IMU_TIMES = [T0 + i * 10 * MS for i in range(50)]
+IMAGE_TIMES = [T0 + 3 * MS + i * 33 * MS for i in range(15)]
+TEXT_TIMES = [T0 + 1 * MS + i * 250 * MS for i in range(2)]
+
+
+def write_sample_bag(path: Path, storage: str | None = None, **kwargs) -> Path:
+    rng = np.random.default_rng(0)
+    with BagWriter(path, storage=storage, **kwargs) as writer:
+        for i, t in enumerate(IMU_TIMES):
+            writer.write('/imu/data_raw', t, imu(i, t))
+        for i, t in enumerate(IMAGE_TIMES):
+            writer.write('/camera/image_raw', t, image(i, t, rng))
+        for i, t in enumerate(TEXT_TIMES):
+            writer.write('/notes', t, String(data=f'note {i}'))
+        assert writer.message_count == len(IMU_TIMES) + len(IMAGE_TIMES) + len(TEXT_TIMES)
+    return writer.path
+
+
+def assert_one_line_mentioning(exc: pytest.ExceptionInfo, path: Path) -> None:
+    text = str(exc.value)
+    assert '\n' not in text and text.strip()
+    assert str(path) in text, text
+
+
+STORAGES = [('mcap', 'run.mcap'), ('sqlite3', 'run_db')]
+
+
+@pytest.mark.parametrize('storage, name', STORAGES)
+def test_round_trip(tmp_path, storage, name):
+    path = write_sample_bag(tmp_path / name, storage)
+    if storage == 'mcap':
+        assert path.is_file() and path.suffix == '.mcap'
+    else:
+        assert path.is_dir() and (path / 'metadata.yaml').exists()
+    with BagReader(path) as bag:
+        assert bag.topics == {
+            '/imu/data_raw': 'sensor_msgs/msg/Imu',
+            '/camera/image_raw': 'sensor_msgs/msg/Image',
+            '/notes': 'std_msgs/msg/String',
+        }
+        assert bag.message_count() == 67
+        assert bag.message_count(['/imu/data_raw']) == 50
+        assert bag.message_count(['/camera/image_raw', '/notes']) == 17
+        assert bag.message_count(['/nope']) == 0
+        all_times = sorted(IMU_TIMES + IMAGE_TIMES + TEXT_TIMES)
+        assert bag.start_ns == all_times[0]
+        # rosbags reports the end as one nanosecond after the last message
+        assert bag.end_ns - 1 <= all_times[-1] <= bag.end_ns
+        assert bag.duration_s == pytest.approx((all_times[-1] - all_times[0]) * 1e-9, abs=2e-9)
+
+        messages = list(bag.messages())
+        assert [m.log_time_ns for m in messages] == all_times  # merged in log-time order
+        imu_msgs = bag.read_all('/imu/data_raw')
+        assert [t for t, _ in imu_msgs] == IMU_TIMES
+        for i, (t, msg) in enumerate(imu_msgs):
+            assert stamp_to_ns(msg.header.stamp) == t
+            assert msg.header.frame_id == 'imu'
+            assert msg.angular_velocity.x == pytest.approx(0.1 * i)
+            np.testing.assert_array_equal(msg.orientation_covariance, np.full(9, float(i)))
+        rng = np.random.default_rng(0)
+        for i, (t, msg) in enumerate(bag.read_all('/camera/image_raw')):
+            np.testing.assert_array_equal(msg.data, image(i, t, rng).data)
+        assert [m.data for _, m in bag.read_all('/notes')] == ['note 0', 'note 1']
+
+
+@pytest.mark.parametrize('storage, name', STORAGES)
+def test_time_window_and_topic_selection(tmp_path, storage, name):
+    path = write_sample_bag(tmp_path / name, storage)
+    with BagReader(path) as bag:
+        start, stop = T0 + 100 * MS, T0 + 200 * MS
+        window = list(bag.messages(['/imu/data_raw'], start_ns=start, stop_ns=stop))
+        assert [m.log_time_ns for m in window] == [t for t in IMU_TIMES if start <= t < stop]
+        assert {m.topic for m in bag.messages(['/notes'])} == {'/notes'}
+        assert list(bag.messages(['/nope'])) == []
+
+
+@pytest.mark.parametrize('storage, name', STORAGES)
+def test_raw_bytes_and_message_objects_are_interchangeable(tmp_path, storage, name):
+    msgs = [imu(i, T0 + i * MS) for i in range(5)]
+    with BagWriter(tmp_path / name, storage=storage) as writer:
+        for i, msg in enumerate(msgs):
+            if i % 2:  # odd ones as CDR bytes (the first of a topic needs the type)
+                writer.write('/imu', T0 + i * MS, serialize(msg), 'sensor_msgs/msg/Imu')
+            else:
+                writer.write('/imu', T0 + i * MS, msg)
+        # once the topic exists, raw bytes without a type are fine
+        writer.write('/imu', T0 + 10 * MS, memoryview(serialize(msgs[0])))
+    with BagReader(writer.path) as bag:
+        raw = list(bag.messages())
+        assert len(raw) == 6
+        for message, msg in zip(raw, msgs):
+            assert isinstance(message.rawdata, bytes)
+            assert message.msgtype == 'sensor_msgs/msg/Imu'
+            assert message.rawdata == serialize(msg)
+            decoded = bag.deserialize(message)
+            assert decoded.header.stamp == msg.header.stamp
+            assert decoded.angular_velocity == msg.angular_velocity
+        assert raw[-1].rawdata == raw[0].rawdata
+
+
+def test_raw_bytes_on_a_new_topic_need_a_type(tmp_path):
+    with BagWriter(tmp_path / 'a.mcap') as writer:
+        with pytest.raises(BagError):
+            writer.write('/x', T0, serialize(String(data='x')))
+        writer.write('/x', T0, String(data='x'))
+        with pytest.raises(BagError):  # a topic has one type
+            writer.write('/x', T0 + 1, imu(0, T0))
+        with pytest.raises(BagError):
+            writer.write('/x', T0 + 2, serialize(imu(0, T0)), 'sensor_msgs/msg/Imu')
+        writer.write('/x', T0 + 3, serialize(String(data='y')), 'std_msgs/msg/String')
+    with BagReader(writer.path) as bag:  # the refused messages are not in the bag
+        assert [m.data for _, m in bag.read_all('/x')] == ['x', 'y']
+
+
+def test_writer_chooses_storage_from_the_name(tmp_path):
+    assert BagWriter(tmp_path / 'a.mcap').storage == 'mcap'
+    assert BagWriter(tmp_path / 'a').storage == 'mcap'
+    assert BagWriter(tmp_path / 'a.db3').storage == 'sqlite3'
+    with pytest.raises(BagError):
+        BagWriter(tmp_path / 'a.mcap', storage='rosbag1')
+
+
+@pytest.mark.parametrize('storage, name', STORAGES)
+def test_overwrite_is_refused_unless_asked(tmp_path, storage, name):
+    path = write_sample_bag(tmp_path / name, storage)
+    with pytest.raises(BagError) as exc:
+        with BagWriter(path, storage=storage) as writer:
+            writer.write('/notes', T0, String(data='lost'))
+    assert_one_line_mentioning(exc, path)
+    with BagReader(path) as bag:  # untouched
+        assert bag.message_count() == 67
+    with BagWriter(path, storage=storage, overwrite=True) as writer:
+        writer.write('/notes', T0, String(data='new'))
+    with BagReader(path) as bag:
+        assert bag.topics == {'/notes': 'std_msgs/msg/String'}
+        assert [m.data for _, m in bag.read_all('/notes')] == ['new']
+
+
+@pytest.mark.parametrize('storage, name', STORAGES)
+def test_writer_closes_on_exception_and_bag_stays_readable(tmp_path, storage, name):
+    writer = BagWriter(tmp_path / name, storage=storage)
+    with pytest.raises(RuntimeError, match='boom'):
+        with writer:
+            for i in range(3):
+                writer.write('/notes', T0 + i * MS, String(data=str(i)))
+            raise RuntimeError('boom')
+    with BagReader(writer.path) as bag:
+        assert [m.data for _, m in bag.read_all('/notes')] == ['0', '1', '2']
+    writer.close()  # closing twice is harmless
+    with pytest.raises(BagError):  # but it no longer writes
+        writer.write('/notes', T0, String(data='late'))
+
+
+# --- errors ---------------------------------------------------------------------------------
+
+def test_missing_path(tmp_path):
+    path = tmp_path / 'nope.mcap'
+    with pytest.raises(BagError) as exc:
+        with BagReader(path):
+            pass
+    assert_one_line_mentioning(exc, path)
+
+
+def test_random_bytes_named_mcap(tmp_path):
+    path = tmp_path / 'noise.mcap'
+    path.write_bytes(np.random.default_rng(1).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    with pytest.raises(BagError) as exc:
+        BagReader(path).open()
+    assert_one_line_mentioning(exc, path)
+
+
+def test_empty_file(tmp_path):
+    path = tmp_path / 'empty.mcap'
+    path.write_bytes(b'')
+    with pytest.raises(BagError) as exc:
+        BagReader(path).open()
+    assert_one_line_mentioning(exc, path)
+
+
+def test_empty_directory(tmp_path):
+    path = tmp_path / 'not_a_bag'
+    path.mkdir()
+    with pytest.raises(BagError) as exc:
+        BagReader(path).open()
+    assert_one_line_mentioning(exc, path)
+
+
+def read_everything(path: Path) -> int:
+    """Open and iterate a bag; BagError is the only acceptable failure."""
+    count = 0
+    with BagReader(path) as bag:
+        for message in bag.messages():
+            bag.deserialize(message)
+            count += 1
+    return count
+
+
+@pytest.mark.parametrize('fraction', [0.5, 0.1, 0.9, 0.999])
+def test_truncated_mcap(tmp_path, fraction):
+    whole = write_sample_bag(tmp_path / 'whole.mcap')
+    data = whole.read_bytes()
+    path = tmp_path / 'cut.mcap'
+    path.write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(BagError) as exc:
+        read_everything(path)  # either open or the iteration fails, with BagError only
+    assert_one_line_mentioning(exc, path)
+
+
+def test_corrupt_mcap_middle(tmp_path):
+    whole = write_sample_bag(tmp_path / 'whole.mcap')
+    data = bytearray(whole.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 256] = np.random.default_rng(2).bytes(256)
+    path = tmp_path / 'corrupt.mcap'
+    path.write_bytes(bytes(data))
+    with pytest.raises(BagError) as exc:
+        read_everything(path)
+    assert_one_line_mentioning(exc, path)
+
+
+def test_unknown_message_type(tmp_path):
+    with pytest.raises(BagError):
+        msg_class('nope_msgs/msg/Nothing')
+    path = tmp_path / 'a.mcap'
+    with BagWriter(path) as writer:
+        with pytest.raises(BagError) as exc:
+            writer.add_topic('/x', 'nope_msgs/msg/Nothing')
+        assert 'nope_msgs/msg/Nothing' in str(exc.value)
+        assert_one_line_mentioning(exc, path)
+        with pytest.raises(BagError) as exc:
+            writer.write('/x', T0, b'\x00\x01\x00\x00', 'sensor_msgs/msg/Nope')
+        assert_one_line_mentioning(exc, path)
+        writer.write('/ok', T0, String(data='still writing'))
+    with BagReader(path) as bag:  # the failed topics left nothing behind
+        assert bag.topics == {'/ok': 'std_msgs/msg/String'}
+
+
+def test_deserialize_errors_are_bag_errors():
+    with pytest.raises(BagError):
+        deserialize(b'\x00\x01\x00\x00\x05', 'sensor_msgs/msg/Imu')  # truncated CDR
+    with pytest.raises(BagError):
+        deserialize(serialize(String(data='x')), 'nope_msgs/msg/Nothing')
+    assert deserialize(serialize(String(data='x')), 'std_msgs/msg/String').data == 'x'
+
+
+def test_reader_not_open(tmp_path):
+    bag = BagReader(tmp_path / 'x.mcap')
+    with pytest.raises(BagError):
+        bag.topics
+
+
+def test_stamp_helpers_keep_integer_nanoseconds():
+    for ns in (0, 1, SEC - 1, T0 + 123_456_789, 2**31 * SEC - 1):
+        stamp = ns_to_stamp(ns)
+        assert 0 <= stamp.nanosec < SEC
+        assert stamp_to_ns(stamp) == ns
+
+
+def test_written_files_are_not_left_open(tmp_path):
+    path = write_sample_bag(tmp_path / 'a.mcap')
+    # the writer released the file: it can be removed and recreated at once
+    os.remove(path)
+    assert write_sample_bag(path).exists()

@@ -1,0 +1,190 @@
+"""imu_magnetometer in-process: publish raw IMU + field in, check imu/data out; bad input."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Imu, MagneticField  # noqa: E402
+
+from ar_tracking.core.rotations import rot_z  # noqa: E402
+from ar_tracking.nodes.imu_magnetometer import ImuMagnetometerNode  # noqa: E402
+from ar_tracking.ros.conversions import quat_xyzw, rotation_from_quaternion, to_stamp  # noqa: E402
+from conftest import spin_until  # noqa: E402
+
+G = 9.80665
+FIELD_ENU = 48e-6 * np.array([0.0, math.cos(math.radians(64)), -math.sin(math.radians(64))])
+T0 = 1_700_000_000_000_000_000
+
+
+class Harness:
+    def __init__(self, context, params=None):
+        overrides = [Parameter(k, value=v) for k, v in (params or {}).items()]
+        self.node = ImuMagnetometerNode(context=context, parameter_overrides=overrides)
+        self.src = rclpy.create_node('test_source', context=context)
+        self.out: list[Imu] = []
+        self.src.create_subscription(Imu, 'imu/data', self.out.append, 50)
+        self.pub_imu = self.src.create_publisher(Imu, 'imu/data_raw', 50)
+        self.pub_mag = self.src.create_publisher(MagneticField, 'imu/mag', 50)
+        self.ex = SingleThreadedExecutor(context=context)
+        self.ex.add_node(self.node)
+        self.ex.add_node(self.src)
+        assert spin_until(self.ex, lambda: self.pub_imu.get_subscription_count() > 0
+                          and self.pub_mag.get_subscription_count() > 0
+                          and self.node.pub_data.get_subscription_count() > 0)
+
+    def send(self, t_ns, accel, field, mag_first=False):
+        imu = Imu()
+        imu.header.stamp = to_stamp(t_ns)
+        imu.header.frame_id = 'imu'
+        imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z = map(float, accel)
+        mag = MagneticField()
+        mag.header = imu.header
+        mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z = map(float, field)
+        if mag_first:
+            self.pub_mag.publish(mag)
+            spin_until(self.ex, lambda: False, 0.02)
+            self.pub_imu.publish(imu)
+        else:
+            self.pub_imu.publish(imu)
+            spin_until(self.ex, lambda: False, 0.02)
+            self.pub_mag.publish(mag)
+
+    def wait(self, n, timeout_s=5.0):
+        return spin_until(self.ex, lambda: len(self.out) >= n, timeout_s)
+
+    def close(self):
+        self.ex.shutdown()
+        self.node.destroy_node()
+        self.src.destroy_node()
+
+
+def sample(R_enu_imu, field_enu=FIELD_ENU):
+    return R_enu_imu.T @ np.array([0.0, 0.0, G]), R_enu_imu.T @ field_enu
+
+
+def test_orientation_matches_eq_3_4_and_pairs_by_stamp(ros_context):
+    h = Harness(ros_context)
+    try:
+        truths = []
+        for i in range(6):
+            R = rot_z(0.3 * i) @ np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # upright phone
+            truths.append(R)
+            h.send(T0 + i * 10_000_000, *sample(R), mag_first=(i % 2 == 0))
+        assert h.wait(6)
+        for msg, R in zip(h.out, truths):
+            est = rotation_from_quaternion(msg.orientation)
+            assert np.allclose(est, R, atol=1e-6)
+            assert msg.header.frame_id == 'imu'
+            cov = np.array(msg.orientation_covariance).reshape(3, 3)
+            assert cov[0, 0] > 0 and cov[2, 2] > 0 and np.allclose(cov, cov.T)
+        stamps = [m.header.stamp.nanosec for m in h.out]
+        assert stamps == sorted(stamps)
+    finally:
+        h.close()
+
+
+def test_world_frame_ned_and_declination(ros_context):
+    decl = math.radians(10.0)
+    h = Harness(ros_context, {'world_frame': 'ned', 'declination_rad': decl})
+    try:
+        R = np.eye(3)  # body axes = magnetic ENU axes
+        h.send(T0, *sample(R))
+        assert h.wait(1)
+        R_ned_body = rotation_from_quaternion(h.out[0].orientation)
+        # body y axis points to magnetic north = 10 deg east of true north: in NED (x north, y east)
+        y_axis = R_ned_body[:, 1]
+        assert math.degrees(math.atan2(y_axis[1], y_axis[0])) == pytest.approx(10.0, abs=1e-6)
+        assert R_ned_body[2, 2] == pytest.approx(-1.0)  # body z (up) is -down
+    finally:
+        h.close()
+
+
+def test_covariance_rises_under_magnetic_disturbance(ros_context):
+    h = Harness(ros_context, {'expected_field_t': 48e-6, 'expected_dip_rad': math.radians(64)})
+    try:
+        R = np.eye(3)
+        h.send(T0, *sample(R))
+        disturbed = FIELD_ENU + np.array([8e-6, 0.0, 0.0])
+        h.send(T0 + 10_000_000, *sample(R, disturbed))
+        assert h.wait(2)
+        clean, bad = (np.array(m.orientation_covariance) for m in h.out)
+        assert bad[8] > 4 * clean[8]  # heading variance
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize('fault', ['nan_accel', 'inf_field', 'zero_field', 'zero_accel', 'older_stamp', 'zero_stamp'])
+def test_bad_messages_are_skipped_and_node_keeps_running(ros_context, fault, capfd):
+    h = Harness(ros_context)
+    try:
+        R = np.eye(3)
+        accel, field = sample(R)
+        h.send(T0 + 100_000_000, accel, field)
+        assert h.wait(1)
+        bad_accel, bad_field, t_bad = accel.copy(), field.copy(), T0 + 110_000_000
+        if fault == 'nan_accel':
+            bad_accel[0] = float('nan')
+        elif fault == 'inf_field':
+            bad_field[2] = float('inf')
+        elif fault == 'zero_field':
+            bad_field[:] = 0.0
+        elif fault == 'zero_accel':
+            bad_accel[:] = 0.0
+        elif fault == 'older_stamp':
+            t_bad = T0 + 50_000_000
+        elif fault == 'zero_stamp':
+            t_bad = 0
+        h.send(t_bad, bad_accel, bad_field)
+        h.send(T0 + 120_000_000, accel, field)
+        # A bad field sample is dropped and the IMU sample pairs with a good one 10 ms away;
+        # a bad IMU sample (or stamp) produces no output at all.
+        expected = 3 if fault.endswith('_field') else 2
+        assert h.wait(expected)
+        spin_until(h.ex, lambda: False, 0.2)
+        assert len(h.out) == expected
+        for m in h.out:
+            assert np.all(np.isfinite(quat_xyzw(m.orientation)))
+            assert np.allclose(rotation_from_quaternion(m.orientation), R, atol=1e-6)
+            assert np.all(np.isfinite(m.orientation_covariance))
+        err = capfd.readouterr().err
+        assert 'dropped' in err or 'skipped' in err or 'not published' in err
+        assert 'Traceback' not in err
+    finally:
+        h.close()
+
+
+def test_clock_jump_back_resets_and_goes_on(ros_context, capfd):
+    h = Harness(ros_context)
+    try:
+        accel, field = sample(np.eye(3))
+        for i in range(3):
+            h.send(T0 + 5_000_000_000 + i * 10_000_000, accel, field)
+        assert h.wait(3)
+        for i in range(5):  # 5 s back: the bag looped. A sample or two at the seam may be lost.
+            h.send(T0 + 10_000_000 * (i + 1), accel, field)
+        assert h.wait(6)
+        after = [m for m in h.out if m.header.stamp.sec == T0 // 10**9 and m.header.stamp.nanosec < 10**9]
+        assert len(after) >= 3
+        assert 'clock jumped back' in capfd.readouterr().err
+    finally:
+        h.close()
+
+
+def test_rejects_bad_parameter_values(ros_context):
+    with pytest.raises(Exception):
+        ImuMagnetometerNode(context=ros_context, parameter_overrides=[Parameter('world_frame', value='xyz')])
+    with pytest.raises(Exception):
+        ImuMagnetometerNode(context=ros_context, parameter_overrides=[Parameter('soft_iron_matrix', value=[0.0] * 9)])
+    node = ImuMagnetometerNode(context=ros_context)
+    try:
+        result = node.set_parameters([Parameter('world_frame', value='up')])[0]
+        assert not result.successful and 'world_frame' in result.reason
+        assert node.get_parameter('world_frame').value == 'enu'
+    finally:
+        node.destroy_node()
