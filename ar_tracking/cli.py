@@ -135,7 +135,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from .eval.bench import run_bench
 
-    results = run_bench(Path(args.workdir), duration_s=args.duration, areas=args.areas)
+    try:
+        results = run_bench(Path(args.workdir), duration_s=args.duration, areas=args.areas)
+    except ValueError as exc:
+        print(f'ar-tracking bench: error: {exc}', file=sys.stderr)
+        return EXIT_USAGE
     text = json.dumps(results, indent=2, sort_keys=True)
     if args.out:
         Path(args.out).write_text(text + '\n')

@@ -149,15 +149,27 @@ class BagReader:
         conns = [c for c in self._r.connections if wanted is None or c.topic in wanted]
         if not conns:
             return
+        # Over the whole bag the count is known: a damaged index can otherwise lose messages
+        # silently (e.g. an MCAP whose writer was interrupted inside a chunk flush).
+        whole = (start_ns is None or start_ns <= self.start_ns) and (
+            stop_ns is None or stop_ns >= self.end_ns
+        )
+        expected = sum(c.msgcount for c in conns) if whole else None
+        count = 0
         try:
             for conn, timestamp, rawdata in self._r.messages(
                 connections=conns, start=start_ns, stop=stop_ns
             ):
+                count += 1
                 yield BagMessage(conn.topic, conn.msgtype, int(timestamp), bytes(rawdata))
         except BagError:
             raise
         except Exception as exc:
             raise BagError(f'{self.path}: bag is damaged ({_reason(exc)})') from exc
+        if expected is not None and count < expected:
+            raise BagError(
+                f'{self.path}: bag is damaged (only {count} of {expected} messages readable)'
+            )
 
     def deserialize(self, message: BagMessage) -> Any:
         """Decode a message into a rosbags message object."""
@@ -304,6 +316,8 @@ class BagWriter:
                 impl.finish()
             else:
                 impl.close()
+        except Exception as exc:  # e.g. a writer left inconsistent by an interrupted write
+            raise BagError(f'{self.path}: cannot finalise bag ({_reason(exc)})') from exc
         finally:
             if self._file is not None:
                 self._file.close()

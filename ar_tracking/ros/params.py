@@ -18,13 +18,25 @@ class ParamsError(Exception):
 
 
 def packaged_config(node_name: str) -> Path | None:
-    """Path of config/<node>.yaml as installed with the package (None if there is none)."""
+    """Path of config/<node>.yaml: installed with the package (pip), in the source checkout
+    (editable install, tests), or in the ROS share directory (colcon); None if there is none."""
+    candidates: list[Path] = []
     try:
-        ref = resources.files('ar_tracking.config').joinpath(f'{node_name}.yaml')
+        candidates.append(Path(str(resources.files('ar_tracking.config'))))
     except ModuleNotFoundError:
-        return None
-    path = Path(str(ref))
-    return path if path.is_file() else None
+        pass
+    candidates.append(Path(__file__).resolve().parents[2] / 'config')
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory('ar_tracking')) / 'config')
+    except Exception:  # no ament index on a pip install
+        pass
+    for folder in candidates:
+        path = folder / f'{node_name}.yaml'
+        if path.is_file():
+            return path
+    return None
 
 
 def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:

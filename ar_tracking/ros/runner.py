@@ -66,29 +66,38 @@ class RunResult:
         return self.bag_duration_s / self.wall_s if self.wall_s > 0 else float('inf')
 
 
-def load_node_class(spec: str) -> Any:
+def load_node_class(spec: Any) -> Any:
+    """A node class from a "module:Class" spec (classes pass through)."""
+    if not isinstance(spec, str):
+        return spec
     module, _, cls = spec.partition(':')
     return getattr(importlib.import_module(module), cls)
 
 
-def plan_nodes(bag_topics: Iterable[str], only: Iterable[str] | None = None) -> tuple[list[str], dict[str, str]]:
+def plan_nodes(
+    bag_topics: Iterable[str],
+    only: Iterable[str] | None = None,
+    graph: dict[str, Any] | None = None,
+) -> tuple[list[str], dict[str, str]]:
     """Which nodes can run: those whose inputs are in the bag or produced by a node that runs.
 
+    ``graph`` maps node names to classes or "module:Class" specs (default: GRAPH_NODES).
     Returns (node names in start order, reasons for the ones left out).
     """
+    graph = GRAPH_NODES if graph is None else graph
     available = {t.lstrip('/') for t in bag_topics}
-    wanted = list(only) if only else list(GRAPH_NODES)
-    unknown = [n for n in wanted if n not in GRAPH_NODES]
+    wanted = list(only) if only else list(graph)
+    unknown = [n for n in wanted if n not in graph]
     if unknown:
-        raise RunError(f'unknown node(s) {", ".join(unknown)}; known: {", ".join(GRAPH_NODES)}')
+        raise RunError(f'unknown node(s) {", ".join(unknown)}; known: {", ".join(graph)}')
     started: list[str] = []
     pending = list(wanted)
     progress = True
     while progress:
         progress = False
         for name in list(pending):
-            cls = load_node_class(GRAPH_NODES[name])
-            needed = getattr(cls, 'REQUIRED_INPUTS', None) or cls.INPUTS
+            cls = load_node_class(graph[name])
+            needed = cls.REQUIRED_INPUTS if hasattr(cls, 'REQUIRED_INPUTS') else list(cls.INPUTS)
             if all(t in available for t in needed):
                 started.append(name)
                 available.update(cls.OUTPUTS)
@@ -96,8 +105,8 @@ def plan_nodes(bag_topics: Iterable[str], only: Iterable[str] | None = None) -> 
                 progress = True
     reasons = {}
     for name in pending:
-        cls = load_node_class(GRAPH_NODES[name])
-        needed = getattr(cls, 'REQUIRED_INPUTS', None) or cls.INPUTS
+        cls = load_node_class(graph[name])
+        needed = cls.REQUIRED_INPUTS if hasattr(cls, 'REQUIRED_INPUTS') else list(cls.INPUTS)
         missing = [t for t in needed if t not in available]
         reasons[name] = f'needs {", ".join(missing)}'
     return started, reasons
@@ -156,6 +165,7 @@ class GraphRunner:
         progress: Callable[[int, int], None] | None = None,
         step_timeout_s: float = 10.0,
         max_messages: int | None = None,
+        graph: dict[str, Any] | None = None,
     ) -> None:
         self.bag_path = Path(bag)
         self.out_path = Path(out)
@@ -168,9 +178,11 @@ class GraphRunner:
         self.progress = progress
         self.step_timeout_s = step_timeout_s
         self.max_messages = max_messages
+        self.graph = GRAPH_NODES if graph is None else graph
         self._delivered = 0
         self._expected = 0
         self._sub_counts: dict[str, int] = defaultdict(int)
+        self._stop = threading.Event()
 
     # -- hooks used by TrackingNode ---------------------------------------------------------
 
@@ -200,7 +212,7 @@ class GraphRunner:
         from .conversions import message_class
 
         bag_types = reader.topics
-        names, skipped = plan_nodes(bag_types, self.only_nodes)
+        names, skipped = plan_nodes(bag_types, self.only_nodes, self.graph)
         for name, why in skipped.items():
             logger.warning('%s not started: %s', name, why)
         if not names:
@@ -218,7 +230,7 @@ class GraphRunner:
         realtime = self.rate > 0
         try:
             for name in names:
-                cls = load_node_class(GRAPH_NODES[name])
+                cls = load_node_class(self.graph[name])
                 params = params_for_node(name, self.params_files)
                 if realtime:
                     params['use_sim_time'] = True
@@ -287,13 +299,16 @@ class GraphRunner:
                 total = min(total, self.max_messages)
             start = time.perf_counter()
             try:
-                with _sigterm_as_interrupt():
+                with _StopOnSignal() as stop:
+                    self._stop = stop.requested
                     if realtime:
                         self._play_realtime(reader, executor, feed_pubs, clock_pub, copy_topics, writer, recorder, clock_ns, result, total)
                     else:
                         self._play_lockstep(reader, executor, feed_pubs, copy_topics, writer, recorder, result, total)
+                result.interrupted = stop.requested.is_set()
             except KeyboardInterrupt:
                 result.interrupted = True
+            if result.interrupted:
                 logger.warning('interrupted: closing %s with what was processed', self.out_path)
             result.wall_s = time.perf_counter() - start
             result.output_messages = recorder.count
@@ -353,6 +368,8 @@ class GraphRunner:
     ) -> None:
         done = 0
         for msg in reader.messages(set(feed_pubs) | copy_topics):
+            if self._stop.is_set():
+                break
             if self.max_messages is not None and done >= self.max_messages:
                 break
             if msg.topic in copy_topics:
@@ -439,6 +456,9 @@ class GraphRunner:
         thread.start()
         try:
             while not finished.is_set():
+                if self._stop.is_set():
+                    finished.set()
+                    break
                 executor.spin_once(timeout_sec=0.05)
             drain_until = time.monotonic() + 0.5
             while time.monotonic() < drain_until:
@@ -450,16 +470,29 @@ class GraphRunner:
             raise errors[0]
 
 
-class _sigterm_as_interrupt:
-    """Within the block, SIGTERM ends the run like Ctrl-C (the output bag is closed cleanly)."""
+class _StopOnSignal:
+    """Within the block, Ctrl-C (SIGINT) and SIGTERM ask the run to stop between two messages.
 
-    def __enter__(self) -> None:
-        self.previous = None
+    Raising KeyboardInterrupt from the handler could land inside the bag writer's bookkeeping
+    and leave a corrupt bag; a flag checked by the playback loops cannot. A second signal
+    raises KeyboardInterrupt at once (for a run stuck somewhere else).
+    """
+
+    def __init__(self) -> None:
+        self.requested = threading.Event()
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> '_StopOnSignal':
         if threading.current_thread() is threading.main_thread():
-            def handler(signum: int, frame: Any) -> None:
-                raise KeyboardInterrupt
-            self.previous = signal.signal(signal.SIGTERM, handler)
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self.requested.is_set():
+            raise KeyboardInterrupt
+        self.requested.set()
 
     def __exit__(self, *exc: object) -> None:
-        if self.previous is not None:
-            signal.signal(signal.SIGTERM, self.previous)
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)

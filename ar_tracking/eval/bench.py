@@ -1,0 +1,105 @@
+"""``ar-tracking bench``: speed of the graph and of the cores on this machine, as one JSON object.
+
+Names follow DESIGN.md sec. 8 (``{area: {measure: value}}``). Speed is measured here, never in
+the tests. rclpy is imported only inside the functions that run the graph, so the module stays
+importable without ROS.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+AREAS = ('graph', 'orientation')
+
+
+def percentiles_ms(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {'p50_ms': float('nan'), 'p95_ms': float('nan'), 'n': 0}
+    arr = np.asarray(values)
+    return {'p50_ms': round(float(np.percentile(arr, 50)), 4),
+            'p95_ms': round(float(np.percentile(arr, 95)), 4), 'n': int(arr.size)}
+
+
+def benchmark_bag(workdir: Path, duration_s: float, seed: int = 1) -> Path:
+    """The rotation_sweep bag the graph benchmark runs on (made once, then reused)."""
+    from ..sim.bagmaker import make_bag
+
+    path = workdir / f'rotation_sweep_seed{seed}_{duration_s:g}s.mcap'
+    if not path.exists():
+        logger.info('making the benchmark bag %s', path)
+        make_bag('rotation_sweep', path, seed=seed, duration_s=duration_s, overwrite=True)
+    return path
+
+
+def bench_graph(workdir: Path, duration_s: float) -> dict[str, Any]:
+    """realtime_factor of the lockstep graph, the transport floor, per-node processing times."""
+    from ..ros.runner import GraphRunner, transport_probe_graph
+
+    bag = benchmark_bag(workdir, duration_s)
+    params = [p for p in [bag.with_name(bag.stem + '.params.yaml')] if p.exists()]
+    full = GraphRunner(bag, workdir / 'graph.out.mcap', params_files=params).run()
+    floor = GraphRunner(bag, workdir / 'transport.out.mcap', graph=transport_probe_graph()).run()
+    nodes = {}
+    for node, topics in full.timings_ms.items():
+        merged = [v for values in topics.values() for v in values]
+        nodes[node] = percentiles_ms(merged)
+    return {
+        'bag': str(bag),
+        'bag_duration_s': round(full.bag_duration_s, 3),
+        'input_messages': full.input_messages,
+        'wall_s': round(full.wall_s, 3),
+        'realtime_factor': round(full.realtime_factor, 3),
+        'transport_floor_factor': round(floor.realtime_factor, 3),
+        'transport_wall_s': round(floor.wall_s, 3),
+        'nodes': nodes,
+    }
+
+
+def _rate(fn: Callable[[int], None], n: int) -> float:
+    start = time.perf_counter()
+    fn(n)
+    return n / (time.perf_counter() - start)
+
+
+def bench_orientation(samples: int = 20000, seed: int = 0) -> dict[str, Any]:
+    """Updates per second of the eq. 3-4 core (imu_magnetometer), one core."""
+    from ..core.imu_orientation import FieldModel, GravityFieldOrientation
+
+    rng = np.random.default_rng(seed)
+    accel = rng.normal([0.0, 0.0, 9.81], 0.05, size=(samples, 3))
+    mag = rng.normal([0.0, 2.1e-5, -4.3e-5], 3e-7, size=(samples, 3))
+    core = GravityFieldOrientation(model=FieldModel(field_t=48e-6, dip_rad=1.117))
+
+    def run(n: int) -> None:
+        for i in range(n):
+            core.estimate(accel[i], mag[i])
+
+    run(200)  # warm-up
+    return {'imu_magnetometer_updates_per_s': round(_rate(run, samples), 1)}
+
+
+def machine() -> dict[str, Any]:
+    return {'python': platform.python_version(), 'cpus': os.cpu_count(), 'machine': platform.machine()}
+
+
+def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None = None) -> dict[str, Any]:
+    """All benchmark areas (or the chosen ones) as one nested dict."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    chosen = list(areas or AREAS)
+    unknown = [a for a in chosen if a not in AREAS]
+    if unknown:
+        raise ValueError(f'unknown bench area(s) {", ".join(unknown)}; known: {", ".join(AREAS)}')
+    results: dict[str, Any] = {'machine': machine()}
+    if 'orientation' in chosen:
+        results['orientation'] = bench_orientation()
+    if 'graph' in chosen:
+        results['graph'] = bench_graph(workdir, duration_s)
+    return results

@@ -1,0 +1,541 @@
+"""Scenario ``rotation_sweep``: a person at one spot sweeps a phone around, with its sensors.
+
+This is the situation of Langlotz et al. 2011: the user stands at an annotated spot and turns
+the phone (more than a full turn, with pauses and changes of direction), so that a panorama
+can be mapped and annotations re-detected; the phone's gyroscope, accelerometer, magnetometer
+and GPS are recorded alongside the camera. Everything here is deterministic given
+``(seed, session)`` and cheap to evaluate at any time, because the motion is given in closed form.
+
+Frames and conventions (../shared/DESIGN.md section 3):
+
+* ``R_enu_cam`` rotates camera_optical vectors (x right, y down, z forward) into ENU.
+* The phone's IMU body frame is x right, y up along the screen, z out of the screen toward the
+  user: ``R_IMU_CAM = diag(1, -1, -1)``.
+* Orientation is built from a heading (compass azimuth of the optical axis, clockwise from
+  north), a pitch (elevation of the optical axis) and a roll (about the optical axis, positive
+  when the image turns clockwise for the user): ``R = Rz(-heading) @ R0 @ Rx(pitch) @ Rz(roll)``,
+  ``R0`` being the level camera looking north. This matches
+  :func:`ar_tracking.core.rotations.camera_heading_pitch_roll_deg`.
+* The magnetic disturbance's heading deflection is what a compass would be off by: the
+  compass heading computed from the disturbed field minus the one from the true field
+  (positive = the compass reads too far clockwise, i.e. the field turned counter-clockwise).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.rotations import rot_z
+from .world import rng_stream
+
+Array = NDArray[np.float64]
+
+GRAVITY_M_S2 = 9.81
+#: camera_optical -> imu (vectors): x stays, y (down) becomes -y (up the screen), z (forward)
+#: becomes -z (out of the screen, toward the user).
+R_IMU_CAM = np.diag([1.0, -1.0, -1.0])
+#: The level camera looking north: camera x -> east, y -> down, z -> north.
+R0_ENU_CAM = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+IMU_RATE_HZ = 100
+CAMERA_RATE_HZ = 30
+GPS_RATE_HZ = 1
+MAX_PAN_PEAK_DEG_S = 84.0  # leaves room for hand tremor below the 90 deg/s limit
+EXPOSURE_TIME_S = 0.012
+
+SESSIONS = ('authoring', 'browsing')
+
+#: Latitude/longitude around which the spots of all seeds lie (Graz), degrees.
+BASE_LATITUDE_DEG = 47.06
+BASE_LONGITUDE_DEG = 15.45
+EARTH_RADIUS_M = 6_378_137.0
+
+
+# --------------------------------------------------------------------------------------------
+# Smooth signals in closed form
+
+
+@dataclass(frozen=True)
+class SineSum:
+    """``offset + sum_i amp_i * sin(2 pi f_i t + phase_i)`` with exact derivatives."""
+
+    offset: float
+    amp: Array
+    freq_hz: Array
+    phase: Array
+
+    def eval(self, t: Array, order: int = 0) -> Array:
+        """Value (order 0) or time derivative of order 1 or 2 at times ``t`` (s)."""
+        t = np.asarray(t, dtype=float)[..., None]
+        w = 2 * math.pi * self.freq_hz
+        arg = w * t + self.phase
+        if order == 0:
+            return self.offset + np.sum(self.amp * np.sin(arg), axis=-1)
+        if order == 1:
+            return np.sum(self.amp * w * np.cos(arg), axis=-1)
+        return -np.sum(self.amp * w * w * np.sin(arg), axis=-1)
+
+    @staticmethod
+    def random(rng: np.random.Generator, total_amp: float, f_lo: float, f_hi: float, n: int,
+               offset: float = 0.0) -> 'SineSum':
+        """``n`` components with amplitudes summing to ``total_amp`` (a hard bound on |x - offset|)."""
+        weights = rng.uniform(0.3, 1.0, n)
+        return SineSum(offset, total_amp * weights / weights.sum(), rng.uniform(f_lo, f_hi, n),
+                       rng.uniform(0, 2 * math.pi, n))
+
+
+@dataclass(frozen=True)
+class PanProfile:
+    """Pan rate as a train of non-overlapping ``sin^2`` bumps (smooth start and stop).
+
+    Bump k starts at ``start_s[k]``, lasts ``width_s[k]`` and peaks at ``peak_rad_s[k]`` (signed),
+    so the peak rate is exactly the largest ``|peak|`` and the angle turned is ``peak*width/2``.
+    """
+
+    start_s: Array
+    width_s: Array
+    peak_rad_s: Array
+
+    def _tau(self, t: Array) -> Array:
+        t = np.asarray(t, dtype=float)[..., None]
+        return np.clip((t - self.start_s) / self.width_s, 0.0, 1.0)
+
+    def angle(self, t: Array) -> Array:
+        tau = self._tau(t)
+        integral = tau / 2 - np.sin(2 * math.pi * tau) / (4 * math.pi)
+        return np.sum(self.peak_rad_s * self.width_s * integral, axis=-1)
+
+    def rate(self, t: Array) -> Array:
+        return np.sum(self.peak_rad_s * np.sin(math.pi * self._tau(t)) ** 2, axis=-1)
+
+    def accel(self, t: Array) -> Array:
+        tau = self._tau(t)
+        inside = (tau > 0) & (tau < 1)
+        return np.sum(inside * self.peak_rad_s * math.pi / self.width_s
+                      * np.sin(2 * math.pi * tau), axis=-1)
+
+    @property
+    def total_turn_rad(self) -> float:
+        """Sum of |angle| of all sweeps (how much the user turned, both directions)."""
+        return float(np.sum(np.abs(self.peak_rad_s) * self.width_s / 2))
+
+
+def make_pan_profile(rng: np.random.Generator, duration_s: float) -> PanProfile:
+    """Sweeps with pauses; mostly one direction, sometimes back; > one full turn per 40 s."""
+    direction = 1.0 if rng.random() < 0.6 else -1.0
+    starts, widths, peaks = [], [], []
+    t = rng.uniform(0.6, 1.2)  # hold still first, as people do when an app starts
+    while t < duration_s:
+        w = rng.uniform(1.2, 4.0)
+        peak = rng.uniform(78.0, MAX_PAN_PEAK_DEG_S) if rng.random() < 0.25 else \
+            rng.uniform(22.0, 70.0)
+        sign = direction if rng.random() < 0.78 else -direction
+        starts.append(t)
+        widths.append(w)
+        peaks.append(sign * math.radians(peak))
+        t += w + rng.uniform(0.25, 1.6)
+    pk = np.array(peaks)
+    wd = np.array(widths)
+    # Make sure the net turn exceeds a full turn (+ margin) on bags of 40 s or more.
+    need = math.radians(400.0) if duration_s >= 40.0 else 0.0
+    for k in np.argsort(-wd):
+        if abs(np.sum(pk * wd / 2)) >= need:
+            break
+        if np.sign(pk[k]) != direction:
+            pk[k] = -pk[k]
+    return PanProfile(np.array(starts), wd, pk)
+
+
+# --------------------------------------------------------------------------------------------
+# Trajectory
+
+
+def orientation_from_angles(heading: Array, pitch: Array, roll: Array) -> Array:
+    """R_enu_cam (N, 3, 3) from heading / pitch / roll (radians, see the module docstring)."""
+    heading, pitch, roll = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (heading, pitch, roll))
+    ch, sh = np.cos(heading), np.sin(heading)
+    Rz = np.zeros((len(heading), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = ch, sh, -sh, ch, 1.0
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    Rx = np.zeros((len(pitch), 3, 3))
+    Rx[:, 0, 0], Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = 1.0, cp, -sp, sp, cp
+    cr, sr = np.cos(roll), np.sin(roll)
+    Rr = np.zeros((len(roll), 3, 3))
+    Rr[:, 0, 0], Rr[:, 0, 1], Rr[:, 1, 0], Rr[:, 1, 1], Rr[:, 2, 2] = cr, -sr, sr, cr, 1.0
+    return Rz @ R0_ENU_CAM @ Rx @ Rr
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Closed-form motion of the phone: orientation, angular velocity, position, acceleration."""
+
+    duration_s: float
+    heading0_rad: float
+    pan: PanProfile
+    heading_tremor: SineSum
+    pitch: SineSum
+    roll: SineSum
+    hand: tuple[SineSum, SineSum, SineSum]  # x, y, z hand sway (m)
+    lever_arm_m: float  # phone in front of the body's rotation axis
+    spot_enu: Array  # where the person stands (camera height), metres
+
+    def heading(self, t: Array, order: int = 0) -> Array:
+        base = self.heading0_rad if order == 0 else 0.0
+        pan = (self.pan.angle, self.pan.rate, self.pan.accel)[order](t)
+        return base + pan + self.heading_tremor.eval(t, order)
+
+    def angles(self, t: Array) -> tuple[Array, Array, Array]:
+        return self.heading(t), self.pitch.eval(t), self.roll.eval(t)
+
+    def R_enu_cam(self, t: Array) -> Array:
+        """Camera orientation (N, 3, 3) at times ``t`` (s from the start)."""
+        return orientation_from_angles(*self.angles(t))
+
+    def omega_cam(self, t: Array) -> Array:
+        """Angular velocity of the camera in its own frame (N, 3), rad/s (exact)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        dh, dp, dr = self.heading(t, 1), self.pitch.eval(t, 1), self.roll.eval(t, 1)
+        p, r = self.pitch.eval(t), self.roll.eval(t)
+        # omega = Rz(r)^T Rx(p)^T (0, dh, 0) + Rz(r)^T (dp, 0, 0) + (0, 0, dr)
+        v = np.stack([np.zeros_like(dh), dh * np.cos(p), -dh * np.sin(p)], -1)  # Rx(p)^T (0,dh,0)
+        v[:, 0] += dp
+        cr, sr = np.cos(r), np.sin(r)
+        out = np.stack([cr * v[:, 0] + sr * v[:, 1], -sr * v[:, 0] + cr * v[:, 1], v[:, 2] + dr], -1)
+        return out
+
+    def position(self, t: Array) -> Array:
+        """Camera position in ENU (N, 3), metres."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        yaw = self.heading(t) - self.heading_tremor.eval(t)  # the body turns, the wrist trembles
+        lever = self.lever_arm_m * np.stack([np.sin(yaw), np.cos(yaw), np.zeros_like(yaw)], -1)
+        sway = np.stack([h.eval(t) for h in self.hand], -1)
+        return self.spot_enu + lever + sway
+
+    def acceleration(self, t: Array) -> Array:
+        """Camera acceleration in ENU (N, 3), m/s^2 (exact)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        yaw = self.heading(t) - self.heading_tremor.eval(t)
+        d1 = self.heading(t, 1) - self.heading_tremor.eval(t, 1)
+        d2 = self.heading(t, 2) - self.heading_tremor.eval(t, 2)
+        L = self.lever_arm_m
+        lever = L * np.stack([d2 * np.cos(yaw) - d1 ** 2 * np.sin(yaw),
+                              -d2 * np.sin(yaw) - d1 ** 2 * np.cos(yaw), np.zeros_like(yaw)], -1)
+        return lever + np.stack([h.eval(t, 2) for h in self.hand], -1)
+
+
+def session_offset(seed: int, session: str) -> Array:
+    """Where the session's person stands relative to the authoring spot (ENU, metres)."""
+    if session == 'authoring':
+        return np.zeros(3)
+    rng = rng_stream(seed, 'standing', session)
+    r, a = rng.uniform(0.4, 1.5), rng.uniform(0, 2 * math.pi)
+    return np.array([r * math.sin(a), r * math.cos(a), rng.uniform(-0.1, 0.1)])
+
+
+def make_trajectory(seed: int, session: str, duration_s: float) -> Trajectory:
+    """The sweep of one session: random start heading, pan bumps, pitch/roll wander, tremor."""
+    rng = rng_stream(seed, 'trajectory', session)
+    deg = math.radians
+    mean_pitch = rng.uniform(0.0, 8.0)
+    return Trajectory(
+        duration_s=float(duration_s),
+        heading0_rad=float(rng.uniform(0, 2 * math.pi)),
+        pan=make_pan_profile(rng, duration_s),
+        heading_tremor=_tremor(rng),
+        pitch=_add(SineSum.random(rng, deg(19.0 - abs(mean_pitch)), 0.02, 0.12, 3,
+                                  offset=deg(mean_pitch)), _tremor(rng)),
+        roll=_add(SineSum.random(rng, deg(3.5), 0.04, 0.3, 3), _tremor(rng)),
+        hand=tuple(SineSum.random(rng, 0.01, 0.08, 0.35, 2) for _ in range(3)),  # type: ignore
+        lever_arm_m=float(rng.uniform(0.02, 0.04)),
+        spot_enu=session_offset(seed, session),
+    )
+
+
+def _tremor(rng: np.random.Generator) -> SineSum:
+    """Hand sway (~0.1 deg, 1.5-3 Hz) and physiological tremor (~0.02 deg, 7-10 Hz)."""
+    amp = np.radians([rng.uniform(0.05, 0.1), rng.uniform(0.01, 0.02)])
+    return SineSum(0.0, amp, np.array([rng.uniform(1.5, 3.0), rng.uniform(7.0, 10.0)]),
+                   rng.uniform(0, 2 * math.pi, 2))
+
+
+def _add(a: SineSum, b: SineSum) -> SineSum:
+    return SineSum(a.offset + b.offset, np.concatenate([a.amp, b.amp]),
+                   np.concatenate([a.freq_hz, b.freq_hz]), np.concatenate([a.phase, b.phase]))
+
+
+# --------------------------------------------------------------------------------------------
+# Sensors
+
+
+@dataclass(frozen=True)
+class EarthField:
+    """The undisturbed local geomagnetic field."""
+
+    magnitude_t: float = 48e-6
+    dip_rad: float = math.radians(64.0)  # inclination, positive = pointing down
+    declination_rad: float = 0.0  # magnetic north east of true north
+
+    @property
+    def vector_enu(self) -> Array:
+        h = self.magnitude_t * math.cos(self.dip_rad)
+        return np.array([h * math.sin(self.declination_rad), h * math.cos(self.declination_rad),
+                         -self.magnitude_t * math.sin(self.dip_rad)])
+
+
+@dataclass(frozen=True)
+class Disturbances:
+    """Transient magnetic disturbances: each a constant extra field with smooth on/off ramps."""
+
+    start_s: Array
+    duration_s: Array
+    ramp_s: Array
+    field_enu: Array  # (k, 3) extra field at full strength, tesla
+
+    def envelope(self, t: Array) -> Array:
+        """(N, k) strength 0..1 of each event."""
+        t = np.asarray(t, dtype=float)[..., None]
+        rise = np.clip((t - self.start_s) / self.ramp_s, 0, 1)
+        fall = np.clip((self.start_s + self.duration_s - t) / self.ramp_s, 0, 1)
+        x = np.minimum(rise, fall)
+        return 0.5 - 0.5 * np.cos(math.pi * x)
+
+    def field(self, t: Array) -> Array:
+        """Extra field (N, 3) in ENU, tesla."""
+        return self.envelope(t) @ self.field_enu
+
+
+def make_disturbances(rng: np.random.Generator, duration_s: float, earth: EarthField
+                      ) -> Disturbances:
+    """3-5 events per minute (at least one), each deflecting a compass by 2-10 degrees."""
+    n = max(1, int(round(duration_s / 60.0 * rng.uniform(3.0, 5.0))))
+    slot = duration_s / n
+    b = earth.vector_enu
+    bh = np.array([b[0], b[1], 0.0])
+    starts, durs, ramps, fields = [], [], [], []
+    for k in range(n):
+        dur = min(rng.uniform(2.0, 5.0), 0.8 * slot)
+        ramp = min(rng.uniform(0.4, 1.0), dur / 3)
+        start = k * slot + rng.uniform(0.1 * slot, max(0.1 * slot, slot - dur - 0.05 * slot))
+        defl = math.radians(rng.uniform(2.0, 10.0)) * (1 if rng.random() < 0.5 else -1)
+        scale = 1.0 if rng.random() < 0.5 else rng.uniform(0.88, 1.15)
+        # The compass error equals the counter-clockwise turn of the horizontal field.
+        turned = scale * (rot_z(defl) @ bh)
+        extra = turned - bh
+        if scale != 1.0:
+            extra[2] = rng.uniform(-4e-6, 4e-6)  # some events also change dip and |B|
+        starts.append(start)
+        durs.append(dur)
+        ramps.append(ramp)
+        fields.append(extra)
+    return Disturbances(np.array(starts), np.array(durs), np.array(ramps), np.array(fields))
+
+
+def heading_deflection(b_true_enu: Array, b_meas_enu: Array) -> Array:
+    """Compass error (rad) caused by measuring ``b_meas`` instead of ``b_true`` (both (..., 3))."""
+    cross = b_true_enu[..., 0] * b_meas_enu[..., 1] - b_true_enu[..., 1] * b_meas_enu[..., 0]
+    dot = b_true_enu[..., 0] * b_meas_enu[..., 0] + b_true_enu[..., 1] * b_meas_enu[..., 1]
+    return np.arctan2(cross, dot)
+
+
+@dataclass(frozen=True)
+class SensorErrors:
+    """The device's true sensor errors (the sidecar holds a slightly wrong estimate of them)."""
+
+    gyro_bias_rad_s: Array
+    accel_bias_m_s2: Array
+    hard_iron_t: Array
+    soft_iron: Array  # A in: measured = A @ true + hard_iron
+    gyro_noise_rad_s: float = 0.01
+    accel_noise_m_s2: float = 0.05
+    mag_noise_t: float = 0.3e-6
+
+
+def make_sensor_errors(rng: np.random.Generator) -> SensorErrors:
+    signs = lambda: rng.choice([-1.0, 1.0], 3)  # noqa: E731
+    A = np.eye(3) + np.diag(rng.uniform(-0.04, 0.04, 3))
+    off = rng.uniform(-0.03, 0.03, 3)
+    A[0, 1] = A[1, 0] = off[0]
+    A[0, 2] = A[2, 0] = off[1]
+    A[1, 2] = A[2, 1] = off[2]
+    return SensorErrors(
+        gyro_bias_rad_s=np.radians(rng.uniform(0.5, 1.0, 3)) * signs(),
+        accel_bias_m_s2=rng.uniform(0.03, 0.07, 3) * signs(),
+        hard_iron_t=rng.uniform(2e-6, 6e-6, 3) * signs(),
+        soft_iron=A,
+    )
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything of one (seed, session) recording except the world's pictures."""
+
+    seed: int
+    session: str
+    duration_s: float
+    trajectory: Trajectory
+    earth: EarthField
+    disturbances: Disturbances
+    errors: SensorErrors
+    origin_lat_lon_alt: tuple[float, float, float]
+
+
+def make_scenario(seed: int, session: str, duration_s: float,
+                  declination_rad: float = 0.0) -> Scenario:
+    """The scenario for a seed and session; the spot (and so the GPS origin) is the seed's."""
+    if session not in SESSIONS:
+        raise ValueError(f'unknown session {session!r} (use {" or ".join(SESSIONS)})')
+    earth = EarthField(declination_rad=declination_rad)
+    spot = rng_stream(seed, 'spot')
+    origin = (BASE_LATITUDE_DEG + spot.uniform(-0.03, 0.03),
+              BASE_LONGITUDE_DEG + spot.uniform(-0.045, 0.045), 353.0 + spot.uniform(-5, 40))
+    return Scenario(
+        seed=seed, session=session, duration_s=float(duration_s),
+        trajectory=make_trajectory(seed, session, duration_s), earth=earth,
+        disturbances=make_disturbances(rng_stream(seed, 'disturbances', session), duration_s,
+                                       earth),
+        errors=make_sensor_errors(rng_stream(seed, 'device', session)),
+        origin_lat_lon_alt=origin,
+    )
+
+
+@dataclass(frozen=True)
+class ImuSamples:
+    """IMU-rate samples: measurements in the imu frame and the ground truth."""
+
+    t_s: Array
+    gyro_rad_s: Array  # (N, 3) imu frame
+    accel_m_s2: Array  # (N, 3) imu frame, specific force
+    mag_t: Array  # (N, 3) imu frame, raw (hard and soft iron, disturbance, noise)
+    R_enu_cam: Array  # (N, 3, 3) truth
+    position_enu: Array  # (N, 3) truth
+    deflection_rad: Array  # (N,) compass error caused by the disturbance
+    extra_field_t: Array  # (N,) |B + disturbance| - |B|
+
+
+def simulate_imu(scn: Scenario, t_s: Array) -> ImuSamples:
+    """Gyro, accelerometer and magnetometer samples at times ``t_s`` (exact motion + errors)."""
+    rng = rng_stream(scn.seed, 'imu-noise', scn.session)
+    traj, err = scn.trajectory, scn.errors
+    n = len(t_s)
+    R = traj.R_enu_cam(t_s)
+    R_imu_enu = R_IMU_CAM @ np.swapaxes(R, 1, 2)
+    gyro = traj.omega_cam(t_s) @ R_IMU_CAM.T + err.gyro_bias_rad_s
+    gyro += rng.normal(0.0, err.gyro_noise_rad_s, (n, 3))
+    f_enu = traj.acceleration(t_s) + np.array([0.0, 0.0, GRAVITY_M_S2])
+    accel = np.einsum('nij,nj->ni', R_imu_enu, f_enu) + err.accel_bias_m_s2
+    accel += rng.normal(0.0, err.accel_noise_m_s2, (n, 3))
+    b = scn.earth.vector_enu
+    b_meas = b + scn.disturbances.field(t_s)
+    mag = np.einsum('nij,nj->ni', R_imu_enu, b_meas) @ err.soft_iron.T + err.hard_iron_t
+    mag += rng.normal(0.0, err.mag_noise_t, (n, 3))
+    return ImuSamples(
+        t_s=np.asarray(t_s, float), gyro_rad_s=gyro, accel_m_s2=accel, mag_t=mag, R_enu_cam=R,
+        position_enu=traj.position(t_s),
+        deflection_rad=heading_deflection(np.broadcast_to(b, b_meas.shape), b_meas),
+        extra_field_t=np.linalg.norm(b_meas, axis=1) - np.linalg.norm(b),
+    )
+
+
+@dataclass(frozen=True)
+class GpsSamples:
+    t_s: Array
+    latitude_deg: Array
+    longitude_deg: Array
+    altitude_m: Array
+    sigma_horizontal_m: float
+    sigma_vertical_m: float
+
+
+def simulate_gps(scn: Scenario, t_s: Array, sigma_h_m: float = 3.0, sigma_v_m: float = 5.0,
+                 correlation_s: float = 20.0) -> GpsSamples:
+    """Fixes of the true position with slowly wandering (Gauss-Markov) metre-level errors."""
+    rng = rng_stream(scn.seed, 'gps', scn.session)
+    n = len(t_s)
+    phi = math.exp(-1.0 / (GPS_RATE_HZ * correlation_s))
+    err = np.zeros((n, 3))
+    sig = np.array([sigma_h_m, sigma_h_m, sigma_v_m])
+    err[0] = rng.normal(0, sig)
+    for k in range(1, n):
+        err[k] = phi * err[k - 1] + math.sqrt(1 - phi * phi) * rng.normal(0, sig)
+    pos = scn.trajectory.position(t_s) + err
+    lat0, lon0, alt0 = scn.origin_lat_lon_alt
+    lat = lat0 + np.degrees(pos[:, 1] / EARTH_RADIUS_M)
+    lon = lon0 + np.degrees(pos[:, 0] / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+    return GpsSamples(np.asarray(t_s, float), lat, lon, alt0 + pos[:, 2], sigma_h_m, sigma_v_m)
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """Auto-exposure and white balance of the phone camera: jumps plus slow drift."""
+
+    jump_s: Array
+    jump_factor: Array
+    jump_wb: Array  # (k, 3) white balance after each jump
+    drift: SineSum  # log-gain drift
+
+    def at(self, t: Array) -> tuple[Array, Array]:
+        """(gain factor (N,), white balance (N, 3)) at times ``t``; a jump takes ~0.1 s."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        step = np.clip((t[:, None] - self.jump_s) / 0.1, 0, 1)
+        log_gain = step @ np.log(self.jump_factor) + self.drift.eval(t)
+        wb = np.ones((len(t), 3))
+        for k in range(len(self.jump_s)):  # white balance moves with the jumps
+            prev = self.jump_wb[k - 1] if k else np.ones(3)
+            wb += step[:, k:k + 1] * (self.jump_wb[k] - prev)
+        return np.exp(log_gain), wb
+
+
+def make_exposure(seed: int, session: str, duration_s: float) -> Exposure:
+    """Several jumps of 20-50 % a minute (at least one on a 5 s bag), back toward the middle."""
+    rng = rng_stream(seed, 'exposure', session)
+    n = max(1, int(round(duration_s / 60.0 * rng.uniform(4.0, 7.0)))) if duration_s >= 3 else 0
+    times = np.sort(rng.uniform(0.15, 0.9, n)) * duration_s if n else np.zeros(0)
+    factors, wbs = [], []
+    log_g = 0.0
+    for _ in range(n):
+        m = rng.uniform(0.2, 0.5)
+        up = rng.random() < 1.0 / (1.0 + math.exp(4.0 * log_g))
+        f = 1.0 + m if up else 1.0 / (1.0 + m)
+        log_g += math.log(f)
+        factors.append(f)
+        wb = rng.uniform(0.96, 1.04, 3)
+        wbs.append(wb / wb[1])
+    return Exposure(times, np.array(factors, float), np.array(wbs, float).reshape(-1, 3),
+                    SineSum.random(rng, 0.12, 1 / 45.0, 1 / 15.0, 2))
+
+
+def calibration_params(scn: Scenario) -> dict[str, list[float] | float]:
+    """What a user would have measured for this device: the truth with 1-3 % errors.
+
+    The soft-iron matrix is the inverse of the true distortion with its deviation from identity
+    a few percent off; everything is plain Python floats for YAML.
+    """
+    rng = rng_stream(scn.seed, 'calibration', scn.session)
+    err = scn.errors
+
+    def off(v: Array) -> Array:
+        return v * (1.0 + rng.uniform(0.01, 0.03, np.shape(v)) * rng.choice([-1, 1], np.shape(v)))
+
+    S = np.linalg.inv(err.soft_iron)
+    S_est = np.eye(3) + off(S - np.eye(3))
+    return {
+        'gyro_bias': [float(x) for x in off(err.gyro_bias_rad_s)],
+        'accel_bias': [float(x) for x in off(err.accel_bias_m_s2)],
+        'hard_iron_offset': [float(x) for x in off(err.hard_iron_t)],
+        'soft_iron_matrix': [float(x) for x in S_est.ravel()],
+        'declination_rad': float(scn.earth.declination_rad),
+        'expected_field_t': float(scn.earth.magnitude_t),
+        'expected_dip_rad': float(round(scn.earth.dip_rad, 4)),
+    }
+
+
+def blur_samples(traj: Trajectory, t_s: float, fx_px: float) -> Array:
+    """Orientations spread over the exposure (1-5 of them, more when turning fast)."""
+    speed = float(np.linalg.norm(traj.omega_cam(np.array([t_s]))[0]))
+    n = int(min(5, max(1, math.ceil(speed * EXPOSURE_TIME_S * fx_px / 1.2))))
+    if n == 1:
+        return traj.R_enu_cam(np.array([t_s]))
+    return traj.R_enu_cam(t_s + np.linspace(-0.5, 0.5, n) * EXPOSURE_TIME_S)
