@@ -153,9 +153,12 @@ def _plot_attitudes(axes: Any, data: BagOrientations, t0: int) -> None:
 def _plot_heading_errors(ax: Any, data: BagOrientations, t0: int) -> None:
     if data.disturbance is not None:
         stamps, deflection_rad = data.disturbance
-        t, d = _thin(_seconds(stamps, t0), np.degrees(deflection_rad))
+        # The simulator records the deflection clockwise-positive (as a compass reads); the
+        # panel's heading error is counter-clockwise-positive, so a compass that follows the
+        # disturbance lies on the shaded area.
+        t, d = _thin(_seconds(stamps, t0), -np.degrees(deflection_rad))
         ax.fill_between(t, 0.0, d, color=DISTURBANCE_COLOUR, alpha=0.3, linewidth=0,
-                        label='magnetic disturbance (compass deflection)')
+                        label='heading error a compass-only estimate would show (simulated disturbance)')
     for i, (topic, series) in enumerate(_estimates_to_plot(data)):
         errors = orientation_errors(data.truth, series)
         if len(errors.heading_deg) == 0:

@@ -9,22 +9,22 @@ clock, and every random stream is derived from ``(seed, session)``. The world (t
 annotation anchors) depends on the seed only, so an authoring and a browsing bag of one seed
 show the same spot under a different sun, from standing points less than 2 m apart.
 
-Topics (log time = header stamp, integer ns from a fixed start):
+Topics (log time = header stamp, integer ns from a fixed start), as topic: type, rate, frame_id:
 
-=============================== ================================= ======= ==================
-topic                           type                              rate    frame_id
-=============================== ================================= ======= ==================
-/camera/image_raw (or /compressed) sensor_msgs/Image (CompressedImage) 30 Hz camera_optical
-/camera/camera_info             sensor_msgs/CameraInfo            30 Hz   camera_optical
-/imu/data_raw                   sensor_msgs/Imu                   100 Hz  imu
-/imu/mag                        sensor_msgs/MagneticField         100 Hz  imu
-/gps/fix                        sensor_msgs/NavSatFix             1 Hz    gps
-/tf_static                      tf2_msgs/TFMessage                once    imu -> camera_optical
-/ground_truth/orientation       geometry_msgs/TransformStamped    100 Hz  enu -> camera_optical
-/ground_truth/pose              geometry_msgs/PoseStamped         100 Hz  enu
-/ground_truth/annotations       visualization_msgs/MarkerArray    once    enu
-/ground_truth/mag_disturbance   geometry_msgs/Vector3Stamped      100 Hz  enu
-=============================== ================================= ======= ==================
+* /camera/image_raw: sensor_msgs/Image rgb8, 30 Hz, camera_optical (or, with
+  image_format='compressed', /camera/image_raw/compressed: sensor_msgs/CompressedImage jpeg)
+* /camera/camera_info: sensor_msgs/CameraInfo, with every image, camera_optical
+* /imu/data_raw: sensor_msgs/Imu (no orientation), 100 Hz, imu
+* /imu/mag: sensor_msgs/MagneticField (raw, tesla), 100 Hz (IMU stamps), imu
+* /gps/fix: sensor_msgs/NavSatFix, 1 Hz, gps
+* /tf_static: tf2_msgs/TFMessage, once, imu -> camera_optical (R_imu_cam = diag(1, -1, -1))
+* /ground_truth/orientation: geometry_msgs/TransformStamped, 100 Hz, enu -> camera_optical
+  (rotation R_enu_cam; translation = the camera position)
+* /ground_truth/pose: geometry_msgs/PoseStamped, 100 Hz, enu
+* /ground_truth/annotations: visualization_msgs/MarkerArray, once, enu (anchor positions
+  relative to the authoring spot)
+* /ground_truth/mag_disturbance: geometry_msgs/Vector3Stamped, 100 Hz, enu (x: compass error
+  caused by the disturbance in rad, y: extra |B| in tesla)
 """
 from __future__ import annotations
 
@@ -57,8 +57,8 @@ START_NS = 1_700_000_000 * 1_000_000_000
 MAX_DURATION_S = 3600.0
 JPEG_QUALITY = 85
 #: Auto-exposure only half compensates the scene brightness (a sunnier day stays brighter).
-EXPOSURE_TARGET = 0.24
-EXPOSURE_COMPENSATION = 0.5
+EXPOSURE_TARGET = 0.2
+EXPOSURE_COMPENSATION = 0.4
 
 TOPIC_IMAGE = '/camera/image_raw'
 TOPIC_IMAGE_COMPRESSED = '/camera/image_raw/compressed'
@@ -131,7 +131,8 @@ def _check_args(scenario: str, seed: int, duration_s: float, session: str, stora
         raise SimError(f'seed must be an integer in [0, 2**32), got {seed!r}')
     if not isinstance(duration_s, (int, float)) or not math.isfinite(duration_s) \
             or not 1.0 <= duration_s <= MAX_DURATION_S:
-        raise SimError(f'duration_s must be between 1 and {MAX_DURATION_S:.0f} s, got {duration_s!r}')
+        raise SimError(f'duration_s must be between 1 and {MAX_DURATION_S:.0f} s, '
+                       f'got {duration_s!r}')
     if session not in SESSIONS:
         raise SimError(f'unknown session {session!r} (use {" or ".join(SESSIONS)})')
     if storage not in STORAGES:

@@ -81,7 +81,7 @@ class SineSum:
     @staticmethod
     def random(rng: np.random.Generator, total_amp: float, f_lo: float, f_hi: float, n: int,
                offset: float = 0.0) -> 'SineSum':
-        """``n`` components with amplitudes summing to ``total_amp`` (a hard bound on |x - offset|)."""
+        """``n`` components whose amplitudes sum to ``total_amp`` (so |x - offset| <= it)."""
         weights = rng.uniform(0.3, 1.0, n)
         return SineSum(offset, total_amp * weights / weights.sum(), rng.uniform(f_lo, f_hi, n),
                        rng.uniform(0, 2 * math.pi, n))
@@ -104,14 +104,17 @@ class PanProfile:
         return np.clip((t - self.start_s) / self.width_s, 0.0, 1.0)
 
     def angle(self, t: Array) -> Array:
+        """Heading turned since the start (rad)."""
         tau = self._tau(t)
         integral = tau / 2 - np.sin(2 * math.pi * tau) / (4 * math.pi)
         return np.sum(self.peak_rad_s * self.width_s * integral, axis=-1)
 
     def rate(self, t: Array) -> Array:
+        """Pan rate (rad/s)."""
         return np.sum(self.peak_rad_s * np.sin(math.pi * self._tau(t)) ** 2, axis=-1)
 
     def accel(self, t: Array) -> Array:
+        """Pan acceleration (rad/s^2)."""
         tau = self._tau(t)
         inside = (tau > 0) & (tau < 1)
         return np.sum(inside * self.peak_rad_s * math.pi / self.width_s
@@ -155,7 +158,8 @@ def make_pan_profile(rng: np.random.Generator, duration_s: float) -> PanProfile:
 
 def orientation_from_angles(heading: Array, pitch: Array, roll: Array) -> Array:
     """R_enu_cam (N, 3, 3) from heading / pitch / roll (radians, see the module docstring)."""
-    heading, pitch, roll = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (heading, pitch, roll))
+    heading, pitch, roll = (np.atleast_1d(np.asarray(a, dtype=float))
+                            for a in (heading, pitch, roll))
     ch, sh = np.cos(heading), np.sin(heading)
     Rz = np.zeros((len(heading), 3, 3))
     Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = ch, sh, -sh, ch, 1.0
@@ -183,11 +187,13 @@ class Trajectory:
     spot_enu: Array  # where the person stands (camera height), metres
 
     def heading(self, t: Array, order: int = 0) -> Array:
+        """Compass heading of the optical axis (rad, unwrapped) or its derivative of ``order``."""
         base = self.heading0_rad if order == 0 else 0.0
         pan = (self.pan.angle, self.pan.rate, self.pan.accel)[order](t)
         return base + pan + self.heading_tremor.eval(t, order)
 
     def angles(self, t: Array) -> tuple[Array, Array, Array]:
+        """(heading, pitch, roll) in radians at times ``t``."""
         return self.heading(t), self.pitch.eval(t), self.roll.eval(t)
 
     def R_enu_cam(self, t: Array) -> Array:
@@ -203,8 +209,8 @@ class Trajectory:
         v = np.stack([np.zeros_like(dh), dh * np.cos(p), -dh * np.sin(p)], -1)  # Rx(p)^T (0,dh,0)
         v[:, 0] += dp
         cr, sr = np.cos(r), np.sin(r)
-        out = np.stack([cr * v[:, 0] + sr * v[:, 1], -sr * v[:, 0] + cr * v[:, 1], v[:, 2] + dr], -1)
-        return out
+        return np.stack([cr * v[:, 0] + sr * v[:, 1], -sr * v[:, 0] + cr * v[:, 1], v[:, 2] + dr],
+                        -1)
 
     def position(self, t: Array) -> Array:
         """Camera position in ENU (N, 3), metres."""
@@ -280,6 +286,7 @@ class EarthField:
 
     @property
     def vector_enu(self) -> Array:
+        """The field vector in ENU, tesla (north and down components, east with declination)."""
         h = self.magnitude_t * math.cos(self.dip_rad)
         return np.array([h * math.sin(self.declination_rad), h * math.cos(self.declination_rad),
                          -self.magnitude_t * math.sin(self.dip_rad)])
@@ -354,6 +361,8 @@ class SensorErrors:
 
 
 def make_sensor_errors(rng: np.random.Generator) -> SensorErrors:
+    """A phone's errors: gyro bias 0.5-1 deg/s, accel bias ~0.05 m/s^2, hard iron 2-6 uT per
+    axis, soft iron within a few percent of identity (symmetric)."""
     signs = lambda: rng.choice([-1.0, 1.0], 3)  # noqa: E731
     A = np.eye(3) + np.diag(rng.uniform(-0.04, 0.04, 3))
     off = rng.uniform(-0.03, 0.03, 3)
@@ -441,6 +450,8 @@ def simulate_imu(scn: Scenario, t_s: Array) -> ImuSamples:
 
 @dataclass(frozen=True)
 class GpsSamples:
+    """GPS fixes (degrees, metres) and the noise they were made with."""
+
     t_s: Array
     latitude_deg: Array
     longitude_deg: Array

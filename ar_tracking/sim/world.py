@@ -87,10 +87,12 @@ class Plane:
 
     @property
     def tangent(self) -> Array:
+        """Horizontal unit vector along the plane, toward increasing azimuth (viewer's right)."""
         return np.array([math.cos(self.foot_az_rad), -math.sin(self.foot_az_rad), 0.0])
 
     @property
     def normal(self) -> Array:
+        """Horizontal unit normal, pointing back toward the origin."""
         return -np.array([math.sin(self.foot_az_rad), math.cos(self.foot_az_rad), 0.0])
 
     @property
@@ -102,7 +104,7 @@ class Plane:
         return self.albedo.shape[0], self.albedo.shape[1]
 
     def world_point(self, col: Array, row: Array) -> Array:
-        """World points (..., 3) of texture coordinates (pixel centres at integer + 0.5)."""
+        """World points (..., 3) of continuous texture coordinates (pixel i spans [i, i+1))."""
         s = self.s_min_m + np.asarray(col, dtype=float) / self.px_per_m
         z = self.z_max_m - np.asarray(row, dtype=float) / self.px_per_m
         return self.foot + s[..., None] * self.tangent + z[..., None] * UP
@@ -411,11 +413,11 @@ def _draw_ground_floor(rng: np.random.Generator, f: _FacadeDraw, bays: list[tupl
             xa, xb = bays[i][0], bays[i + run - 1][1]
             ya, yb = f.row_of(gf_h - 0.3), f.row_of(gf_h - 1.1)
             word = words.pop()
-            _draw_sign(rng, f, xa + f.px(0.2), xb - f.px(0.2), yb, ya, word)
+            _draw_sign(rng, f, xa + f.px(0.2), xb - f.px(0.2), ya, yb, word)
             f.features.append((f'Sign "{word}"', (xa + xb) / 2, (ya + yb) / 2))
             if rng.random() < 0.6:  # striped awning under the sign
                 ac = _color(rng, _ACCENT_COLOURS, 10)
-                top, bot = ya + 1, f.row_of(gf_h - 1.9)
+                top, bot = yb + 1, f.row_of(gf_h - 1.8)
                 stripe = max(2, f.px(0.3))
                 for k, x in enumerate(range(xa + f.px(0.2), xb - f.px(0.2), stripe)):
                     col = ac if k % 2 == 0 else (240, 240, 235)
@@ -448,16 +450,29 @@ def _draw_ground_floor(rng: np.random.Generator, f: _FacadeDraw, bays: list[tupl
                 _draw_shop_window(rng, f, x0, y0, x1, y1, trim)
 
 
+def _solid_rect(img: NDArray[np.uint8], alpha: NDArray[np.uint8], p0: tuple[int, int],
+                p1: tuple[int, int], colour: tuple[int, int, int]) -> None:
+    """A filled rectangle drawn into the colour image and marked opaque in the alpha mask."""
+    cv2.rectangle(img, p0, p1, colour, -1)
+    cv2.rectangle(alpha, p0, p1, 255, -1)
+
+
+def _solid_poly(img: NDArray[np.uint8], alpha: NDArray[np.uint8], pts: NDArray[np.int32],
+                colour: tuple[int, int, int]) -> None:
+    cv2.fillPoly(img, [pts.astype(np.int32)], colour)
+    cv2.fillPoly(alpha, [pts.astype(np.int32)], 255)
+
+
 def _draw_shop_window(rng: np.random.Generator, f: _FacadeDraw, x0: int, y0: int, x1: int,
                       y1: int, trim: tuple[int, int, int]) -> None:
     img = f.img
     img[y0:y1, x0:x1] = (55, 60, 70)
     for _ in range(int(rng.integers(3, 9))):  # goods on display
         w, h = f.px(rng.uniform(0.1, 0.5)), f.px(rng.uniform(0.1, 0.6))
-        cx, cy = int(rng.integers(x0, max(x0 + 1, x1 - w))), int(rng.integers(y0 + (y1 - y0) // 3,
-                                                                               max(y0 + 1, y1 - h)))
-        cv2.rectangle(img, (cx, cy), (cx + w, cy + h), _color(rng, _ACCENT_COLOURS + _CURTAIN_COLOURS,
-                                                               30), -1)
+        cx = int(rng.integers(x0, max(x0 + 1, x1 - w)))
+        cy = int(rng.integers(y0 + (y1 - y0) // 3, max(y0 + 1, y1 - h)))
+        colour = _color(rng, _ACCENT_COLOURS + _CURTAIN_COLOURS, 30)
+        cv2.rectangle(img, (cx, cy), (cx + w, cy + h), colour, -1)
     cv2.rectangle(img, (x0, y0), (x1, y1), trim, max(1, f.px(0.08)))
     if rng.random() < 0.5:
         xm = (x0 + x1) // 2
@@ -480,8 +495,7 @@ def _draw_roof(rng: np.random.Generator, f: _FacadeDraw, trim: tuple[int, int, i
         rc = _color(rng, [(150, 60, 40), (80, 80, 85), (110, 70, 50)], 15)
         inset = f.px(rng.uniform(0.5, 2.0))
         pts = np.array([[0, top], [w - 1, top], [w - 1 - inset, top - rh], [inset, top - rh]])
-        cv2.fillPoly(img, [pts.astype(np.int32)], rc)
-        cv2.fillPoly(a, [pts.astype(np.int32)], 255)
+        _solid_poly(img, a, pts, rc)
         for y in range(top - rh, top, max(2, f.px(0.25))):
             cv2.line(img, (0, y), (w, y), tuple(int(c * 0.75) for c in rc), 1)
         roof_top = top - rh
@@ -491,11 +505,9 @@ def _draw_roof(rng: np.random.Generator, f: _FacadeDraw, trim: tuple[int, int, i
         cw, ch = f.px(rng.uniform(0.5, 1.0)), f.px(rng.uniform(0.8, 1.8))
         cx = int(rng.integers(0, max(1, w - cw)))
         col = _color(rng, [(150, 70, 50), (120, 120, 120), (180, 170, 150)], 15)
-        cv2.rectangle(img, (cx, roof_top - ch), (cx + cw, roof_top + 2), col, -1)
-        cv2.rectangle(a, (cx, roof_top - ch), (cx + cw, roof_top + 2), 255, -1)
-        cv2.rectangle(img, (cx - 1, roof_top - ch), (cx + cw + 1, roof_top - ch + f.px(0.15)),
-                      (60, 60, 60), -1)
-        cv2.rectangle(a, (cx - 1, roof_top - ch), (cx + cw + 1, roof_top - ch + f.px(0.15)), 255, -1)
+        _solid_rect(img, a, (cx, roof_top - ch), (cx + cw, roof_top + 2), col)
+        _solid_rect(img, a, (cx - 1, roof_top - ch), (cx + cw + 1, roof_top - ch + f.px(0.15)),
+                    (60, 60, 60))
     if rng.random() < 0.6:  # an antenna
         ax = int(rng.integers(0, w))
         ah = f.px(rng.uniform(1.5, 3.0))
@@ -601,13 +613,12 @@ def draw_far_block(rng: np.random.Generator, width_m: float, height_m: float, pp
     for y in np.arange(top + ppm * 1.5, h - ppm * 1.0, fy * ppm):
         for x in np.arange(ppm * 0.8, w - ppm * 0.8, fx * ppm):
             if rng.random() < 0.9:
-                cv2.rectangle(img, (int(x), int(y)), (int(x + 1.2 * ppm), int(y + 1.5 * ppm)), dark, -1)
+                p1 = (int(x + 1.2 * ppm), int(y + 1.5 * ppm))
+                cv2.rectangle(img, (int(x), int(y)), p1, dark, -1)
     if rng.random() < 0.25:  # spire or crane
         x = int(rng.integers(0, w))
         sh = int(rng.uniform(0.4, 1.0) * top)
-        pts = np.array([[x - 3, top], [x + 3, top], [x, top - sh]], np.int32)
-        cv2.fillPoly(img, [pts], dark)
-        cv2.fillPoly(a, [pts], 255)
+        _solid_poly(img, a, np.array([[x - 3, top], [x + 3, top], [x, top - sh]]), dark)
     roof_c = tuple(int(c * 0.6) for c in col)
     cv2.rectangle(img, (0, top), (w, top + 2), roof_c, -1)
     return img, a
@@ -621,8 +632,7 @@ def draw_tree(rng: np.random.Generator, width_m: float, height_m: float, ppm: fl
     a = np.zeros((h, w), np.uint8)
     tw = max(2, int(0.35 * ppm))
     trunk_top = int(h * 0.45)
-    cv2.rectangle(img, (w // 2 - tw // 2, trunk_top), (w // 2 + tw // 2, h), (70, 55, 40), -1)
-    cv2.rectangle(a, (w // 2 - tw // 2, trunk_top), (w // 2 + tw // 2, h), 255, -1)
+    _solid_rect(img, a, (w // 2 - tw // 2, trunk_top), (w // 2 + tw // 2, h), (70, 55, 40))
     cx, cy = w / 2, h * 0.36
     rx, ry = w * 0.48, h * 0.35
     greens = [(60, 100, 40), (80, 120, 50), (50, 85, 35), (100, 130, 60), (70, 110, 30)]
@@ -654,28 +664,27 @@ def draw_pole(rng: np.random.Generator, height_m: float, ppm: float
     col = _color(rng, [(40, 45, 40), (70, 70, 75), (30, 50, 40)], 8)
     pw = max(2, int(0.14 * ppm))
     xc = w // 2
-    cv2.rectangle(img, (xc - pw // 2, int(0.08 * h)), (xc + pw // 2, h), col, -1)
-    cv2.rectangle(a, (xc - pw // 2, int(0.08 * h)), (xc + pw // 2, h), 255, -1)
+
+    def dx(metres: float) -> int:
+        return int(metres * ppm)
+
+    _solid_rect(img, a, (xc - pw // 2, int(0.08 * h)), (xc + pw // 2, h), col)
     if rng.random() < 0.6:  # lamp head
-        pts = np.array([[xc - int(0.45 * ppm), int(0.12 * h)], [xc + int(0.45 * ppm), int(0.12 * h)],
-                        [xc + int(0.2 * ppm), 0], [xc - int(0.2 * ppm), 0]], np.int32)
-        cv2.fillPoly(img, [pts], col)
-        cv2.fillPoly(a, [pts], 255)
-        cv2.rectangle(img, (xc - int(0.3 * ppm), int(0.12 * h)), (xc + int(0.3 * ppm),
-                      int(0.12 * h) + 3), (230, 230, 200), -1)
-        cv2.rectangle(a, (xc - int(0.3 * ppm), int(0.12 * h)), (xc + int(0.3 * ppm),
-                      int(0.12 * h) + 3), 255, -1)
+        yl = int(0.12 * h)
+        _solid_poly(img, a, np.array([[xc - dx(0.45), yl], [xc + dx(0.45), yl],
+                                      [xc + dx(0.2), 0], [xc - dx(0.2), 0]]), col)
+        _solid_rect(img, a, (xc - dx(0.3), yl), (xc + dx(0.3), yl + 3), (230, 230, 200))
     else:  # a street sign
         sc = _color(rng, [(20, 80, 160), (240, 240, 240), (200, 30, 30)], 5)
         y0 = int(0.1 * h)
-        cv2.rectangle(img, (xc - int(0.5 * ppm), y0), (xc + int(0.5 * ppm), y0 + int(0.5 * ppm)), sc, -1)
-        cv2.rectangle(a, (xc - int(0.5 * ppm), y0), (xc + int(0.5 * ppm), y0 + int(0.5 * ppm)), 255, -1)
-        cv2.rectangle(img, (xc - int(0.4 * ppm), y0 + 3), (xc + int(0.4 * ppm), y0 + int(0.5 * ppm) - 3),
+        _solid_rect(img, a, (xc - dx(0.5), y0), (xc + dx(0.5), y0 + dx(0.5)), sc)
+        cv2.rectangle(img, (xc - dx(0.4), y0 + 3), (xc + dx(0.4), y0 + dx(0.5) - 3),
                       (250, 250, 250) if sum(sc) < 600 else (30, 30, 30), 1)
     return img, a
 
 
 def _to_albedo(img: NDArray[np.uint8], alpha: NDArray[np.uint8]) -> Image:
+    """Linear RGBA albedo from an sRGB drawing and its coverage mask."""
     rgb = _srgb_to_linear(img.astype(np.float32) / 255.0)
     return np.dstack([rgb, alpha.astype(np.float32) / 255.0]).astype(np.float32)
 
@@ -828,13 +837,13 @@ def _clouds(rng: np.random.Generator) -> tuple[Image, Image]:
 
 def _choose_anchors(rng: np.random.Generator, world: World, buildings: list[Plane]
                     ) -> list[Anchor]:
-    """4-6 features (doors, signs, windows, a clock) on different buildings, visible from the spot."""
+    """4-6 features (doors, signs, windows, a clock) of different buildings, seen from the spot."""
     cands = []
     for b in buildings:
         for kind, col, row in b.features:
             p = b.world_point(np.array(col), np.array(row))
             el = math.degrees(math.asin(p[2] / np.linalg.norm(p)))
-            if not -6.0 < el < 32.0 or not _visible_from(world, p, np.zeros(3)):
+            if not -6.0 < el < 32.0 or not _clear_view(world, b, p):
                 continue
             label = f'{kind} of building {b.index}' if not kind.startswith('Sign') else \
                 f'{kind} on building {b.index}'
@@ -853,23 +862,47 @@ def _choose_anchors(rng: np.random.Generator, world: World, buildings: list[Plan
     return [Anchor(label=c[2], position_enu=c[3]) for c in chosen]
 
 
+def _clear_view(world: World, plane: Plane, point: Array, margin_m: float = 0.6,
+                radius_m: float = 1.5) -> bool:
+    """Whether a spot and its surroundings on ``plane`` are unoccluded from the authoring spot
+    and from anywhere a browsing user may stand (a circle of ``radius_m`` around it)."""
+    offsets = np.array([(ds, dz) for ds in (-1, 0, 1) for dz in (-1, 0, 1)]) * margin_m
+    points = point + offsets[:, :1] * plane.tangent + offsets[:, 1:] * UP
+    ang = np.arange(8) * math.pi / 4
+    views = np.vstack([np.zeros(3), radius_m * np.stack([np.sin(ang), np.cos(ang),
+                                                          np.zeros(8)], 1)])
+    q = np.repeat(points, len(views), axis=0)
+    v = np.tile(views, (len(points), 1))
+    return bool(np.all(_visible(world, q, v)))
+
+
 def _visible_from(world: World, point: Array, viewpoint: Array) -> bool:
     """Whether nothing opaque lies between the viewpoint and a world point."""
-    d = point - viewpoint
-    dist = float(np.linalg.norm(d))
-    d /= dist
+    return bool(_visible(world, point[None], viewpoint[None])[0])
+
+
+def _visible(world: World, points: Array, viewpoints: Array) -> NDArray[np.bool_]:
+    """For pairs of points and viewpoints (n, 3): no opaque texel of any plane in between."""
+    d = points - viewpoints
+    dist = np.linalg.norm(d, axis=1)
+    d = d / dist[:, None]
+    free = np.ones(len(points), bool)
     for p in world.planes:
         denom = d @ p.normal
-        if abs(denom) < 1e-9:
+        safe = np.where(np.abs(denom) < 1e-9, 1e-9, denom)
+        lam = ((p.foot - viewpoints) @ p.normal) / safe
+        hit = (np.abs(denom) >= 1e-9) & (lam > 0) & (lam < dist - 0.5)
+        if not hit.any():
             continue
-        lam = ((p.foot - viewpoint) @ p.normal) / denom
-        if not 0.0 < lam < dist - 0.5:
-            continue
-        col, row = p.texture_coords(viewpoint + lam * d)
+        col, row = p.texture_coords(viewpoints[hit] + lam[hit, None] * d[hit])
         h, w = p.shape
-        if 0 <= col < w and 0 <= row < h and p.albedo[int(row), int(col), 3] > 0.5:
-            return False
-    return True
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        ci = np.clip(col, 0, w - 1).astype(int)
+        ri = np.clip(row, 0, h - 1).astype(int)
+        opaque = inside & (p.albedo[ri, ci, 3] > 0.5)
+        idx = np.flatnonzero(hit)
+        free[idx[opaque]] = False
+    return free
 
 
 # --------------------------------------------------------------------------------------------
@@ -885,8 +918,8 @@ def make_lighting(seed: int, session: str, world: World | None = None) -> Lighti
     rng = rng_stream(seed, 'lighting', session)
     if session == 'authoring':
         el = math.radians(rng.uniform(10.0, 20.0))
-        sun_rgb = np.array([1.0, 0.82, 0.62]) * 2.6
-        ambient = np.array([0.46, 0.52, 0.64])
+        sun_rgb = np.array([1.0, 0.82, 0.62]) * 2.0
+        ambient = np.array([0.39, 0.44, 0.54])
         zenith, horizon = np.array([0.16, 0.28, 0.62]), np.array([0.85, 0.75, 0.62])
     else:
         el = math.radians(rng.uniform(34.0, 44.0))
@@ -1053,27 +1086,34 @@ def _band_rows() -> tuple[int, int]:
     return r0, PANO_HEIGHT - r0
 
 
+ROW_CHUNK = 128  # rows of the panorama computed at once (bounds the memory of rendering)
+
+
 def _render_sky(light: Lighting, world: World, out: Image) -> None:
     """Sky gradient, sun halo and disc, lit clouds into the upper half of ``out`` (linear)."""
     r0, _ = _band_rows()
-    h = PANO_HEIGHT // 2
-    rows = np.arange(r0, h)
-    d = pano_directions(rows, np.arange(PANO_WIDTH)).astype(np.float32)
-    el = d[..., 2:3]
-    t = np.sqrt(np.clip(el, 0, 1))
-    sky = light.sky_horizon_rgb * (1 - t) + light.sky_zenith_rgb * t
-    cos_sun = np.clip(d @ light.sun_dir.astype(np.float32), -1, 1)[..., None]
+    for a in range(r0, PANO_HEIGHT // 2, ROW_CHUNK):
+        rows = np.arange(a, min(a + ROW_CHUNK, PANO_HEIGHT // 2))
+        out[rows[0]:rows[-1] + 1] = _sky_rows(light, world, rows)
+
+
+def _sky_rows(light: Lighting, world: World, rows: NDArray[np.int64]) -> Image:
+    f32 = np.float32
+    d = pano_directions(rows, np.arange(PANO_WIDTH)).astype(f32)
+    t = np.sqrt(np.clip(d[..., 2:3], 0, 1))
+    sky = light.sky_horizon_rgb.astype(f32) * (1 - t) + light.sky_zenith_rgb.astype(f32) * t
+    cos_sun = np.clip(d @ light.sun_dir.astype(f32), -1, 1)[..., None]
     ang = np.arccos(cos_sun)
-    halo = 1.0 + 1.6 * np.exp(-ang / 0.07) + 0.5 * np.exp(-ang / 0.5)
-    sky = sky * halo
+    halo = 1.0 + f32(1.6) * np.exp(-ang / f32(0.07)) + f32(0.5) * np.exp(-ang / f32(0.5))
+    sky *= halo
     dens = world.clouds[rows][..., None]
     detail = world.cloud_detail[rows][..., None]
-    cloud = (light.ambient_rgb * 1.5 + 0.35 * light.sun_rgb * (0.6 + 0.4 * cos_sun)) * detail
-    cloud = cloud * (1.0 - 0.35 * dens) * np.sqrt(halo)  # grey bases, silver linings
-    rgb = sky * (1 - 0.85 * dens) + cloud * 0.85 * dens
-    disc = (ang < math.radians(0.6)) * (1 - 0.9 * dens)
-    rgb = rgb + disc * 60.0
-    out[r0:h] = rgb.astype(np.float32)
+    cloud = (light.ambient_rgb.astype(f32) * f32(1.5)
+             + f32(0.35) * light.sun_rgb.astype(f32) * (f32(0.6) + f32(0.4) * cos_sun)) * detail
+    cloud *= (1.0 - f32(0.35) * dens) * np.sqrt(halo)  # grey bases, silver linings
+    rgb = sky * (1 - f32(0.85) * dens) + cloud * f32(0.85) * dens
+    rgb += ((ang < math.radians(0.6)) * (1 - f32(0.9) * dens) * f32(60.0))  # the sun's disc
+    return rgb
 
 
 def _ground_albedo(world: World, x: Image, y: Image, footprint: Image) -> Image:
@@ -1125,26 +1165,34 @@ def _render_ground(world: World, light: Lighting, viewpoint: Array, out: Image,
                    depth: Image) -> None:
     """Paved ground below the horizon, with the cast shadows of the session's sun."""
     _, r1 = _band_rows()
-    r0 = PANO_HEIGHT // 2  # every row from here down looks below the horizon
-    d = pano_directions(np.arange(r0, r1), np.arange(PANO_WIDTH))
+    casters = [p for p in world.planes if p.kind != 'far']
+    shadow_raster = _ground_shadow(casters, light)
+    for a in range(PANO_HEIGHT // 2, r1, ROW_CHUNK):  # every row here looks below the horizon
+        rows = np.arange(a, min(a + ROW_CHUNK, r1))
+        rgb, lam = _ground_rows(world, light, viewpoint, shadow_raster, rows)
+        out[rows[0]:rows[-1] + 1] = rgb
+        depth[rows[0]:rows[-1] + 1] = lam
+
+
+def _ground_rows(world: World, light: Lighting, viewpoint: Array, shadow_raster: Image,
+                 rows: NDArray[np.int64]) -> tuple[Image, Image]:
+    d = pano_directions(rows, np.arange(PANO_WIDTH))
     h_eye = EYE_HEIGHT_M + viewpoint[2]
     lam = h_eye / np.maximum(-d[..., 2], 1e-4)
     x = (viewpoint[0] + lam * d[..., 0]).astype(np.float32)
     y = (viewpoint[1] + lam * d[..., 1]).astype(np.float32)
-    footprint = (lam * lam / h_eye * (math.pi / PANO_HEIGHT)).astype(np.float32)
+    lam = lam.astype(np.float32)
+    footprint = lam * lam * np.float32(math.pi / PANO_HEIGHT / h_eye)
     albedo = _ground_albedo(world, x, y, footprint)
-    casters = [p for p in world.planes if p.kind != 'far']
-    shadow_raster = _ground_shadow(casters, light)
-    sx = ((x + GROUND_RASTER_HALF_M) / GROUND_RASTER_RES_M - 0.5).astype(np.float32)
-    sy = ((GROUND_RASTER_HALF_M - y) / GROUND_RASTER_RES_M - 0.5).astype(np.float32)
+    sx = (x + GROUND_RASTER_HALF_M) / np.float32(GROUND_RASTER_RES_M) - np.float32(0.5)
+    sy = (GROUND_RASTER_HALF_M - y) / np.float32(GROUND_RASTER_RES_M) - np.float32(0.5)
     shadow = cv2.remap(shadow_raster, sx, sy, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    direct = max(0.0, float(light.sun_dir[2])) * (1.0 - shadow)
-    irr = light.ambient_rgb + direct[..., None] * light.sun_rgb
+    direct = np.float32(max(0.0, float(light.sun_dir[2]))) * (1.0 - shadow)
+    irr = light.ambient_rgb + direct[..., None] * light.sun_rgb.astype(np.float32)
     rgb = albedo * irr.astype(np.float32)
-    haze = (1.0 - np.exp(-lam / 900.0)).astype(np.float32)[..., None]
-    out[r0:r1] = (1 - haze) * rgb + haze * light.sky_horizon_rgb.astype(np.float32)
-    depth[r0:r1] = lam.astype(np.float32)
+    haze = (1.0 - np.exp(-lam / np.float32(900.0)))[..., None]
+    return (1 - haze) * rgb + haze * light.sky_horizon_rgb.astype(np.float32), lam
 
 
 def _plane_bbox(plane: Plane, viewpoint: Array) -> tuple[int, int, int, int] | None:
@@ -1226,16 +1274,16 @@ def render_panorama(world: World, light: Lighting, viewpoint_enu: Array) -> Pano
     order = sorted(world.planes, key=lambda p: -float(np.linalg.norm(p.foot - viewpoint)))
     for plane in order:
         shadow = _facade_shadow(plane, casters, light) if plane.kind == 'building' else None
-        if plane.kind == 'tree':
-            shadow = None
         rgba = _prefilter(_light_plane(plane, shadow, light), plane, viewpoint)
         _render_plane(plane, rgba, viewpoint, lin, depth)
     band = lin[PANO_HEIGHT // 2 - 500:PANO_HEIGHT // 2 + 400]
     mean_rad = float(np.mean(np.minimum(band, 4.0)))
-    enc = np.power(np.maximum(lin, 0.0), 1.0 / GAMMA).astype(np.float32)
-    enc = _antialias(enc)
+    np.maximum(lin, 0.0, out=lin)
+    enc = _antialias(np.power(lin, np.float32(1.0 / GAMMA), out=lin))
     sun_u, sun_v = direction_to_pano(light.sun_dir)
     sun_visible = bool(np.isinf(depth[int(sun_v) % PANO_HEIGHT, int(sun_u) % PANO_WIDTH]))
+    logger.debug('panorama from %s: mean radiance %.3f, sun visible %s', viewpoint.round(2),
+                 mean_rad, sun_visible)
     return Panorama(encoded=enc, depth_m=depth, viewpoint_enu=viewpoint, sun_visible=sun_visible,
                     mean_radiance=mean_rad)
 
