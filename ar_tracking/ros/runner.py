@@ -98,7 +98,7 @@ def plan_nodes(
         for name in list(pending):
             cls = load_node_class(graph[name])
             needed = cls.REQUIRED_INPUTS if hasattr(cls, 'REQUIRED_INPUTS') else list(cls.INPUTS)
-            if all(t in available for t in needed):
+            if all(_satisfied(t, available) for t in needed):
                 started.append(name)
                 available.update(cls.OUTPUTS)
                 pending.remove(name)
@@ -107,12 +107,20 @@ def plan_nodes(
     for name in pending:
         cls = load_node_class(graph[name])
         needed = cls.REQUIRED_INPUTS if hasattr(cls, 'REQUIRED_INPUTS') else list(cls.INPUTS)
-        missing = [t for t in needed if t not in available]
+        missing = [t if isinstance(t, str) else ' or '.join(t) for t in needed if not _satisfied(t, available)]
         reasons[name] = f'needs {", ".join(missing)}'
     return started, reasons
 
 
 _runs_in_process = itertools.count()
+
+
+def _satisfied(requirement: str | tuple[str, ...], available: set[str]) -> bool:
+    """A required input is a topic, or a tuple of alternatives of which one must be there
+    (e.g. ('camera/image_raw', 'camera/image_raw/compressed'))."""
+    if isinstance(requirement, str):
+        return requirement in available
+    return any(t in available for t in requirement)
 
 
 def _domain_id() -> int:
@@ -246,7 +254,11 @@ class GraphRunner:
             feeder.lockstep_hooks = None if realtime else hooks
             nodes.append(feeder)
             feed_pubs: dict[str, Any] = {}
+            produced = {t for n in nodes[:-1] for t in type(n).OUTPUTS}
             for topic, msgtype in bag_types.items():
+                if topic.lstrip('/') in produced:
+                    logger.warning('%s is in the bag and produced by a node: the node wins', topic)
+                    continue
                 if topic.lstrip('/') in consumed:
                     feed_pubs[topic] = feeder.advertise(message_class(msgtype), topic, RELIABLE_QOS)
             clock_pub = None
@@ -496,3 +508,26 @@ class _StopOnSignal:
     def __exit__(self, *exc: object) -> None:
         for sig, previous in self._previous.items():
             signal.signal(sig, previous)
+
+
+def transport_probe_graph() -> dict[str, Any]:
+    """A graph of one node that subscribes to every input of the real graph and does nothing:
+    running it measures the floor that rclpy transport alone sets (``transport_floor_factor``)."""
+    from .conversions import message_class
+    from .node_base import SENSOR_QOS, TrackingNode
+
+    inputs: dict[str, str] = {}
+    for spec in GRAPH_NODES.values():
+        inputs.update(load_node_class(spec).INPUTS)
+
+    class TransportProbe(TrackingNode):
+        INPUTS = inputs
+        OUTPUTS: dict[str, str] = {}
+        REQUIRED_INPUTS: list[str] = []
+
+        def __init__(self, **kwargs: Any) -> None:
+            super().__init__('transport_probe', **kwargs)
+            for topic, msgtype in self.INPUTS.items():
+                self.subscribe(message_class(msgtype), topic, lambda msg: None, SENSOR_QOS, raw=True)
+
+    return {'transport_probe': TransportProbe}

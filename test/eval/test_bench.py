@@ -1,0 +1,31 @@
+"""The benchmark's plumbing on a short bag (speeds are reported, never asserted)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip('rclpy')
+
+from ar_tracking.eval.bench import run_bench  # noqa: E402
+
+
+def test_bench_reports_the_design_names(tmp_path):
+    results = run_bench(tmp_path, duration_s=2.0)
+    graph = results['graph']
+    for key in ('realtime_factor', 'transport_floor_factor', 'wall_s', 'input_messages'):
+        assert key in graph
+    assert graph['realtime_factor'] > 0 and graph['transport_floor_factor'] > 0
+    assert graph['input_messages'] == 400  # 2 s of IMU + magnetometer at 100 Hz
+    node = graph['nodes']['imu_magnetometer']
+    assert node['n'] == 400 and 0 < node['p50_ms'] <= node['p95_ms']
+    assert results['orientation']['imu_magnetometer_updates_per_s'] > 0
+    json.dumps(results)  # JSON-able
+
+
+def test_bench_unknown_area_is_a_usage_error(tmp_path):
+    proc = subprocess.run([sys.executable, '-m', 'ar_tracking.cli', 'bench', '--areas', 'teleportation',
+                           '--workdir', str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and 'teleportation' in proc.stderr and 'Traceback' not in proc.stderr
