@@ -168,6 +168,8 @@ class GravityFieldOrientation:
 
     def estimate(self, accel_raw: Array, mag_raw: Array) -> OrientationEstimate | None:
         """Orientation from raw (uncalibrated) samples; None when they define none."""
+        if not (np.all(np.isfinite(accel_raw)) and np.all(np.isfinite(mag_raw))):
+            return None
         a = self.calibration.accel(accel_raw)
         m = self.calibration.mag(mag_raw)
         R = orientation_from_gravity_and_field(a, m, self.model.declination_rad)

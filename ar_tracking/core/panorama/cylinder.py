@@ -1,0 +1,83 @@
+"""Cylindrical map geometry of the panoramic mapper (Langlotz 2011 sec. 3.1, Fig. 1).
+
+The map is a cylinder around the camera centre whose axis is the vertical (y) axis of the
+``panorama`` frame (= camera_optical at the first frame: x right, y down, z forward). A
+direction ``d = (x, y, z)`` in that frame falls on map column ``u = f_c * atan2(x, z) + W/2``
+and row ``v = f_c * y / hypot(x, z) + H/2``, with ``f_c = W / (2 pi)`` pixels per radian,
+so 2048 columns cover 360 degrees (0.176 deg/px) and the first frame's optical axis lands at
+the centre of the map, far from the wrap at u = 0 = W. Pixel (u, v) has its centre at integer
+coordinates. Everything here is vectorised numpy; no state.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class CylinderGeometry:
+    """Size of the map and the projections between directions and map pixels."""
+
+    width: int = 2048
+    height: int = 512
+
+    @property
+    def f(self) -> float:
+        """Map pixels per radian, horizontally and (at the horizon) vertically."""
+        return self.width / (2.0 * math.pi)
+
+    def project(self, d: Array) -> tuple[Array, Array]:
+        """Map coordinates (u in [0, W), v) of directions ``d`` (..., 3) in the panorama frame."""
+        x, y, z = d[..., 0], d[..., 1], d[..., 2]
+        rho = np.maximum(np.hypot(x, z), 1e-12)
+        u = np.mod(np.arctan2(x, z) * self.f + self.width / 2.0, self.width)
+        v = y / rho * self.f + self.height / 2.0
+        return u, v
+
+    def unproject(self, u: Array, v: Array) -> Array:
+        """Unit directions (..., 3) of map coordinates ``u``, ``v`` (inverse of :meth:`project`)."""
+        theta = (np.asarray(u, float) - self.width / 2.0) / self.f
+        h = (np.asarray(v, float) - self.height / 2.0) / self.f
+        d = np.stack(np.broadcast_arrays(np.sin(theta), h, np.cos(theta)), axis=-1)
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def column_terms(self, u: Array) -> tuple[Array, Array]:
+        """(sin theta, cos theta) of map columns: with :meth:`row_terms` a map pixel's
+        (unnormalised) direction is (sin theta, h, cos theta), separable in u and v, which lets
+        the mapper project whole blocks of map pixels with broadcast sums."""
+        theta = (np.asarray(u, float) - self.width / 2.0) / self.f
+        return np.sin(theta), np.cos(theta)
+
+    def row_terms(self, v: Array) -> Array:
+        """h = y / rho of map rows (see :meth:`column_terms`)."""
+        return (np.asarray(v, float) - self.height / 2.0) / self.f
+
+
+def rotation_about_axis_y(angle_rad: float) -> Array:
+    """Rotation about the panorama's y axis (the cylinder axis): a pure shift of the map by
+    ``angle_rad * f`` columns; used by relocalisation, whose map search finds such a shift."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def camera_rays(K: Array, x: Array, y: Array) -> Array:
+    """Unit bearing vectors (..., 3) in camera_optical of pixel coordinates (x, y)."""
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    yn = (np.asarray(y, float) - cy) / fy
+    xn = (np.asarray(x, float) - cx - skew * yn) / fx
+    r = np.stack(np.broadcast_arrays(xn, yn, np.ones_like(xn)), axis=-1)
+    return r / np.linalg.norm(r, axis=-1, keepdims=True)
+
+
+def project_to_image(K: Array, p_cam: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Pixel coordinates of camera-frame points (..., 3) and whether they are in front."""
+    z = p_cam[..., 2]
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    xn, yn = p_cam[..., 0] / zs, p_cam[..., 1] / zs
+    return K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2], front

@@ -1,0 +1,329 @@
+"""The panoramic map: extended-dynamic-range cylinder, tiles and their keypoint queue.
+
+Langlotz 2011 sec. 3.1: camera frames are mapped onto a cylinder on the fly, and only the
+pixels not mapped yet are written ("usually < 1000 pixels per frame"). The map is cut into
+tiles; a tile whose pixels are all mapped is *finished*, and its FAST keypoints are then
+computed off the frame's critical path. Here that background work is a FIFO queue that the
+caller drains with a budget after each frame (:meth:`PanoramaMap.process_queue`), so a
+lockstep run stays deterministic.
+
+Sec. 4.1 (extended dynamic range, EDR): the map holds 16 bits per channel; the first frame's
+intensities are the baseline and each later frame is shifted by an intensity offset (the mean
+difference of its matched keypoint pairs, computed by the tracker) before it is mapped, so the
+map can hold values above 255 and below 0 of the 8-bit scale without clipping. Storage:
+``stored = round(64 * (value + 256))``: values from -256 to 767.98 in steps of 1/64. It is
+shown through a linear tone-mapping (:meth:`PanoramaMap.tone_mapped`). With ``edr=False`` the
+map is a plain 8-bit map and no offset is applied (the comparison of the benchmark).
+
+Besides the pixels the map keeps which frame contributed each pixel, for the seam measure of
+sec. 4.1 (:func:`seam_error`).
+"""
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .cylinder import CylinderGeometry, project_to_image
+
+logger = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+#: EDR storage: stored = EDR_SCALE * (value + EDR_OFFSET) (value in 8-bit units).
+EDR_SCALE = 64.0
+EDR_OFFSET = 256.0
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Map layout and the mapping / keypoint parameters."""
+
+    width: int = 2048
+    height: int = 512
+    tile_size: int = 64
+    #: Extended dynamic range (sec. 4.1); False: plain 8-bit map, no exposure correction.
+    edr: bool = True
+    #: 1: grey map; 3: colour map (RGB, one offset for all channels, as sec. 4.1).
+    channels: int = 1
+    #: Frame pixels this close to the frame border are not mapped (vignetting, blur at edges).
+    frame_border_px: int = 2
+    #: FAST threshold (8-bit units) for the keypoints of finished tiles.
+    fast_threshold: int = 12
+    #: Strongest FAST keypoints kept per finished tile.
+    keypoints_per_tile: int = 12
+    #: A keypoint needs all map pixels within this radius mapped (its patch is warped from there).
+    keypoint_margin_px: int = 7
+
+    def __post_init__(self) -> None:
+        if self.width % self.tile_size or self.height % self.tile_size:
+            raise ValueError(f'map {self.width}x{self.height} is not a multiple of tile_size {self.tile_size}')
+        if self.channels not in (1, 3):
+            raise ValueError('channels must be 1 or 3')
+
+
+class PanoramaMap:
+    """State of the map (see the module docstring). Not thread-safe; one caller."""
+
+    def __init__(self, config: MapConfig | None = None) -> None:
+        self.config = cfg = config or MapConfig()
+        self.geometry = CylinderGeometry(cfg.width, cfg.height)
+        H, W, C = cfg.height, cfg.width, cfg.channels
+        self.stored = np.zeros((H, W, C), np.uint16 if cfg.edr else np.uint8)
+        #: Grey map in 8-bit units relative to the baseline (what the tracker matches against).
+        self.gray = np.zeros((H, W), np.float32)
+        self.mapped = np.zeros((H, W), bool)
+        #: Index of the frame that contributed each pixel (-1: unmapped).
+        self.contribution = np.full((H, W), -1, np.int32)
+        ts = cfg.tile_size
+        self.tiles_shape = (H // ts, W // ts)
+        self.tile_count = np.zeros(self.tiles_shape[0] * self.tiles_shape[1], np.int64)
+        #: 0 unfinished, 1 finished (queued for keypoints), 2 finished with keypoints.
+        self.tile_state = np.zeros(self.tiles_shape[0] * self.tiles_shape[1], np.uint8)
+        self.queue: deque[int] = deque()
+        self._kp_dirs: list[Array] = []
+        self._kp_uv: list[Array] = []
+        self._kp_score: list[Array] = []
+        self._kp_cache: tuple[Array, Array, Array] | None = None
+        self.version = 0  # bumped whenever pixels are written
+        self.frames_mapped = 0
+        self._col_sin, self._col_cos = self.geometry.column_terms(np.arange(W, dtype=float))
+        self._row_h = self.geometry.row_terms(np.arange(H, dtype=float))
+        self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
+
+    # -- queries -----------------------------------------------------------------------------
+
+    @property
+    def empty(self) -> bool:
+        return self.frames_mapped == 0
+
+    def keypoints(self) -> tuple[Array, Array, Array]:
+        """(directions (N, 3), map uv (N, 2), FAST score (N,)) of the finished tiles' keypoints."""
+        if self._kp_cache is None:
+            if self._kp_dirs:
+                self._kp_cache = (np.concatenate(self._kp_dirs), np.concatenate(self._kp_uv),
+                                  np.concatenate(self._kp_score))
+            else:
+                self._kp_cache = (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0))
+        return self._kp_cache
+
+    def tiles_image(self) -> NDArray[np.uint8]:
+        """One pixel per tile: 255 finished, 0 otherwise (the ``panorama/tiles`` product)."""
+        return np.where(self.tile_state > 0, 255, 0).astype(np.uint8).reshape(self.tiles_shape)
+
+    def finished_tiles(self) -> NDArray[np.int64]:
+        return np.flatnonzero(self.tile_state > 0)
+
+    def values(self) -> NDArray[np.float32]:
+        """The map in 8-bit units relative to the baseline, (H, W, C) float32 (NaN unmapped)."""
+        if self.config.edr:
+            out = self.stored.astype(np.float32) / EDR_SCALE - EDR_OFFSET
+        else:
+            out = self.stored.astype(np.float32)
+        out[~self.mapped] = np.nan
+        return out
+
+    def tone_mapped(self, bits: int = 16) -> NDArray[np.integer]:
+        """The map through a linear tone-mapping (sec. 4.1): the range of mapped values is
+        stretched onto [0, 2^bits - 1]; unmapped pixels are 0. Channels as stored (RGB)."""
+        top = (1 << bits) - 1
+        dtype = np.uint16 if bits > 8 else np.uint8
+        out = np.zeros(self.stored.shape, dtype)
+        if not self.mapped.any():
+            return out
+        if not self.config.edr:  # plain 8-bit map: shown as it is
+            vals = self.stored.astype(np.float32) * (top / 255.0)
+        else:
+            sel = self.stored[self.mapped]
+            lo, hi = float(sel.min()), float(sel.max())
+            vals = (self.stored.astype(np.float32) - lo) * (top / max(hi - lo, 1.0))
+        np.clip(vals, 0, top, out=vals)
+        out[self.mapped] = (vals[self.mapped] + 0.5).astype(dtype)
+        return out
+
+    # -- mapping -----------------------------------------------------------------------------
+
+    def footprint(self, K: Array, R_pano_cam: Array, size: tuple[int, int]) -> tuple[int, int, int, int]:
+        """Bounding box (u0, u1, v0, v1) of the frame in the map, u unwrapped around the optical
+        axis (u1 - u0 <= W; u may be negative or >= W), v clipped to the map."""
+        h, w = size
+        xs = np.linspace(0, w - 1, 9)
+        ys = np.linspace(0, h - 1, 7)
+        bx = np.concatenate([xs, xs, np.zeros_like(ys), np.full_like(ys, w - 1)])
+        by = np.concatenate([np.zeros_like(xs), np.full_like(xs, h - 1), ys, ys])
+        Kinv = np.linalg.inv(K)
+        rays = np.stack([bx, by, np.ones_like(bx)], -1) @ Kinv.T
+        d = rays @ R_pano_cam.T
+        u, v = self.geometry.project(d)
+        uc, _ = self.geometry.project(R_pano_cam[:, 2])
+        W = self.config.width
+        du = np.mod(u - uc + W / 2, W) - W / 2
+        u0 = int(np.floor(uc + du.min())) - 1
+        u1 = int(np.ceil(uc + du.max())) + 2
+        if u1 - u0 > W:
+            u0, u1 = int(uc) - W // 2, int(uc) - W // 2 + W
+        v0 = max(0, int(np.floor(v.min())) - 1)
+        v1 = min(self.config.height, int(np.ceil(v.max())) + 2)
+        return u0, u1, v0, v1
+
+    def map_frame(self, frame: NDArray[np.uint8], K: Array, R_pano_cam: Array, frame_index: int,
+                  offset: float = 0.0, frame_gray: NDArray[np.uint8] | None = None) -> int:
+        """Write the not-yet-mapped map pixels that the frame sees; returns how many.
+
+        ``frame`` is grey (H, W) or RGB (H, W, 3) uint8 (channels as configured); ``offset``
+        is the EDR intensity correction in 8-bit units (ignored when EDR is off);
+        ``frame_gray`` the grey version of an RGB frame (computed when not given).
+        """
+        cfg = self.config
+        h, w = frame.shape[:2]
+        if frame.ndim == 3 and frame_gray is None:
+            frame_gray = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        gray_src = frame if frame.ndim == 2 else frame_gray
+        u0, u1, v0, v1 = self.footprint(K, R_pano_cam, (h, w))
+        if v1 <= v0:
+            return 0
+        W = cfg.width
+        cols = np.arange(u0, u1) % W
+        sub = self.mapped[v0:v1][:, cols]
+        vv, ii = np.nonzero(~sub)
+        if vv.size == 0:
+            return 0
+        uu = cols[ii]
+        vv = vv + v0
+        # Separable direction (sin t, h, cos t): camera coordinates are R^T d.
+        Rt = R_pano_cam.T
+        s, c, hh = self._col_sin[uu], self._col_cos[uu], self._row_h[vv]
+        p = np.empty((uu.size, 3))
+        for k in range(3):
+            p[:, k] = Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c
+        x, y, front = project_to_image(K, p)
+        b = cfg.frame_border_px
+        ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
+        if not ok.any():
+            return 0
+        uu, vv, x, y = uu[ok], vv[ok], x[ok].astype(np.float32), y[ok].astype(np.float32)
+        mx, my = x.reshape(1, -1), y.reshape(1, -1)
+        g = cv2.remap(gray_src, mx, my, cv2.INTER_LINEAR).reshape(-1).astype(np.float32)
+        if cfg.channels == 3:
+            src = frame if frame.ndim == 3 else cv2.cvtColor(frame, cv2.COLOR_GRAY2RGB)
+            col = cv2.remap(src, mx, my, cv2.INTER_LINEAR).reshape(-1, 3).astype(np.float32)
+        else:
+            col = g.reshape(-1, 1)
+        if cfg.edr:
+            off = np.float32(offset)
+            gray_val = g + off
+            stored = np.clip(np.rint((col + off + np.float32(EDR_OFFSET)) * np.float32(EDR_SCALE)), 0, 65535)
+            self.stored[vv, uu] = stored.astype(np.uint16)
+        else:
+            gray_val = g
+            self.stored[vv, uu] = col.astype(np.uint8)
+        self.gray[vv, uu] = gray_val
+        self.mapped[vv, uu] = True
+        self.contribution[vv, uu] = frame_index
+        self._count_tiles(uu, vv)
+        self.version += 1
+        self.frames_mapped += 1
+        return int(uu.size)
+
+    def _count_tiles(self, uu: NDArray[np.int64], vv: NDArray[np.int64]) -> None:
+        ts = self.config.tile_size
+        tw = self.tiles_shape[1]
+        idx = (vv // ts) * tw + (uu // ts)
+        self.tile_count += np.bincount(idx, minlength=self.tile_count.size)
+        done = np.flatnonzero((self.tile_count == ts * ts) & (self.tile_state == 0))
+        for t in done.tolist():
+            self.tile_state[t] = 1
+            self.queue.append(t)
+
+    # -- background keypoints ---------------------------------------------------------------
+
+    def process_queue(self, budget_tiles: int, min_keypoints: int = 0) -> int:
+        """FAST keypoints of up to ``budget_tiles`` finished tiles from the queue (more while
+        the map has fewer than ``min_keypoints``: at start-up tracking needs some at once).
+        Deterministic: the order is the order in which tiles were finished. Returns tiles done."""
+        done = 0
+        while self.queue and (done < budget_tiles or self.keypoints()[0].shape[0] < min_keypoints):
+            self._tile_keypoints(self.queue.popleft())
+            done += 1
+        return done
+
+    def _tile_keypoints(self, t: int) -> None:
+        cfg = self.config
+        ts, m = cfg.tile_size, cfg.keypoint_margin_px
+        tw = self.tiles_shape[1]
+        r0, c0 = (t // tw) * ts, (t % tw) * ts
+        pad = 3  # FAST's circle radius: keypoints right at the tile edge need the neighbours
+        rows = np.clip(np.arange(r0 - pad, r0 + ts + pad), 0, cfg.height - 1)
+        cols = np.arange(c0 - pad, c0 + ts + pad) % cfg.width
+        img = np.clip(self.gray[rows][:, cols] + 0.5, 0, 255).astype(np.uint8)
+        kps = self._fast.detect(img, None)
+        self.tile_state[t] = 2
+        if not kps:
+            return
+        pts = np.array([k.pt for k in kps]) - pad
+        resp = np.array([k.response for k in kps])
+        inside = (pts[:, 0] >= 0) & (pts[:, 0] < ts) & (pts[:, 1] >= 0) & (pts[:, 1] < ts)
+        pts, resp = pts[inside], resp[inside]
+        order = np.argsort(-resp, kind='stable')
+        keep_uv, keep_s = [], []
+        for i in order:
+            u, v = c0 + pts[i, 0], r0 + pts[i, 1]
+            if v - m < 0 or v + m >= cfg.height:
+                continue
+            cu = np.arange(int(u) - m, int(u) + m + 1) % cfg.width
+            if not self.mapped[int(v) - m:int(v) + m + 1][:, cu].all():
+                continue
+            keep_uv.append((u, v))
+            keep_s.append(resp[i])
+            if len(keep_uv) >= cfg.keypoints_per_tile:
+                break
+        if not keep_uv:
+            return
+        uv = np.array(keep_uv, float)
+        self._kp_uv.append(uv)
+        self._kp_dirs.append(self.geometry.unproject(uv[:, 0], uv[:, 1]))
+        self._kp_score.append(np.array(keep_s, float))
+        self._kp_cache = None
+
+
+def seam_error(values: NDArray[np.floating], contribution: NDArray[np.integer]) -> dict[str, float]:
+    """Intensity steps across frame-contribution boundaries of a map (sec. 4.1, Fig. 3).
+
+    ``values`` (H, W) grey map in 8-bit units (NaN or contribution -1: unmapped). For every
+    pair of 4-neighbours (the map wraps in u) that both are mapped and come from different
+    frames, the signed difference I(later frame) - I(earlier frame) is taken. Texture makes
+    these differences random in sign; an exposure step makes them agree along the boundary.
+    So the steps are averaged per boundary (pair of frames) first:
+
+    * ``step``: mean over boundaries, weighted by length, of |mean signed difference| - the
+      seam error (what EDR should reduce);
+    * ``abs``: the plain mean absolute difference across boundaries (texture included);
+    * ``pairs``: the number of neighbour pairs on boundaries.
+    """
+    v = np.asarray(values, np.float64)
+    c = np.asarray(contribution)
+    a_vals, b_vals, a_ids, b_ids = [], [], [], []
+    for axis in (0, 1):
+        if axis == 1:
+            va, vb = v, np.roll(v, -1, axis=1)
+            ca, cb = c, np.roll(c, -1, axis=1)
+        else:
+            va, vb, ca, cb = v[:-1], v[1:], c[:-1], c[1:]
+        sel = (ca >= 0) & (cb >= 0) & (ca != cb) & np.isfinite(va) & np.isfinite(vb)
+        a_vals.append(va[sel]); b_vals.append(vb[sel]); a_ids.append(ca[sel]); b_ids.append(cb[sel])
+    va, vb = np.concatenate(a_vals), np.concatenate(b_vals)
+    ca, cb = np.concatenate(a_ids).astype(np.int64), np.concatenate(b_ids).astype(np.int64)
+    if va.size == 0:
+        return {'step': float('nan'), 'abs': float('nan'), 'pairs': 0}
+    later_b = cb > ca
+    diff = np.where(later_b, vb - va, va - vb)
+    lo, hi = np.minimum(ca, cb), np.maximum(ca, cb)
+    key = lo * (int(hi.max()) + 1) + hi
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    means = np.bincount(inv, weights=diff) / counts
+    step = float(np.sum(counts * np.abs(means)) / counts.sum())
+    return {'step': step, 'abs': float(np.mean(np.abs(diff))), 'pairs': int(va.size)}
