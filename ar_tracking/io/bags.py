@@ -156,11 +156,16 @@ class BagReader:
         )
         expected = sum(c.msgcount for c in conns) if whole else None
         count = 0
+        ros1 = not self._r.is2
         try:
             for conn, timestamp, rawdata in self._r.messages(
                 connections=conns, start=start_ns, stop=stop_ns
             ):
                 count += 1
+                if ros1 and conn.msgtype in TYPESTORE.types:
+                    # ROS 1 serialisation -> ROS 2 CDR (rosbags converts between the ROS 2
+                    # definitions of a type, dropping e.g. Header.seq).
+                    rawdata = TYPESTORE.ros1_to_cdr(bytes(rawdata), conn.msgtype)
                 yield BagMessage(conn.topic, conn.msgtype, int(timestamp), bytes(rawdata))
         except BagError:
             raise

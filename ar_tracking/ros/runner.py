@@ -191,6 +191,7 @@ class GraphRunner:
         self._expected = 0
         self._sub_counts: dict[str, int] = defaultdict(int)
         self._stop = threading.Event()
+        self._consecutive_losses: dict[str, int] = {}
 
     # -- hooks used by TrackingNode ---------------------------------------------------------
 
@@ -390,14 +391,24 @@ class GraphRunner:
             if pub is not None:
                 pub.publish(msg.rawdata)
                 result.input_messages += 1
-                self._settle(executor, result)
+                self._settle(executor, result, msg.topic)
                 recorder.flush(msg.log_time_ns)
             done += 1
             if self.progress is not None:
                 self.progress(done, total)
 
-    def _settle(self, executor: Any, result: RunResult) -> None:
-        """Spin until every expected delivery happened (or give up after the step timeout)."""
+    #: After this many inputs in a row whose deliveries were lost, the run stops: the graph
+    #: is not receiving what the runner publishes (e.g. messages that do not deserialise).
+    MAX_CONSECUTIVE_LOSSES = 20
+
+    def _settle(self, executor: Any, result: RunResult, topic: str = '') -> None:
+        """Spin until every expected delivery happened (or give up after the step timeout).
+
+        The first loss waits the full step timeout; while losses continue, later steps wait
+        only a tenth of it, and a long run of them ends the run with a RunError.
+        """
+        losses = self._consecutive_losses.get(topic, 0)
+        timeout = self.step_timeout_s if losses == 0 else self.step_timeout_s / 10
         deadline = None
         while self._delivered < self._expected:
             executor.spin_once(timeout_sec=0.05)
@@ -405,13 +416,20 @@ class GraphRunner:
                 break
             now = time.monotonic()
             if deadline is None:
-                deadline = now + self.step_timeout_s
+                deadline = now + timeout
             elif now > deadline:
                 lost = self._expected - self._delivered
                 result.lost_deliveries += lost
-                logger.warning('%d message deliveries did not happen within %.1f s', lost, self.step_timeout_s)
+                self._consecutive_losses[topic] = losses + 1
+                logger.warning('%s: %d message deliveries did not happen within %.2f s', topic, lost, timeout)
                 self._delivered = self._expected
-                break
+                if losses + 1 >= self.MAX_CONSECUTIVE_LOSSES:
+                    raise RunError(
+                        f'the nodes received none of the last {losses + 1} messages on {topic}; '
+                        'stopping (are they of the declared type?)'
+                    )
+                return
+        self._consecutive_losses[topic] = 0
 
     # -- realtime --------------------------------------------------------------------------
 

@@ -47,7 +47,7 @@ from .world import (FrameRenderer, Lighting, Panorama, PinholeCamera, World, bui
 
 logger = logging.getLogger(__name__)
 
-SCENARIOS: tuple[str, ...] = ('rotation_sweep',)
+SCENARIOS: tuple[str, ...] = ('rotation_sweep', 'robot_arcs')
 SESSIONS: tuple[str, ...] = rs.SESSIONS
 STORAGES: tuple[str, ...] = ('mcap', 'sqlite3')
 IMAGE_FORMATS: tuple[str, ...] = ('raw', 'compressed')
@@ -103,6 +103,16 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         for p in (bag_path, sidecar):
             if p.exists():
                 raise SimError(f'{p}: already exists (choose another name or overwrite)')
+    if scenario == 'robot_arcs':  # Caarls 2009 Fig. 9: its own module (session is ignored)
+        from . import robot_arcs
+
+        try:
+            with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
+                robot_arcs.write_robot_arcs_bag(bag, seed, duration_s, image_format, progress)
+        except BagError as exc:
+            raise SimError(str(exc)) from exc
+        robot_arcs.write_sidecars(sidecar, bag_path, seed)
+        return bag_path
     scn = rs.make_scenario(seed, session, duration_s)
     world, light, pano = session_view(seed, session)
     plan = _Plan.make(scn, pano)

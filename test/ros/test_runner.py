@@ -135,3 +135,20 @@ def test_ctrl_c_closes_the_output_bag(tmp_path):
         n = bag.message_count(['/imu/data'])
         assert 0 < n < 6000
         assert len(list(bag.messages(['/imu/data']))) == n
+
+
+def test_undecodable_messages_end_the_run_with_one_error(tmp_path):
+    """Bytes that are not the declared type never reach a callback: the run stops, it does not hang."""
+    from ar_tracking.io.bags import BagWriter
+    from bagfactory import mag_msg
+
+    path = tmp_path / 'garbage.mcap'
+    with BagWriter(path) as w:
+        for i in range(40):
+            t = 1_700_000_000_000_000_000 + i * 10_000_000
+            w.write('/imu/data_raw', t, b'\x00\x01\x00\x00garbage', msgtype='sensor_msgs/msg/Imu')
+            w.write('/imu/mag', t, mag_msg(t, (0.0, 2e-5, -4e-5)))
+    with pytest.raises(RunError, match='received none'):
+        GraphRunner(path, tmp_path / 'out.mcap', step_timeout_s=0.5).run()
+    with BagReader(tmp_path / 'out.mcap') as out:  # closed cleanly all the same
+        assert out.message_count(['/imu/mag']) > 0

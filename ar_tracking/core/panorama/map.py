@@ -66,6 +66,19 @@ class MapConfig:
             raise ValueError('channels must be 1 or 3')
 
 
+def sample_points(img: NDArray, x: NDArray, y: NDArray) -> NDArray:
+    """Bilinear samples of ``img`` at float pixel coordinates (N,) -> (N,) or (N, C).
+    cv2.remap limits each side of its output to 32767, so the points go in as rows of 1024."""
+    n = x.size
+    cols = 1024
+    rows = -(-n // cols)
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = x, y
+    out = cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR)
+    return out.reshape(rows * cols, -1)[:n] if out.ndim == 3 else out.reshape(-1)[:n]
+
+
 class PanoramaMap:
     """State of the map (see the module docstring). Not thread-safe; one caller."""
 
@@ -206,11 +219,10 @@ class PanoramaMap:
         if not ok.any():
             return 0
         uu, vv, x, y = uu[ok], vv[ok], x[ok].astype(np.float32), y[ok].astype(np.float32)
-        mx, my = x.reshape(1, -1), y.reshape(1, -1)
-        g = cv2.remap(gray_src, mx, my, cv2.INTER_LINEAR).reshape(-1).astype(np.float32)
+        g = sample_points(gray_src, x, y).astype(np.float32)
         if cfg.channels == 3:
             src = frame if frame.ndim == 3 else cv2.cvtColor(frame, cv2.COLOR_GRAY2RGB)
-            col = cv2.remap(src, mx, my, cv2.INTER_LINEAR).reshape(-1, 3).astype(np.float32)
+            col = sample_points(src, x, y).astype(np.float32)
         else:
             col = g.reshape(-1, 1)
         if cfg.edr:
@@ -290,40 +302,62 @@ class PanoramaMap:
         self._kp_cache = None
 
 
-def seam_error(values: NDArray[np.floating], contribution: NDArray[np.integer]) -> dict[str, float]:
+def seam_error(values: NDArray[np.floating], contribution: NDArray[np.integer], min_pairs: int = 8,
+               min_gap: int = 1) -> dict[str, float]:
     """Intensity steps across frame-contribution boundaries of a map (sec. 4.1, Fig. 3).
 
-    ``values`` (H, W) grey map in 8-bit units (NaN or contribution -1: unmapped). For every
-    pair of 4-neighbours (the map wraps in u) that both are mapped and come from different
-    frames, the signed difference I(later frame) - I(earlier frame) is taken. Texture makes
-    these differences random in sign; an exposure step makes them agree along the boundary.
-    So the steps are averaged per boundary (pair of frames) first:
+    ``values`` (H, W) grey map in 8-bit units (NaN or contribution -1: unmapped). Along each
+    axis (the map wraps in u), for four pixels a', a | b, b' in a row where a', a come from one
+    frame and b, b' from another, the step across the boundary is the jump that the local
+    gradient does not explain: (I_b - I_a) - ((I_a - I_a') + (I_b' - I_b)) / 2, signed from
+    the earlier frame to the later one. Texture makes these steps random in sign; an exposure
+    change makes them agree along the boundary. So they are averaged per boundary (pair of
+    frames) and the noise of that average (variance / n, from the boundary's own spread) is
+    removed, leaving the systematic step - what an exposure change leaves, what EDR removes:
 
-    * ``step``: mean over boundaries, weighted by length, of |mean signed difference| - the
-      seam error (what EDR should reduce);
-    * ``abs``: the plain mean absolute difference across boundaries (texture included);
-    * ``pairs``: the number of neighbour pairs on boundaries.
+    * ``step``: sqrt of the length-weighted mean of max(mean^2 - var/n, 0) over the boundaries
+      of at least ``min_pairs`` samples (RMS systematic step, 8-bit units) - the seam error;
+    * ``abs``: the mean absolute step across boundaries (texture included);
+    * ``pairs``: the number of samples on boundaries; ``boundaries``: how many were used.
+
+    ``min_gap`` > 1 keeps only boundaries between frames at least that many frames apart
+    (contribution ids are frame indices): consecutive frames almost always share the
+    exposure, so exposure seams live where the map is continued after a revisit (the closing
+    of the 360-degree turn, back-and-forth pans, pitch changes).
     """
     v = np.asarray(values, np.float64)
     c = np.asarray(contribution)
-    a_vals, b_vals, a_ids, b_ids = [], [], [], []
+    steps, lo_ids, hi_ids = [], [], []
     for axis in (0, 1):
         if axis == 1:
-            va, vb = v, np.roll(v, -1, axis=1)
-            ca, cb = c, np.roll(c, -1, axis=1)
+            sh = [np.roll(v, -k, axis=1) for k in range(4)]
+            sc = [np.roll(c, -k, axis=1) for k in range(4)]
         else:
-            va, vb, ca, cb = v[:-1], v[1:], c[:-1], c[1:]
-        sel = (ca >= 0) & (cb >= 0) & (ca != cb) & np.isfinite(va) & np.isfinite(vb)
-        a_vals.append(va[sel]); b_vals.append(vb[sel]); a_ids.append(ca[sel]); b_ids.append(cb[sel])
-    va, vb = np.concatenate(a_vals), np.concatenate(b_vals)
-    ca, cb = np.concatenate(a_ids).astype(np.int64), np.concatenate(b_ids).astype(np.int64)
-    if va.size == 0:
-        return {'step': float('nan'), 'abs': float('nan'), 'pairs': 0}
-    later_b = cb > ca
-    diff = np.where(later_b, vb - va, va - vb)
-    lo, hi = np.minimum(ca, cb), np.maximum(ca, cb)
+            n = v.shape[0] - 3
+            sh = [v[k:k + n] for k in range(4)]
+            sc = [c[k:k + n] for k in range(4)]
+        a2, a, b, b2 = sh
+        ca2, ca, cb, cb2 = sc
+        sel = (ca >= 0) & (cb >= 0) & (np.abs(ca - cb) >= min_gap) & (ca2 == ca) & (cb2 == cb) \
+            & np.isfinite(a2) & np.isfinite(a) & np.isfinite(b) & np.isfinite(b2)
+        a2, a, b, b2, ca, cb = a2[sel], a[sel], b[sel], b2[sel], ca[sel], cb[sel]
+        step = (b - a) - 0.5 * ((a - a2) + (b2 - b))
+        steps.append(np.where(cb > ca, step, -step))
+        lo_ids.append(np.minimum(ca, cb).astype(np.int64))
+        hi_ids.append(np.maximum(ca, cb).astype(np.int64))
+    diff = np.concatenate(steps)
+    if diff.size == 0:
+        return {'step': float('nan'), 'abs': float('nan'), 'pairs': 0, 'boundaries': 0}
+    lo, hi = np.concatenate(lo_ids), np.concatenate(hi_ids)
     key = lo * (int(hi.max()) + 1) + hi
     _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     means = np.bincount(inv, weights=diff) / counts
-    step = float(np.sum(counts * np.abs(means)) / counts.sum())
-    return {'step': step, 'abs': float(np.mean(np.abs(diff))), 'pairs': int(va.size)}
+    sq = np.bincount(inv, weights=diff * diff) / counts
+    var = np.maximum(sq - means ** 2, 0.0) * counts / np.maximum(counts - 1, 1)
+    use = counts >= min_pairs
+    out = {'abs': float(np.mean(np.abs(diff))), 'pairs': int(diff.size),
+           'boundaries': int(np.count_nonzero(use))}
+    if not use.any():
+        return {'step': float('nan'), **out}
+    sys2 = np.maximum(means[use] ** 2 - var[use] / counts[use], 0.0)
+    return {'step': float(np.sqrt(np.sum(counts[use] * sys2) / counts[use].sum())), **out}

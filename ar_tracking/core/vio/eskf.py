@@ -123,10 +123,10 @@ class FilterNoise:
     """
 
     gyro_noise_rad_s: float = 0.006          # sigma_z,w per sample, rad/s
-    angular_rate_change_rad_s: float = 0.05  # sigma_dw, rad/s/sqrt(s)
+    angular_rate_change_rad_s: float = 0.01  # sigma_dw, rad/s/sqrt(s)
     gyro_bias_walk_rad_s: float = 2e-4       # sigma_db,w, rad/s/sqrt(s)
     accel_noise_m_s2: float = 0.02           # sigma_z,a per sample, m/s^2
-    accel_change_m_s2: float = 0.3           # sigma_da, m/s^2/sqrt(s)
+    accel_change_m_s2: float = 0.03          # sigma_da, m/s^2/sqrt(s)
     accel_bias_walk_m_s2: float = 2e-3       # sigma_db,a, m/s^2/sqrt(s)
 
 

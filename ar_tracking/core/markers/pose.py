@@ -1,0 +1,184 @@
+"""Marker map and the camera pose from all corners of all visible markers (Caarls 2009 sec.
+2.4: "in case more markers are seen at the same time, and their geometric relation is known, our
+pose estimation will use all available detected points in a more precise estimation").
+
+The pose is solved with OpenCV (SQPnP for several markers, IPPE_SQUARE for one, then
+Levenberg-Marquardt refinement) on the *undistorted* refined corners, and its covariance is the
+Gauss-Newton one, sigma^2 (J^T J)^-1, with sigma the larger of the configured corner noise and
+the observed reprojection RMS, propagated to the camera pose in the map frame.
+
+Marker frame (OpenCV's): x right, y up, z out of the marker towards the viewer; the corners are
+(-s/2, s/2), (s/2, s/2), (s/2, -s/2), (-s/2, -s/2) - the ArUco corner order.
+
+Covariance layout (ROS PoseWithCovariance): x, y, z, then rotation about the map's x, y, z axes
+(a small rotation applied on the left: R_true = exp([dtheta]x) R_est).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from . import MarkerError
+from .detection import MarkerObservation
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MapMarker:
+    id: int
+    size_m: float
+    position: Array          # centre in the map frame, m
+    R_map_marker: Array      # marker frame -> map frame
+
+    def corners_map(self) -> Array:
+        h = self.size_m / 2
+        local = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+        return self.position + local @ self.R_map_marker.T
+
+
+@dataclass(frozen=True)
+class MarkerMap:
+    frame_id: str
+    markers: dict[int, MapMarker]
+
+    @property
+    def ids(self) -> set[int]:
+        return set(self.markers)
+
+    @staticmethod
+    def from_arrays(ids: Sequence[int], sizes_m: Sequence[float], poses: Sequence[float],
+                    frame_id: str = 'enu') -> 'MarkerMap':
+        """From flat arrays: ids, sizes (m), poses (7 per marker: x, y, z, qx, qy, qz, qw)."""
+        ids, sizes, poses = list(ids), list(sizes_m), list(poses)
+        if len(sizes) != len(ids) or len(poses) != 7 * len(ids):
+            raise MarkerError(f'marker map: {len(ids)} ids need {len(ids)} sizes and {7 * len(ids)} pose values '
+                              f'(got {len(sizes)} and {len(poses)})')
+        markers = {}
+        for i, mid in enumerate(ids):
+            p = np.asarray(poses[7 * i:7 * i + 7], dtype=float)
+            size = float(sizes[i])
+            q = p[3:]
+            if not np.all(np.isfinite(p)) or not size > 0 or abs(np.linalg.norm(q) - 1) > 1e-3:
+                raise MarkerError(f'marker {mid}: size must be > 0 and the pose finite with a unit quaternion')
+            if int(mid) in markers:
+                raise MarkerError(f'marker {mid} appears twice in the map')
+            markers[int(mid)] = MapMarker(int(mid), size, p[:3], Rotation.from_quat(q).as_matrix())
+        return MarkerMap(frame_id, markers)
+
+    @staticmethod
+    def from_yaml(path: str | Path) -> 'MarkerMap':
+        """A marker-map file: {frame_id, markers: [{id, size_m, position: [x, y, z],
+        orientation_xyzw: [x, y, z, w]}]}."""
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise MarkerError(f'{path}: cannot read the marker map ({exc})') from exc
+        return MarkerMap.from_text(text, str(path))
+
+    @staticmethod
+    def from_text(text: str, what: str = 'marker map') -> 'MarkerMap':
+        """The same document as :meth:`from_yaml`, given as YAML (or JSON) text."""
+        try:
+            doc: Any = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise MarkerError(f'{what}: not YAML ({str(exc).splitlines()[0]})') from exc
+        path = what
+        if not isinstance(doc, dict) or not isinstance(doc.get('markers'), list):
+            raise MarkerError(f'{path}: a marker map needs a "markers" list')
+        ids, sizes, poses = [], [], []
+        for m in doc['markers']:
+            try:
+                ids.append(int(m['id']))
+                sizes.append(float(m['size_m']))
+                poses += [float(v) for v in m['position']] + [float(v) for v in m.get('orientation_xyzw', [0, 0, 0, 1])]
+            except (KeyError, TypeError, ValueError) as exc:
+                raise MarkerError(f'{path}: bad marker entry {m!r}') from exc
+        return MarkerMap.from_arrays(ids, sizes, poses, str(doc.get('frame_id', 'enu')))
+
+
+@dataclass(frozen=True)
+class CameraPoseEstimate:
+    R_map_cam: Array
+    p_map_cam: Array
+    cov: Array               # 6x6, ROS order (see module docstring)
+    rms_px: float
+    n_points: int
+    ids: tuple[int, ...]
+
+
+def _camera_from_rt(rvec: Array, tvec: Array) -> tuple[Array, Array]:
+    R_cam_map, _ = cv2.Rodrigues(rvec)
+    return R_cam_map.T, -R_cam_map.T @ tvec.reshape(3)
+
+
+def estimate_camera_pose(observations: Sequence[MarkerObservation], marker_map: MarkerMap,
+                         focal_px: float, corner_sigma_px: float = 0.1) -> CameraPoseEstimate | None:
+    """Camera pose in the map frame from every corner of every mapped marker; None when no
+    mapped marker is visible or the solution is not finite."""
+    obj, img, ids = [], [], []
+    for o in observations:
+        m = marker_map.markers.get(o.id)
+        if m is None:
+            continue
+        obj.append(m.corners_map())
+        img.append(o.corners_norm * focal_px)
+        ids.append(o.id)
+    if not obj:
+        return None
+    X = np.concatenate(obj).astype(np.float64)
+    x = np.concatenate(img).astype(np.float64)
+    K = np.array([[focal_px, 0, 0], [0, focal_px, 0], [0, 0, 1.0]])
+    if len(ids) == 1:
+        m = marker_map.markers[ids[0]]
+        h = m.size_m / 2
+        local = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(local, x, K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        if n == 0:
+            return None
+        best = int(np.argmin(np.asarray(errs).ravel()))
+        R_cam_marker, _ = cv2.Rodrigues(rvecs[best])
+        R_cam_map = R_cam_marker @ m.R_map_marker.T
+        t = tvecs[best].reshape(3) - R_cam_map @ m.position
+        rvec, _ = cv2.Rodrigues(R_cam_map)
+        tvec = t.reshape(3, 1)
+    else:
+        ok, rvec, tvec = cv2.solvePnP(X, x, K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            return None
+    rvec, tvec = cv2.solvePnPRefineLM(X, x, K, None, rvec.copy(), tvec.copy(),
+                                      (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-12))
+    proj, J = cv2.projectPoints(X, rvec, tvec, K, None)
+    res = proj.reshape(-1, 2) - x
+    n_obs = res.size
+    rms = float(np.sqrt(np.sum(res ** 2) / max(n_obs - 6, 1)))
+    sigma = max(corner_sigma_px, rms)
+    J6 = J[:, :6]
+    try:
+        cov_rt = sigma ** 2 * np.linalg.inv(J6.T @ J6)
+    except np.linalg.LinAlgError:
+        return None
+    R_map_cam, p_map_cam = _camera_from_rt(rvec, tvec)
+    # Propagate to (p, dtheta) of the camera in the map frame by a numeric Jacobian.
+    F = np.zeros((6, 6))
+    params = np.concatenate([rvec.ravel(), tvec.ravel()])
+    for i in range(6):
+        e = 1e-6
+        dp = params.copy()
+        dp[i] += e
+        R2, p2 = _camera_from_rt(dp[:3], dp[3:])
+        F[:3, i] = (p2 - p_map_cam) / e
+        F[3:, i] = Rotation.from_matrix(R2 @ R_map_cam.T).as_rotvec() / e
+    cov = F @ cov_rt @ F.T
+    cov = 0.5 * (cov + cov.T)
+    if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(R_map_cam)) and np.all(np.isfinite(p_map_cam))):
+        return None
+    return CameraPoseEstimate(R_map_cam, p_map_cam, cov, float(np.sqrt(np.mean(np.sum(res ** 2, 1)))),
+                              len(X), tuple(ids))

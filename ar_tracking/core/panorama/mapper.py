@@ -1,0 +1,196 @@
+"""Panoramic mapping and tracking, one frame at a time (Langlotz 2011 sec. 3.1 and 4.1).
+
+:class:`PanoramaMapper` ties the pieces together. Per frame (:meth:`PanoramaMapper.process`):
+
+1. the first frame defines the ``panorama`` frame (R = I) and is mapped as the EDR baseline;
+2. later frames: constant-motion prediction (the last inter-frame rotation, scaled by the
+   stamp ratio), active-search tracking against the map keypoints; if that fails, a wider
+   search, then re-localisation against the finished tiles;
+3. a tracked frame is mapped (only its not-yet-mapped pixels), shifted by the EDR intensity
+   offset of its matches; a frame that is not tracked is neither mapped nor reported (lost).
+
+The keypoints of newly finished tiles are computed by :meth:`PanoramaMapper.background`, which
+the caller runs after it has used the frame's result (off the critical path, deterministic).
+No ROS here; the node is a thin wrapper.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .map import MapConfig, PanoramaMap, seam_error
+from .relocalise import Relocaliser, RelocaliserConfig
+from .tracker import ActiveSearchTracker, TrackerConfig, TrackResult
+
+logger = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+
+class PanoramaError(ValueError):
+    """A frame or calibration the mapper cannot use (one line)."""
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    map: MapConfig = field(default_factory=MapConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    relocaliser: RelocaliserConfig = field(default_factory=RelocaliserConfig)
+    #: Search radius of the second attempt when the prediction fails, pixels.
+    wide_radius_px: int = 10
+    #: Finished tiles whose keypoints are computed per background step.
+    background_tiles: int = 4
+    #: While the map has fewer keypoints, the background step does all queued tiles.
+    min_keypoints: int = 150
+    #: Largest rotation between consecutive tracked frames accepted, degrees.
+    max_step_deg: float = 30.0
+    #: Frames with a grey-level standard deviation below this are textureless (lost).
+    min_texture_std: float = 3.0
+
+
+@dataclass
+class FrameResult:
+    """Outcome of one frame: R_pano_cam or None when lost."""
+
+    R_pano_cam: Array | None
+    status: str  # 'initialised', 'tracked', 'relocalised', 'lost'
+    track: TrackResult | None = None
+    mapped_pixels: int = 0
+    intensity_offset: float = 0.0
+    reason: str = ''
+
+
+def _log_rotation(R: Array) -> Array:
+    rvec, _ = cv2.Rodrigues(R)
+    return rvec.reshape(3)
+
+
+def _exp_rotation(w: Array) -> Array:
+    R, _ = cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))
+    return R
+
+
+class PanoramaMapper:
+    """See the module docstring."""
+
+    def __init__(self, config: MapperConfig | None = None) -> None:
+        self.config = config or MapperConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        cfg = self.config
+        self.map = PanoramaMap(cfg.map)
+        self.tracker = ActiveSearchTracker(cfg.tracker)
+        self.relocaliser = Relocaliser(cfg.relocaliser)
+        self.frame_index = 0
+        self.lost_frames = 0
+        self.frame_size: tuple[int, int] | None = None
+        self._last_R: Array | None = None
+        self._last_stamp: int | None = None
+        self._velocity: Array | None = None  # rotation vector per second, camera frame
+        self._tracking = False
+
+    @property
+    def initialised(self) -> bool:
+        return self._last_R is not None
+
+    @property
+    def tracking(self) -> bool:
+        return self._tracking
+
+    def predict(self, stamp_ns: int | None) -> Array:
+        """Constant-motion prediction of R_pano_cam at ``stamp_ns`` from the last tracked frame."""
+        assert self._last_R is not None
+        if self._velocity is None or stamp_ns is None or self._last_stamp is None:
+            return self._last_R
+        dt = (stamp_ns - self._last_stamp) * 1e-9
+        if not 0 < dt < 0.5:
+            return self._last_R
+        return self._last_R @ _exp_rotation(self._velocity * dt)
+
+    def process(self, frame: NDArray[np.uint8], K: Array, stamp_ns: int | None = None,
+                gray: NDArray[np.uint8] | None = None) -> FrameResult:
+        """Track and map one frame (grey (H, W) or RGB (H, W, 3) uint8) with intrinsics K."""
+        frame = np.asarray(frame)
+        if frame.dtype != np.uint8 or frame.ndim not in (2, 3) or (frame.ndim == 3 and frame.shape[2] != 3):
+            raise PanoramaError(f'frame must be uint8 grey or RGB, got {frame.dtype} {frame.shape}')
+        K = np.asarray(K, float)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise PanoramaError('camera matrix K is not a valid 3x3 intrinsic matrix')
+        if gray is None:
+            gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        to_map = frame if self.config.map.channels == 3 else gray
+        if to_map.ndim == 2 and self.config.map.channels == 3:
+            to_map = cv2.cvtColor(gray, cv2.COLOR_GRAY2RGB)
+        self.frame_index += 1
+        idx = self.frame_index
+        was_tracking = self._tracking
+        if not self.initialised:
+            if float(gray.std()) < self.config.min_texture_std:
+                self.lost_frames += 1
+                return FrameResult(None, 'lost', reason='first frame has no texture')
+            R = np.eye(3)
+            n = self.map.map_frame(to_map, K, R, idx, 0.0, gray if to_map.ndim == 3 else None)
+            self._accept(R, stamp_ns)
+            self.frame_size = gray.shape
+            return FrameResult(R, 'initialised', mapped_pixels=n)
+        if float(gray.std()) < self.config.min_texture_std:
+            return self._lose(f'frame has no texture (std {float(gray.std()):.1f})')
+        status = 'tracked'
+        res: TrackResult | None = None
+        if self._tracking:
+            R_pred = self.predict(stamp_ns)
+            res = self.tracker.track(gray, K, R_pred, self.map)
+            if not res.ok:
+                res = self.tracker.track(gray, K, R_pred, self.map, self.config.wide_radius_px)
+        if res is None or not res.ok:
+            status = 'relocalised'
+            hint = self._last_R
+            for R_hyp in self.relocaliser.hypotheses(gray, K, hint, self.map):
+                res = self.tracker.track(gray, K, R_hyp, self.map, self.config.wide_radius_px)
+                if res.ok:
+                    # Second pass from the refined estimate: templates warped at the right pose.
+                    res2 = self.tracker.track(gray, K, res.R_pano_cam, self.map)
+                    res = res2 if res2.ok else res
+                    break
+        if res is None or not res.ok:
+            return self._lose(res.reason if res is not None else 'no relocalisation hypothesis', res)
+        R = res.R_pano_cam
+        if status == 'tracked':
+            step = np.degrees(np.linalg.norm(_log_rotation(self._last_R.T @ R)))
+            if step > self.config.max_step_deg:
+                return self._lose(f'rotation step of {step:.0f} deg between frames', res)
+        offset = res.intensity_offset if self.config.map.edr else 0.0
+        n = self.map.map_frame(to_map, K, R, idx, offset, gray if to_map.ndim == 3 else None)
+        self._accept(R, stamp_ns, keep_velocity=was_tracking)
+        return FrameResult(R, status, res, n, offset)
+
+    def background(self) -> int:
+        """Keypoints of finished tiles, with the per-frame budget (see MapperConfig)."""
+        return self.map.process_queue(self.config.background_tiles, self.config.min_keypoints)
+
+    def _accept(self, R: Array, stamp_ns: int | None, keep_velocity: bool = False) -> None:
+        if keep_velocity and self._last_R is not None and stamp_ns is not None and self._last_stamp is not None:
+            dt = (stamp_ns - self._last_stamp) * 1e-9
+            self._velocity = _log_rotation(self._last_R.T @ R) / dt if dt > 0 else None
+        else:
+            self._velocity = None
+        self._last_R = R
+        self._last_stamp = stamp_ns
+        self._tracking = True
+
+    def _lose(self, reason: str, res: TrackResult | None = None) -> FrameResult:
+        self.lost_frames += 1
+        self._tracking = False
+        self._velocity = None
+        return FrameResult(None, 'lost', res, reason=reason)
+
+    def seam_error(self, min_gap: int = 1) -> dict[str, float]:
+        """Seam measure of the current map (see :func:`map.seam_error`)."""
+        vals = self.map.gray.astype(np.float64)
+        vals[~self.map.mapped] = np.nan
+        return seam_error(vals, self.map.contribution, min_gap=min_gap)

@@ -1,0 +1,232 @@
+"""3-DoF orientation tracking against the panoramic map (Langlotz 2011 sec. 3.1; Wagner et al.).
+
+One frame: the map keypoints (directions on the cylinder, from finished tiles) are projected
+into the frame with the predicted orientation (active search). For each selected keypoint the
+map around it is warped into the camera's view at that orientation (so the template has the
+camera's perspective, scale and roll), then searched in the frame within a small radius by
+normalised cross-correlation; the peak is refined to sub-pixel by a parabola through its
+neighbours. Matched frame pixels give bearing vectors b_i, the keypoints give directions d_i
+in the panorama frame, and the rotation R_pano_cam with d_i ~ R b_i is estimated robustly:
+RANSAC over two-point Kabsch (SVD) hypotheses, then a Kabsch fit on the inliers.
+
+The same matches give the EDR exposure correction of sec. 4.1: the mean intensity difference
+between the map's patches (baseline units) and the frame's matched patches.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from numpy.typing import NDArray
+
+from .cylinder import camera_rays, project_to_image
+from .map import PanoramaMap
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Active search and robust estimation parameters."""
+
+    #: Side of the square patches, pixels (odd).
+    patch_size: int = 9
+    #: Search radius around the predicted position, pixels (constant-motion prediction).
+    search_radius_px: int = 4
+    #: Keypoints searched per frame (spread over a grid of the frame).
+    max_features: int = 60
+    grid_cols: int = 8
+    grid_rows: int = 6
+    #: Smallest accepted NCC peak.
+    min_ncc: float = 0.75
+    #: RANSAC inlier threshold, pixels (angle * focal length).
+    inlier_px: float = 1.5
+    ransac_iterations: int = 32
+    #: Quality gate: the frame is tracked only with this many inliers ...
+    min_inliers: int = 10
+    #: ... and this fraction of the searched keypoints being inliers.
+    min_inlier_ratio: float = 0.7
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.patch_size % 2 == 0 or self.patch_size < 5:
+            raise ValueError('patch_size must be odd and >= 5')
+
+
+@dataclass
+class TrackResult:
+    """Outcome of one tracking attempt."""
+
+    ok: bool
+    R_pano_cam: Array
+    searched: int = 0
+    matched: int = 0
+    inliers: int = 0
+    rms_px: float = float('nan')
+    #: Mean (map - frame) intensity of the inlier pairs, 8-bit units (sec. 4.1).
+    intensity_offset: float = 0.0
+    reason: str = ''
+
+
+def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
+    """Rotation R minimising sum w |d_i - R b_i|^2 (Kabsch / Wahba via SVD)."""
+    H = (d * (w[:, None] if w is not None else 1.0)).T @ b
+    U, _, Vt = np.linalg.svd(H)
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ S @ Vt
+
+
+def _kabsch_batch(b: Array, d: Array) -> Array:
+    """Kabsch for a batch of point sets: b, d (M, n, 3) -> R (M, 3, 3)."""
+    H = np.einsum('mni,mnj->mij', d, b)
+    U, _, Vt = np.linalg.svd(H)
+    det = np.sign(np.linalg.det(U @ Vt))
+    U[:, :, 2] *= det[:, None]
+    return U @ Vt
+
+
+def _trimmed_mean(x: Array, trim: float = 0.2) -> float:
+    """Mean of the central 1 - 2 * trim of the values (a mean robust to a few bad pairs)."""
+    x = np.sort(x)
+    k = int(trim * x.size)
+    return float(np.mean(x[k:x.size - k])) if x.size > 2 * k else float(np.mean(x))
+
+
+class ActiveSearchTracker:
+    """Tracks one frame at a time against a :class:`PanoramaMap` (see module docstring)."""
+
+    def __init__(self, config: TrackerConfig | None = None) -> None:
+        self.config = cfg = config or TrackerConfig()
+        self._rng = np.random.default_rng(cfg.seed)
+        half = cfg.patch_size // 2
+        self._grid = np.arange(-half, half + 1, dtype=float)
+
+    def reset(self) -> None:
+        self._rng = np.random.default_rng(self.config.seed)
+
+    def track(self, frame: NDArray[np.uint8], K: Array, R_pred: Array, pano: PanoramaMap,
+              radius_px: int | None = None) -> TrackResult:
+        """Estimate R_pano_cam of ``frame`` (grey uint8) starting from ``R_pred``."""
+        cfg = self.config
+        r = cfg.search_radius_px if radius_px is None else int(radius_px)
+        P = cfg.patch_size
+        half = P // 2
+        h, w = frame.shape
+        dirs, _, score = pano.keypoints()
+        fail = TrackResult(False, R_pred)
+        if dirs.shape[0] < cfg.min_inliers:
+            fail.reason = 'too few map keypoints'
+            return fail
+        # 1. Active search: project the keypoints with the prediction, keep the visible ones.
+        x, y, front = project_to_image(K, dirs @ R_pred)
+        m = half + r + 1
+        vis = front & (x >= m) & (x < w - 1 - m) & (y >= m) & (y < h - 1 - m)
+        idx = np.flatnonzero(vis)
+        if idx.size < cfg.min_inliers:
+            fail.reason = f'{idx.size} map keypoints in view'
+            return fail
+        idx = self._spread(idx, x[idx], y[idx], score[idx], w, h)
+        n = idx.size
+        px, py = x[idx], y[idx]
+        xr, yr = np.rint(px).astype(np.int64), np.rint(py).astype(np.int64)
+        # 2. Templates: the map warped into the predicted view around each keypoint.
+        gx = xr[:, None, None] + self._grid[None, None, :]
+        gy = yr[:, None, None] + self._grid[None, :, None]
+        gx, gy = np.broadcast_arrays(gx, gy)
+        rays = camera_rays(K, gx, gy)
+        u, v = pano.geometry.project(rays @ R_pred.T)
+        T = cv2.remap(pano.gray, u.reshape(n * P, P).astype(np.float32),
+                      v.reshape(n * P, P).astype(np.float32), cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_WRAP).reshape(n, P, P).astype(np.float64)
+        t_mean = T.mean(axis=(1, 2))
+        Tz = T - t_mean[:, None, None]
+        t_norm = np.sqrt(np.einsum('nij,nij->n', Tz, Tz))
+        # 3. Search windows in the frame and NCC at every offset within the radius.
+        S = P + 2 * r
+        off = np.arange(-half - r, half + r + 1)
+        Wn = frame[(yr[:, None] + off[None, :])[:, :, None], (xr[:, None] + off[None, :])[:, None, :]].astype(np.float64)
+        views = sliding_window_view(Wn, (P, P), axis=(1, 2))  # (n, 2r+1, 2r+1, P, P)
+        num = np.einsum('nabij,nij->nab', views, Tz)
+        ii = np.zeros((n, S + 1, S + 1))
+        ii[:, 1:, 1:] = Wn.cumsum(1).cumsum(2)
+        ii2 = np.zeros((n, S + 1, S + 1))
+        ii2[:, 1:, 1:] = (Wn * Wn).cumsum(1).cumsum(2)
+        box = ii[:, P:, P:] - ii[:, :-P, P:] - ii[:, P:, :-P] + ii[:, :-P, :-P]
+        box2 = ii2[:, P:, P:] - ii2[:, :-P, P:] - ii2[:, P:, :-P] + ii2[:, :-P, :-P]
+        var = np.maximum(box2 - box * box / (P * P), 0.0)
+        denom = np.sqrt(var) * t_norm[:, None, None]
+        ncc = np.where(denom > 1e-6 * P * P, num / np.maximum(denom, 1e-12), -1.0)
+        flat = ncc.reshape(n, -1)
+        best = np.argmax(flat, axis=1)
+        peak = flat[np.arange(n), best]
+        by, bx = np.divmod(best, 2 * r + 1)
+        good = (peak >= cfg.min_ncc) & (by > 0) & (by < 2 * r) & (bx > 0) & (bx < 2 * r) \
+            & (t_norm > 2.0 * P)
+        if np.count_nonzero(good) < cfg.min_inliers:
+            fail.searched, fail.matched = n, int(np.count_nonzero(good))
+            fail.reason = f'{fail.matched} of {n} keypoints matched'
+            return fail
+        k = np.flatnonzero(good)
+        bxk, byk = bx[k], by[k]
+        c0 = ncc[k, byk, bxk]
+        # 4. Sub-pixel: parabola through the peak and its neighbours, separately in x and y.
+        l, rr = ncc[k, byk, bxk - 1], ncc[k, byk, bxk + 1]
+        t_, b_ = ncc[k, byk - 1, bxk], ncc[k, byk + 1, bxk]
+        dx = 0.5 * (l - rr) / np.minimum(l - 2 * c0 + rr, -1e-9)
+        dy = 0.5 * (t_ - b_) / np.minimum(t_ - 2 * c0 + b_, -1e-9)
+        mx = px[k] + (bxk - r) + np.clip(dx, -0.5, 0.5)
+        my = py[k] + (byk - r) + np.clip(dy, -0.5, 0.5)
+        b = camera_rays(K, mx, my)
+        d = dirs[idx[k]]
+        # 5. Robust rotation: RANSAC over 2-point Kabsch, then Kabsch on the inliers.
+        f = float(K[0, 0])
+        thr = cfg.inlier_px / f
+        nk = k.size
+        pairs = self._rng.integers(0, nk, size=(cfg.ransac_iterations, 2))
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        Rs = _kabsch_batch(b[pairs], d[pairs])
+        Rs = np.concatenate([Rs, R_pred[None]], axis=0)
+        res = np.linalg.norm(np.einsum('mij,nj->mni', Rs, b) - d[None], axis=2)
+        counts = (res < thr).sum(axis=1)
+        inl = res[int(np.argmax(counts))] < thr
+        R = R_pred
+        for _ in range(2):
+            if np.count_nonzero(inl) < 3:
+                break
+            R = kabsch(b[inl], d[inl])
+            resid = np.linalg.norm(b @ R.T - d, axis=1)
+            inl = resid < thr
+        n_in = int(np.count_nonzero(inl))
+        resid = np.linalg.norm(b @ R.T - d, axis=1)
+        rms = float(np.sqrt(np.mean(resid[inl] ** 2)) * f) if n_in else float('nan')
+        # 6. EDR offset: map patch mean minus the frame patch mean at the match (sec. 4.1).
+        # The frame patch mean at the sub-pixel match: bilinear in the patch-mean surface.
+        sx, sy = np.clip(dx, -0.5, 0.5), np.clip(dy, -0.5, 0.5)
+        ox = np.where(sx >= 0, 1, -1)
+        oy = np.where(sy >= 0, 1, -1)
+        ax, ay = np.abs(sx), np.abs(sy)
+        f_mean = ((1 - ax) * (1 - ay) * box[k, byk, bxk] + ax * (1 - ay) * box[k, byk, bxk + ox]
+                  + (1 - ax) * ay * box[k, byk + oy, bxk] + ax * ay * box[k, byk + oy, bxk + ox]) / (P * P)
+        offset = _trimmed_mean((t_mean[k] - f_mean)[inl]) if n_in else 0.0
+        ok = n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * n
+        reason = '' if ok else f'{n_in} inliers of {n} searched keypoints'
+        return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason)
+
+    def _spread(self, idx: NDArray[np.int64], x: Array, y: Array, score: Array, w: int, h: int
+                ) -> NDArray[np.int64]:
+        """At most ``max_features`` keypoints, the strongest of each grid cell first, so that
+        they cover the whole frame (a rotation is better conditioned by spread bearings)."""
+        cfg = self.config
+        if idx.size <= cfg.max_features:
+            return idx
+        cx = np.minimum((x * cfg.grid_cols / w).astype(np.int64), cfg.grid_cols - 1)
+        cy = np.minimum((y * cfg.grid_rows / h).astype(np.int64), cfg.grid_rows - 1)
+        cell = cy * cfg.grid_cols + cx
+        order = np.lexsort((-score, cell))
+        cs = cell[order]
+        first = np.r_[0, np.flatnonzero(np.diff(cs)) + 1]
+        rank = np.arange(cs.size) - np.repeat(first, np.diff(np.r_[first, cs.size]))
+        pick = order[np.lexsort((-score[order], rank))][:cfg.max_features]
+        return idx[np.sort(pick)]

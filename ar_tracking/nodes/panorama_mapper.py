@@ -1,0 +1,222 @@
+"""panorama_mapper: cylindrical panorama built on the fly and 3-DoF orientation tracking
+against it, with an extended-dynamic-range map (Langlotz 2011 sec. 3.1, 4.1).
+
+Subscribes ``camera/image_raw`` (sensor_msgs/Image) and ``camera/image_raw/compressed``
+(CompressedImage), paired by stamp with ``camera/camera_info``. Publishes, for every tracked
+frame, ``panorama/orientation`` (TransformStamped, frame_id ``panorama``, child
+``camera_optical``, rotation R_panorama_cam, the image's stamp), and at ``publish_rate_hz``
+(by image stamps, so lockstep runs are reproducible) the map ``panorama/image`` (mono16 or
+rgb16, linearly tone-mapped EDR map) and ``panorama/tiles`` (mono8, one pixel per tile, 255
+finished), latched. A frame that cannot be tracked (lost, textureless, translating camera) is
+not published; bad messages are dropped with a throttled warning. The algorithm is
+:mod:`ar_tracking.core.panorama`; this node converts and publishes.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+from geometry_msgs.msg import TransformStamped
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+from ..core.panorama import MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
+from ..core.stamp_pairing import NearestStampPairer
+from ..ros.conversions import (
+    ConversionError,
+    array_to_image,
+    compressed_to_array,
+    image_to_array,
+    set_quaternion,
+    stamp_ns,
+    to_stamp,
+)
+from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.stamp_guard import StampGuard, StampVerdict
+
+Frame = tuple[np.ndarray, np.ndarray]  # (grey uint8, RGB uint8 or None)
+
+
+def to_gray_rgb(arr: np.ndarray, encoding: str) -> Frame:
+    """(grey, RGB) uint8 of an image array in ``encoding`` (Image encodings, or 'bgr' / 'mono'
+    for decoded compressed images)."""
+    if arr.dtype == np.uint16:
+        arr = (arr >> 8).astype(np.uint8)
+    elif arr.dtype != np.uint8:
+        raise ConversionError(f'image encoding {encoding!r} is not supported by panorama_mapper')
+    if arr.ndim == 2:
+        return arr, None
+    ch = arr.shape[2]
+    if ch == 1:
+        return arr[:, :, 0], None
+    bgr = encoding.startswith('bgr') or encoding in ('bgr', '8UC3', '8UC4')
+    if ch == 4:
+        arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2BGR if bgr else cv2.COLOR_RGBA2RGB)
+    rgb = cv2.cvtColor(arr, cv2.COLOR_BGR2RGB) if bgr else arr
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), rgb
+
+
+class PanoramaMapperNode(TrackingNode):
+    INPUTS = {
+        'camera/image_raw': 'sensor_msgs/msg/Image',
+        'camera/image_raw/compressed': 'sensor_msgs/msg/CompressedImage',
+        'camera/camera_info': 'sensor_msgs/msg/CameraInfo',
+    }
+    OUTPUTS = {
+        'panorama/orientation': 'geometry_msgs/msg/TransformStamped',
+        'panorama/image': 'sensor_msgs/msg/Image',
+        'panorama/tiles': 'sensor_msgs/msg/Image',
+    }
+    #: Either image topic; camera_info may be replaced by ``fallback_hfov_deg``.
+    REQUIRED_INPUTS = [('camera/image_raw', 'camera/image_raw/compressed')]
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('panorama_mapper', **kwargs)
+        p = self.param
+        edr = p('edr', True, 'Extended dynamic range map (Langlotz sec. 4.1): 16-bit map, frames corrected by the mean intensity difference of their matches; false: plain 8-bit map', read_only=True)
+        color = p('color', False, 'Map colour (rgb16) instead of grey (mono16)', read_only=True)
+        tile = p('tile_size_px', 64, 'Side of a map tile, pixels (divides 2048 and 512); a tile whose pixels are all mapped is finished', min_value=8, max_value=256, read_only=True, validate=lambda v: None if 512 % v == 0 else 'must divide 512')
+        fast = p('fast_threshold', 12, 'FAST threshold for the keypoints of finished tiles, 8-bit grey levels', min_value=1, max_value=255, read_only=True)
+        per_tile = p('keypoints_per_tile', 12, 'Strongest FAST keypoints kept per finished tile', min_value=1, max_value=200, read_only=True)
+        radius = p('search_radius_px', 4, 'Active search radius around the constant-motion prediction, pixels', min_value=1, max_value=32, read_only=True)
+        wide = p('wide_radius_px', 10, 'Search radius of the second attempt and of re-localisation, pixels', min_value=1, max_value=48, read_only=True)
+        feats = p('max_features', 60, 'Map keypoints searched per frame', min_value=10, max_value=1000, read_only=True)
+        min_inl = p('min_inliers', 10, 'A frame is tracked with at least this many inlier matches', min_value=3, max_value=1000, read_only=True)
+        ratio = p('min_inlier_ratio', 0.7, 'and at least this fraction of the searched keypoints being inliers', min_value=0.0, max_value=1.0, read_only=True)
+        inl_px = p('inlier_px', 1.5, 'RANSAC inlier threshold, pixels', min_value=0.1, max_value=20.0, read_only=True)
+        min_ncc = p('min_ncc', 0.75, 'Smallest accepted normalised cross-correlation of a patch match', min_value=0.0, max_value=1.0, read_only=True)
+        budget = p('background_tiles', 4, 'Finished tiles whose keypoints are computed after each frame (off the critical path)', min_value=1, max_value=1024, read_only=True)
+        self.publish_period_ns = int(1e9 / p('publish_rate_hz', 1.0, 'Rate of panorama/image and panorama/tiles, by image stamps, Hz', min_value=0.01, max_value=100.0, read_only=True))
+        self.fallback_hfov_rad = math.radians(p('fallback_hfov_deg', 0.0, 'Horizontal field of view used when no camera_info is received, degrees (0: frames without camera_info are skipped)', min_value=0.0, max_value=170.0, read_only=True))
+        self.max_info_gap_ns = int(1e9 * p('camera_info_max_gap_s', 0.005, 'Largest stamp difference between an image and the camera_info paired with it, s', min_value=0.0, max_value=1.0, read_only=True))
+        reset_s = p('reset_after_s', 1.0, 'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a new panorama', min_value=0.0, max_value=3600.0)
+        self.frame_id: str = p('frame_id', 'panorama', 'frame_id of the outputs (the panorama frame)')
+        self.child_frame_id: str = p('child_frame_id', 'camera_optical', 'child_frame_id of panorama/orientation')
+
+        self.config = MapperConfig(
+            map=MapConfig(tile_size=tile, edr=edr, channels=3 if color else 1, fast_threshold=fast, keypoints_per_tile=per_tile),
+            tracker=TrackerConfig(search_radius_px=radius, max_features=feats, min_inliers=min_inl, min_inlier_ratio=ratio, inlier_px=inl_px, min_ncc=min_ncc),
+            wide_radius_px=wide, background_tiles=budget,
+        )
+        self.core = PanoramaMapper(self.config)
+        self.color = color
+        self.guard = StampGuard(reset_s)
+        self.pairer: NearestStampPairer[Frame, tuple[np.ndarray, tuple[int, int]]] = NearestStampPairer(self.max_info_gap_ns)
+        self.info_seen = False
+        self.last_map_pub_ns: int | None = None
+        self.published = 0
+        self.lost = 0
+
+        self.pub_orientation = self.advertise(TransformStamped, 'panorama/orientation', RELIABLE_QOS)
+        self.pub_image = self.advertise(Image, 'panorama/image', LATCHED_QOS)
+        self.pub_tiles = self.advertise(Image, 'panorama/tiles', LATCHED_QOS)
+        self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS)
+        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
+        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, SENSOR_QOS)
+        self.get_logger().info(f'panorama_mapper: {"EDR" if edr else "8-bit"} {"colour" if color else "grey"} map 2048x512, tiles {tile} px')
+
+    # -- inputs ----------------------------------------------------------------------------
+
+    def on_image(self, msg: Image) -> None:
+        try:
+            frame = to_gray_rgb(image_to_array(msg), msg.encoding)
+        except ConversionError as exc:
+            self.warn_throttled(f'camera/image_raw: {exc}, frame dropped')
+            return
+        self._on_frame(stamp_ns(msg.header), frame)
+
+    def on_compressed(self, msg: CompressedImage) -> None:
+        try:
+            arr = compressed_to_array(msg)
+            frame = to_gray_rgb(arr, 'bgr' if arr.ndim == 3 else 'mono')
+        except ConversionError as exc:
+            self.warn_throttled(f'camera/image_raw/compressed: {exc}, frame dropped')
+            return
+        self._on_frame(stamp_ns(msg.header), frame)
+
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        K = np.asarray(msg.k, float).reshape(3, 3)
+        if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or msg.width <= 0 or msg.height <= 0:
+            self.warn_throttled('camera/camera_info: invalid K or size, ignored')
+            return
+        self.info_seen = True
+        for t, frame, info in self.pairer.add_secondary(stamp_ns(msg.header), (K, (int(msg.height), int(msg.width)))):
+            self._handle(t, frame, info)
+
+    def _on_frame(self, t: int, frame: Frame) -> None:
+        verdict = self.guard.check(t)
+        if verdict is StampVerdict.RESET:
+            self.get_logger().warning('camera: clock jumped back (bag loop?), starting a new panorama')
+            self.core.reset()
+            self.pairer.reset()
+            self.last_map_pub_ns = None
+        elif verdict is not StampVerdict.OK:
+            self.warn_throttled(f'camera: {verdict.value}, frame dropped')
+            return
+        if not self.info_seen and self.fallback_hfov_rad > 0:
+            self._handle(t, frame, None)
+            return
+        for t_, frame_, info in self.pairer.add_primary(t, frame):
+            self._handle(t_, frame_, info)
+
+    # -- processing ------------------------------------------------------------------------
+
+    def _handle(self, t: int, frame: Frame, info: tuple[np.ndarray, tuple[int, int]] | None) -> None:
+        gray, rgb = frame
+        h, w = gray.shape
+        if info is None:
+            if self.fallback_hfov_rad <= 0:
+                self.warn_throttled('camera: no camera_info with the image stamp (set fallback_hfov_deg to use a default), frame skipped')
+                return
+            f = w / 2 / math.tan(self.fallback_hfov_rad / 2)
+            K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        else:
+            K, size = info
+            if size != (h, w):
+                self.warn_throttled(f'camera: frame is {w}x{h} but camera_info says {size[1]}x{size[0]}, frame skipped')
+                return
+        if self.core.frame_size is not None and self.core.frame_size != (h, w) and info is None:
+            self.warn_throttled('camera: frame size changed, frame skipped')
+            return
+        to_map = rgb if (self.color and rgb is not None) else gray
+        try:
+            res = self.core.process(to_map, K, t, gray=gray)
+        except PanoramaError as exc:
+            self.warn_throttled(f'camera: {exc}, frame skipped')
+            return
+        R = res.R_pano_cam
+        if R is not None and np.all(np.isfinite(R)):
+            out = TransformStamped()
+            out.header.stamp = to_stamp(t)
+            out.header.frame_id = self.frame_id
+            out.child_frame_id = self.child_frame_id
+            set_quaternion(out.transform.rotation, R)
+            self.pub_orientation.publish(out)
+            self.published += 1
+        else:
+            self.lost += 1
+            self.warn_throttled(f'panorama tracking lost: {res.reason}')
+        if not self.core.map.empty and (self.last_map_pub_ns is None or t - self.last_map_pub_ns >= self.publish_period_ns):
+            self._publish_map(t)
+        self.core.background()  # finished tiles' keypoints: after the frame's outputs
+
+    def _publish_map(self, t: int) -> None:
+        self.last_map_pub_ns = t
+        stamp = to_stamp(t)
+        img = array_to_image(self.core.map.tone_mapped(16), 'rgb16' if self.color else 'mono16')
+        img.header.stamp = stamp
+        img.header.frame_id = self.frame_id
+        self.pub_image.publish(img)
+        tiles = array_to_image(self.core.map.tiles_image(), 'mono8')
+        tiles.header.stamp = to_stamp(t)
+        tiles.header.frame_id = self.frame_id
+        self.pub_tiles.publish(tiles)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(PanoramaMapperNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

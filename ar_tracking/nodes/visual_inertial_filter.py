@@ -1,0 +1,189 @@
+"""visual_inertial_filter: marker camera poses fused with a 100 Hz IMU (Caarls 2009 sec. 2.5).
+
+Subscribes ``imu/data_raw`` (sensor_msgs/Imu: rates and specific force, the time-update input
+of both filters, Fig. 7) and ``markers/pose`` (PoseWithCovarianceStamped of camera_optical in the
+map frame, stamped with the image capture time and arriving up to ~80 ms late: rolled back,
+applied, replayed, Fig. 8). Publishes ``vi/odometry`` (nav_msgs/Odometry of camera_optical at
+every IMU sample; twist in the camera frame, as REP-105 asks) and ``vi/predicted_pose``
+(PoseStamped extrapolated ``render_latency_s`` ahead of the newest IMU stamp: the pose at display
+time, Fig. 6), stamped with that display time.
+
+The IMU -> camera rotation is a parameter (``imu_to_camera_xyzw``: the /tf_static imu ->
+camera_optical rotation, R_imu_cam); there is no tf2 here. ``imu/mag`` is not used (the camera
+is the absolute orientation reference; see the issue notes).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu
+
+from ..core.rotations import quat_xyzw_to_matrix
+from ..core.vio.eskf import FilterNoise, InitialUncertainty
+from ..core.vio.rollback import FusionConfig, PoseMeasurement, RollbackFusion, Verdict
+from ..ros.conversions import (
+    ConversionError,
+    covariance_is_known,
+    rotation_from_quaternion,
+    set_quaternion,
+    set_vector3,
+    stamp_ns,
+    to_stamp,
+    vector3,
+)
+from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.stamp_guard import StampGuard, StampVerdict
+
+
+def _unit_quat(v: Any) -> str | None:
+    if len(v) != 4:
+        return 'needs 4 values (x, y, z, w)'
+    if abs(float(np.linalg.norm(v)) - 1.0) > 1e-3:
+        return 'is not a unit quaternion'
+    return None
+
+
+def _len3(v: Any) -> str | None:
+    return None if len(v) == 3 else 'needs 3 values'
+
+
+class VisualInertialFilterNode(TrackingNode):
+    INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu', 'markers/pose': 'geometry_msgs/msg/PoseWithCovarianceStamped'}
+    OUTPUTS = {'vi/odometry': 'nav_msgs/msg/Odometry', 'vi/predicted_pose': 'geometry_msgs/msg/PoseStamped'}
+    REQUIRED_INPUTS = ['imu/data_raw', 'markers/pose']
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('visual_inertial_filter', **kwargs)
+        p = self.param
+        d = FilterNoise()
+        noise = FilterNoise(
+            gyro_noise_rad_s=p('gyro_noise_rad_s', d.gyro_noise_rad_s, 'Gyro white noise per sample, 1-sigma, rad/s (sigma_z,w of Fig. 7)', min_value=1e-6, max_value=1.0),
+            angular_rate_change_rad_s=p('angular_rate_change_rad_s', d.angular_rate_change_rad_s, 'Process noise of the angular rate (user motion), rad/s/sqrt(s) (sigma_dw)', min_value=0.0, max_value=100.0),
+            gyro_bias_walk_rad_s=p('gyro_bias_walk_rad_s', d.gyro_bias_walk_rad_s, 'Gyro bias random walk, rad/s/sqrt(s) (sigma_db,w)', min_value=0.0, max_value=1.0),
+            accel_noise_m_s2=p('accel_noise_m_s2', d.accel_noise_m_s2, 'Accelerometer white noise per sample, 1-sigma, m/s^2 (sigma_z,a)', min_value=1e-6, max_value=10.0),
+            accel_change_m_s2=p('accel_change_m_s2', d.accel_change_m_s2, 'Process noise of the acceleration (user motion), m/s^2/sqrt(s) (sigma_da)', min_value=0.0, max_value=1000.0),
+            accel_bias_walk_m_s2=p('accel_bias_walk_m_s2', d.accel_bias_walk_m_s2, 'Accelerometer bias random walk, m/s^2/sqrt(s) (sigma_db,a)', min_value=0.0, max_value=10.0),
+        )
+        di = InitialUncertainty()
+        initial = InitialUncertainty(
+            velocity_m_s=p('initial_velocity_sigma_m_s', di.velocity_m_s, 'Velocity 1-sigma at initialisation, m/s', min_value=1e-6, max_value=100.0),
+            gyro_bias_rad_s=p('initial_gyro_bias_sigma_rad_s', di.gyro_bias_rad_s, 'Gyro bias 1-sigma at initialisation, rad/s', min_value=1e-9, max_value=1.0),
+            accel_bias_m_s2=p('initial_accel_bias_sigma_m_s2', di.accel_bias_m_s2, 'Accelerometer bias 1-sigma at initialisation, m/s^2', min_value=1e-9, max_value=10.0),
+        )
+        dc = FusionConfig()
+        q_ic = p('imu_to_camera_xyzw', [0.0, 0.0, 0.0, 1.0], 'R_imu_cam as a quaternion (x, y, z, w): rotates camera_optical vectors into the IMU frame (the /tf_static imu -> camera_optical)', validate=_unit_quat)
+        t_ic = p('camera_in_imu_m', [0.0, 0.0, 0.0], 'Position of the camera origin in the IMU frame, m', validate=_len3)
+        self.config = FusionConfig(
+            noise=noise, initial=initial,
+            R_imu_cam=quat_xyzw_to_matrix(np.asarray(q_ic, float)),
+            t_imu_cam=np.asarray(t_ic, float),
+            position_sigma_m=p('position_sigma_m', dc.position_sigma_m, 'Camera position noise 1-sigma when markers/pose has no covariance, and added to it, m', min_value=1e-6, max_value=10.0),
+            orientation_sigma_rad=p('orientation_sigma_rad', dc.orientation_sigma_rad, 'Camera orientation noise 1-sigma when markers/pose has no covariance, and added to it, rad', min_value=1e-6, max_value=3.2),
+            gate_chi2=p('gate_chi2', dc.gate_chi2, 'Innovation gate: squared Mahalanobis distance above which a pose is an outlier (0: no gate)', min_value=0.0, max_value=1e6),
+            max_consecutive_rejections=p('max_consecutive_rejections', dc.max_consecutive_rejections, 'After this many poses rejected in a row, re-initialise from the camera', min_value=1, max_value=1000),
+            buffer_s=p('buffer_s', dc.buffer_s, 'Roll-back buffer length: poses older than this (vs the newest IMU sample) are rejected, s', min_value=0.05, max_value=30.0, read_only=True),
+            max_imu_gap_s=p('max_imu_gap_s', dc.max_imu_gap_s, 'IMU gaps longer than this are bridged with the newer sample and reported, s', min_value=0.001, max_value=10.0),
+            reset_gap_s=p('reset_gap_s', dc.reset_gap_s, 'IMU gaps longer than this lose the track until the next camera pose, s', min_value=0.001, max_value=60.0),
+            rollback=p('rollback', True, 'Roll back to the capture time of late poses (false: apply on arrival, for comparison)'),
+        )
+        self.render_latency_ns = int(1e9 * p('render_latency_s', 0.03, 'Display latency: vi/predicted_pose is extrapolated this far ahead of the newest IMU sample, s', min_value=0.0, max_value=1.0))
+        self.world_frame_id = p('world_frame_id', 'enu', 'frame_id of the outputs (the marker-map frame of markers/pose)')
+        self.child_frame_id = p('child_frame_id', 'camera_optical', 'child_frame_id of vi/odometry')
+        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
+        self.core = RollbackFusion(self.config)
+        self.imu_guard = StampGuard(reset_s)
+        self.gyro_var = noise.gyro_noise_rad_s ** 2
+        self.published = 0
+        self.pub_odom = self.advertise(Odometry, 'vi/odometry', RELIABLE_QOS)
+        self.pub_pred = self.advertise(PoseStamped, 'vi/predicted_pose', RELIABLE_QOS)
+        self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
+        self.subscribe(PoseWithCovarianceStamped, 'markers/pose', self.on_pose, RELIABLE_QOS)
+        self.get_logger().info(f'visual_inertial_filter: roll-back {"on" if self.config.rollback else "off"}, buffer {self.config.buffer_s:g} s')
+
+    def on_imu(self, msg: Imu) -> None:
+        gyro, accel = vector3(msg.angular_velocity), vector3(msg.linear_acceleration)
+        if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
+            self.warn_throttled('imu/data_raw: non-finite rate or acceleration; sample dropped')
+            return
+        t = stamp_ns(msg.header)
+        verdict = self.imu_guard.check(t)
+        if verdict is StampVerdict.RESET:
+            self.get_logger().warning('imu/data_raw: clock jumped back (bag loop?); filter reset')
+            self.core.reset()
+        elif verdict is not StampVerdict.OK:
+            self.warn_throttled(f'imu/data_raw: {verdict.value}; sample dropped')
+            return
+        result = self.core.add_imu(t, gyro, accel)
+        if result in (Verdict.GAP, Verdict.RESET_GAP):
+            self.warn_throttled(f'imu/data_raw: {result.value}')
+        elif result is not Verdict.OK:
+            self.warn_throttled(f'imu/data_raw: {result.value}; sample dropped')
+            return
+        self._publish(msg.header.stamp, t)
+
+    def on_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        t = stamp_ns(msg.header)
+        if t <= 0:
+            self.warn_throttled('markers/pose: zero stamp; dropped')
+            return
+        try:
+            R = rotation_from_quaternion(msg.pose.pose.orientation, 'markers/pose orientation')
+        except ConversionError as exc:
+            self.warn_throttled(f'{exc}; dropped')
+            return
+        p = vector3(msg.pose.pose.position)
+        cov = None
+        if covariance_is_known(msg.pose.covariance):
+            cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+        if not np.all(np.isfinite(p)) or (cov is not None and not np.all(np.isfinite(cov))):
+            self.warn_throttled('markers/pose: non-finite position or covariance; dropped')
+            return
+        if msg.header.frame_id and msg.header.frame_id != self.world_frame_id:
+            self.warn_throttled(f'markers/pose is in {msg.header.frame_id!r}, expected {self.world_frame_id!r}; used as is')
+        verdict = self.core.add_pose(PoseMeasurement(t, R, p, cov))
+        if verdict in (Verdict.TOO_OLD, Verdict.OUTLIER, Verdict.INVALID, Verdict.REINITIALISED):
+            self.warn_throttled(f'markers/pose at {t * 1e-9:.3f}: {verdict.value}' + ('' if verdict is Verdict.REINITIALISED else '; rejected'))
+
+    def _publish(self, stamp: Any, t_ns: int) -> None:
+        s = self.core.state
+        if s is None:
+            return
+        R, p = self.core.camera_pose(s)
+        cov = self.core.camera_covariance(s)
+        v_w, w_cam = self.core.camera_velocity(s)
+        R_pred, p_pred = self.core.extrapolate(s, self.render_latency_ns * 1e-9)
+        if not all(np.all(np.isfinite(a)) for a in (R, p, cov, v_w, w_cam, R_pred, p_pred)):
+            self.warn_throttled('filter output not finite; not published')
+            return
+        odom = Odometry()
+        odom.header.stamp = stamp
+        odom.header.frame_id = self.world_frame_id
+        odom.child_frame_id = self.child_frame_id
+        set_vector3(odom.pose.pose.position, p)
+        set_quaternion(odom.pose.pose.orientation, R)
+        odom.pose.covariance = [float(x) for x in cov.ravel()]
+        set_vector3(odom.twist.twist.linear, R.T @ v_w)
+        set_vector3(odom.twist.twist.angular, w_cam)
+        tcov = np.zeros((6, 6))
+        tcov[:3, :3] = R.T @ s.pos.P[3:6, 3:6] @ R
+        tcov[3:, 3:] = np.eye(3) * self.gyro_var
+        odom.twist.covariance = [float(x) for x in tcov.ravel()]
+        self.pub_odom.publish(odom)
+        pred = PoseStamped()
+        pred.header.stamp = to_stamp(t_ns + self.render_latency_ns)
+        pred.header.frame_id = self.world_frame_id
+        set_vector3(pred.pose.position, p_pred)
+        set_quaternion(pred.pose.orientation, R_pred)
+        self.pub_pred.publish(pred)
+        self.published += 1
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(VisualInertialFilterNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

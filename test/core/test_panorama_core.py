@@ -1,0 +1,188 @@
+"""Panorama core (Langlotz 2011 sec. 3.1, 4.1): cylinder geometry, map, tracking, EDR, seams.
+
+Synthetic, seeded frames of a textured cylinder (exact truth) from test/panorama_synth.py.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMap, PanoramaMapper, seam_error
+from ar_tracking.core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
+from ar_tracking.core.panorama.tracker import kabsch
+from panorama_synth import H, K, W, CylinderWorld, angle_deg, rot, sweep, two_plane_frame
+
+DT = 33_333_333
+
+
+@pytest.fixture(scope='module')
+def world() -> CylinderWorld:
+    return CylinderWorld(1)
+
+
+# -- geometry --------------------------------------------------------------------------------
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-3.1, 3.1), st.floats(-0.7, 0.7))
+def test_cylinder_project_unproject_round_trip(theta, h):
+    geo = CylinderGeometry()
+    d = np.array([math.sin(theta), h, math.cos(theta)])
+    u, v = geo.project(d)
+    assert 0 <= u < geo.width
+    np.testing.assert_allclose(geo.unproject(u, v), d / np.linalg.norm(d), atol=1e-9)
+
+
+def test_cylinder_scale_and_axis():
+    geo = CylinderGeometry()
+    assert geo.f * 2 * math.pi == pytest.approx(2048)
+    assert 360 / geo.width == pytest.approx(0.17578125)
+    u0, v0 = geo.project(np.array([0.0, 0.0, 1.0]))
+    assert (u0, v0) == (1024.0, 256.0)  # first optical axis at the map centre
+    # A rotation about the cylinder axis is a pure column shift, across the wrap too.
+    d = geo.unproject(np.array([2000.0]), np.array([100.0]))
+    u1, v1 = geo.project(d @ rotation_about_axis_y(math.radians(20)).T)
+    assert (u1[0] - (2000 + 20 / 360 * 2048)) % 2048 == pytest.approx(0, abs=1e-6)
+    assert v1[0] == pytest.approx(100.0)
+
+
+def test_kabsch_recovers_rotation():
+    rng = np.random.default_rng(0)
+    R = rot('y', 33) @ rot('x', -7) @ rot('z', 4)
+    b = rng.normal(size=(20, 3))
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    np.testing.assert_allclose(kabsch(b, b @ R.T), R, atol=1e-12)
+
+
+# -- map -------------------------------------------------------------------------------------
+
+def test_map_writes_only_unmapped_pixels_and_finishes_tiles(world):
+    pano = PanoramaMap(MapConfig())
+    img = world.render(np.eye(3))
+    n1 = pano.map_frame(img, K, np.eye(3), 1)
+    assert 50_000 < n1 < 120_000
+    assert pano.map_frame(img, K, np.eye(3), 2) == 0  # nothing new: nothing mapped
+    n3 = pano.map_frame(img, K, rot('y', 2.0), 3)
+    assert 0 < n3 < 0.1 * n1  # only the sliver the pan uncovered (sec. 3.1)
+    assert pano.mapped.sum() == n1 + n3
+    assert set(np.unique(pano.contribution[pano.mapped])) == {1, 3}
+    finished = pano.finished_tiles()
+    assert finished.size >= 6
+    ts = pano.config.tile_size
+    tw = pano.tiles_shape[1]
+    for t in finished:
+        assert pano.mapped[(t // tw) * ts:(t // tw + 1) * ts, (t % tw) * ts:(t % tw + 1) * ts].all()
+    tiles = pano.tiles_image()
+    assert tiles.shape == (8, 32) and set(np.unique(tiles)) <= {0, 255}
+    # Keypoints only come from the background queue, within its budget.
+    assert pano.keypoints()[0].shape[0] == 0
+    assert pano.process_queue(2) == 2
+    assert len(pano.queue) == finished.size - 2
+    pano.process_queue(100)
+    dirs, uv, _ = pano.keypoints()
+    assert dirs.shape[0] > 50
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0)
+    assert pano.mapped[uv[:, 1].astype(int), uv[:, 0].astype(int)].all()
+
+
+def test_edr_map_stores_offsets_without_clipping(world):
+    img = world.render(np.eye(3))
+    edr = PanoramaMap(MapConfig(edr=True))
+    edr.map_frame(img, K, np.eye(3), 1, offset=-40.0)
+    plain = PanoramaMap(MapConfig(edr=False))
+    plain.map_frame(img, K, np.eye(3), 1, offset=-40.0)  # ignored without EDR
+    assert edr.stored.dtype == np.uint16 and plain.stored.dtype == np.uint8
+    m = edr.mapped
+    v_edr, v_plain = edr.values()[m, 0], plain.values()[m, 0]
+    np.testing.assert_allclose(v_edr - v_plain, -40.0, atol=0.6)
+    assert v_edr.min() < 0  # below the 8-bit range, kept (16 bits per channel)
+    tm = edr.tone_mapped(16)
+    assert tm.dtype == np.uint16 and tm[m].min() == 0 and tm[m].max() == 65535 and (tm[~m] == 0).all()
+
+
+def test_seam_error_sees_steps_not_texture():
+    rng = np.random.default_rng(3)
+    vals = rng.normal(100, 10, (64, 128))
+    contrib = np.where(np.arange(128)[None, :] < 64, 1, 50).repeat(64, 0)
+    clean = seam_error(vals, contrib)
+    stepped = vals.copy()
+    stepped[:, 64:] += 12.0
+    dirty = seam_error(stepped, contrib)
+    assert clean['step'] < 1.5
+    assert dirty['step'] == pytest.approx(12.0, abs=2.0)
+    assert seam_error(stepped, contrib, min_gap=100)['pairs'] == 0
+
+
+# -- tracking --------------------------------------------------------------------------------
+
+def run(mapper, world, Rs, gains=None, offsets=None):
+    out = []
+    for k, R in enumerate(Rs):
+        img = world.render(R, gain=1.0 if gains is None else gains[k],
+                           offset=0.0 if offsets is None else offsets[k], rng=np.random.default_rng(k))
+        res = mapper.process(img, K, (k + 1) * DT)
+        mapper.background()
+        out.append(res)
+    return out
+
+
+def test_tracks_a_full_turn_through_the_wrap(world):
+    Rs = sweep(200, 2.0)  # 400 degrees about the vertical, with pitch / roll wobble
+    mapper = PanoramaMapper()
+    res = run(mapper, world, Rs)
+    assert all(r.R_pano_cam is not None for r in res)
+    errs = [angle_deg(r.R_pano_cam, Rs[0].T @ R) for r, R in zip(res, Rs)]
+    assert max(errs) < 0.15
+    assert math.sqrt(np.mean(np.square(errs))) < 0.05
+    assert res[0].status == 'initialised' and res[-1].status == 'tracked'
+    assert mapper.map.mapped[200:300].all(axis=1).any()  # the map closed on itself (360 deg)
+
+
+def test_deterministic(world):
+    Rs = sweep(40, 1.5, seed=2)
+    a = run(PanoramaMapper(), world, Rs)
+    b = run(PanoramaMapper(), world, Rs)
+    assert all(np.array_equal(x.R_pano_cam, y.R_pano_cam) for x, y in zip(a, b))
+
+
+def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world):
+    Rs = sweep(120, 2.0, seed=4)
+    mapper = PanoramaMapper()
+    run(mapper, world, Rs)
+    t = 200 * DT
+    white = np.full((H, W), 230, np.uint8)
+    lost = mapper.process(white, K, t)
+    assert lost.R_pano_cam is None and lost.status == 'lost' and 'texture' in lost.reason
+    target = Rs[0].T @ Rs[0] @ rot('y', 100.0) @ rot('x', 3.0)
+    res = mapper.process(world.render(Rs[0] @ rot('y', 100.0) @ rot('x', 3.0)), K, t + DT)
+    assert res.status == 'relocalised'
+    assert angle_deg(res.R_pano_cam, target) < 0.1
+
+
+def test_translating_camera_is_reported_lost():
+    mapper = PanoramaMapper()
+    statuses = []
+    for i, tx in enumerate(np.linspace(0.0, 0.3, 20)):
+        statuses.append(mapper.process(two_plane_frame(tx), K, (i + 1) * DT).status)
+        mapper.background()
+    assert statuses[0] == 'initialised'
+    assert statuses[-5:] == ['lost'] * 5  # parallax: no rotation explains the matches
+
+
+def test_edr_corrects_exposure_steps(world):
+    # 360+ degrees with an exposure jump (gain 1.35) half-way: the revisited part of the map
+    # meets the first frames' contribution, where the 8-bit map shows the step.
+    Rs = sweep(200, 2.0, seed=5)
+    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
+    results = {}
+    for edr in (True, False):
+        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr)))
+        res = run(mapper, world, Rs, gains=gains)
+        assert all(r.R_pano_cam is not None for r in res)
+        results[edr] = mapper.seam_error(min_gap=30)['step']
+        if edr:
+            offs = [r.intensity_offset for r in res]
+            assert abs(np.mean(offs[10:90])) < 2.0 and np.mean(offs[120:]) < -20
+    assert results[True] < 0.5 * results[False]
