@@ -96,10 +96,10 @@ def _sidecar_params(bag: Path) -> Path | None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .eval.metrics import evaluate_bag
+    from .eval.evaluate import evaluate_all
     from .eval.report import write_report
 
-    metrics = evaluate_bag(args.bag)
+    metrics = evaluate_all(args.bag)
     if args.json:
         print(json.dumps(metrics, indent=None if args.compact else 2, sort_keys=True))
         if not args.report:
