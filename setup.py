@@ -14,6 +14,9 @@ NODES = [
     'camera_replay',
     'bag_replay',
     'imu_magnetometer',
+    'panorama_mapper',
+    'marker_tracker',
+    'visual_inertial_filter',
 ]
 
 setup(

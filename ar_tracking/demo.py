@@ -72,6 +72,10 @@ def run_demo(workdir: Path, quiet: bool = False) -> int:
         if 'error' not in m:
             print(f'{topic}: orientation rmse {m["rmse_deg"]:.2f} deg, heading rmse '
                   f'{m["heading_rmse_deg"]:.2f} deg, tilt rmse {m["tilt_rmse_deg"]:.2f} deg (n={m["n"]})')
+    pano = metrics.get('panorama')
+    if pano and 'tracking_rmse_deg' in pano:
+        print(f'panorama/orientation: tracking rmse {pano["tracking_rmse_deg"]:.3f} deg relative to the first frame, '
+              f'{pano.get("lost_frames", 0)} of {pano.get("frames", "?")} frames lost')
     print(f'report: {html}')
     print(f'figure: {png}')
     print(f'metrics: {workdir / "metrics.json"}')

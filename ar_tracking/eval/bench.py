@@ -17,7 +17,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-AREAS = ('graph', 'orientation')
+AREAS = ('graph', 'orientation', 'panorama', 'markers_vi')
 
 
 def percentiles_ms(values: list[float]) -> dict[str, float]:
@@ -102,4 +102,12 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
         results['orientation'] = bench_orientation()
     if 'graph' in chosen:
         results['graph'] = bench_graph(workdir, duration_s)
+    if 'panorama' in chosen:
+        from .bench_panorama import bench_panorama
+
+        results['panorama'] = bench_panorama(workdir / 'panorama')
+    if 'markers_vi' in chosen:
+        from .bench_markers_vi import bench_markers_vi
+
+        results.update(bench_markers_vi(workdir / 'markers_vi'))  # areas 'markers' and 'vi'
     return results

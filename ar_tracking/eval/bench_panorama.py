@@ -73,7 +73,17 @@ def photo_panorama(folder: Path, prefix: str, workdir: Path) -> dict[str, Any] |
         h, w = bgr.shape[:2]
         fl = focal[i] if i < len(focal) else focal[0] if focal else w
         K = np.array([[fl, 0, (w - 1) / 2], [0, fl, (h - 1) / 2], [0, 0, 1.0]])
-        res = mapper.process(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), K, (i + 1) * 1_000_000_000)
+        g = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+        res = mapper.process(g, K, (i + 1) * 1_000_000_000)
+        if res.status == 'lost' and i == 1:
+            # Photos 20 deg apart (a third of the view) are no video: the first step gets the
+            # capture design (20 deg about the vertical, either way) as a prior.
+            for sign in (1.0, -1.0):
+                a = math.radians(20.0 * sign)
+                prior = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+                res = mapper.process(g, K, (i + 1) * 1_000_000_000 + 1, prior=prior)
+                if res.status != 'lost':
+                    break
         mapper.background()
         statuses.append(res.status)
         Rs.append(res.R_pano_cam)

@@ -17,7 +17,28 @@ from .metrics import EvaluationError, evaluate_bag
 logger = logging.getLogger(__name__)
 
 #: area name -> "module:function" taking the bag path and returning a dict or None.
-AREA_EVALUATORS: dict[str, str] = {}
+AREA_EVALUATORS: dict[str, str] = {
+    'panorama': 'ar_tracking.eval.evaluate:evaluate_panorama_area',
+    'vi': 'ar_tracking.eval.vi_metrics:evaluate_vi',
+}
+
+
+def source_bag_of(path: Path) -> Path | None:
+    """The input bag an output bag was made from (recorded by the runner), if it still exists."""
+    from ..io.bags import read_metadata
+
+    meta = read_metadata(path, 'ar_tracking.run') or {}
+    src = meta.get('source_bag')
+    return Path(src) if src and Path(src).exists() else None
+
+
+def evaluate_panorama_area(path: Path) -> dict[str, Any] | None:
+    """Panorama tracking measures; the seam error too when the input bag (with the camera
+    images the output bag does not copy) can be found."""
+    from .panorama_metrics import evaluate_panorama
+
+    source = source_bag_of(path)
+    return evaluate_panorama(path, source_bag=source, seam=source is not None)
 
 
 def _load(spec: str) -> Callable[[Path], dict[str, Any] | None]:
@@ -29,16 +50,15 @@ def evaluate_all(path: str | Path) -> dict[str, Any]:
     """Orientation metrics plus every area whose topics the bag has (DESIGN sec. 8 names)."""
     path = Path(path)
     metrics: dict[str, Any] = {}
+    missing_truth: EvaluationError | None = None
     try:
         metrics = evaluate_bag(path)
-    except EvaluationError:
-        if not AREA_EVALUATORS:
-            raise
-        logger.info('%s: no orientation ground truth; other areas only', path)
+    except EvaluationError as exc:
+        missing_truth = exc
     for area, spec in AREA_EVALUATORS.items():
         result = _load(spec)(path)
         if result is not None:
             metrics[area] = result
-    if not any(k for k in metrics if k != 'bag'):
-        raise EvaluationError(f'{path}: nothing to evaluate (no ground truth topics this package knows)')
+    if missing_truth is not None and not metrics:
+        raise missing_truth
     return metrics

@@ -65,7 +65,9 @@ def write_report(bag: str | Path, out: str | Path, metrics: dict | None = None) 
     if kind == '.png':
         out.write_bytes(png)
     else:
-        out.write_text(render_html(data.path, metrics, png), encoding='utf-8')
+        from .figures import extra_figures
+
+        out.write_text(render_html(data.path, metrics, png, extra_figures(bag)), encoding='utf-8')
     logger.info('report written to %s', out)
     return out
 
@@ -251,8 +253,9 @@ def _table_rows(metrics: dict) -> list[str]:
     return rows
 
 
-def render_html(bag: Path, metrics: dict, png: bytes) -> str:
-    """A self-contained page: title, bag summary, metrics table and the embedded figure."""
+def render_html(bag: Path, metrics: dict, png: bytes, extras: list[tuple[str, bytes]] | None = None) -> str:
+    """A self-contained page: title, bag summary, metrics table, the embedded figure, and
+    extra figures (caption, PNG) such as the panorama map; other areas' metrics as JSON."""
     name = html.escape(bag.name)
     info = metrics.get('bag', {})
     header = ''.join(f'<th>{html.escape(label)}</th>' for _, label in _COLUMNS)
@@ -275,6 +278,24 @@ def render_html(bag: Path, metrics: dict, png: bytes) -> str:
         *rows,
         '</table>',
         f'<img alt="orientation over time for {name}" src="data:image/png;base64,{image}">',
+        *_extra_sections(metrics, extras or []),
         '</body></html>',
         '',
     ])
+
+
+def _extra_sections(metrics: dict, extras: list[tuple[str, bytes]]) -> list[str]:
+    """HTML for the areas other than orientation (their measures) and the extra figures."""
+    import json
+
+    parts: list[str] = []
+    for area, values in sorted(metrics.items()):
+        if area in ('orientation', 'bag'):
+            continue
+        parts.append(f'<h2>{html.escape(area)}</h2>')
+        parts.append(f'<pre>{html.escape(json.dumps(values, indent=2, sort_keys=True))}</pre>')
+    for caption, png in extras:
+        data = base64.b64encode(png).decode('ascii')
+        parts.append(f'<h2>{html.escape(caption)}</h2>')
+        parts.append(f'<img alt="{html.escape(caption)}" src="data:image/png;base64,{data}">')
+    return parts

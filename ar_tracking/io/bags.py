@@ -311,6 +311,16 @@ class BagWriter:
             self._impl.write(channel, log_time_ns, rawdata)
         self._count += 1
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Attach a named string map to the bag (MCAP metadata record; ignored for sqlite3).
+
+        The graph runner records where an output bag came from, so that ``evaluate`` can find
+        the input bag again (e.g. to re-run a core on its images)."""
+        if self._impl is None:
+            raise BagError(f'{self.path}: bag is not open for writing')
+        if self.storage == 'mcap':
+            self._impl.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+
     def close(self) -> None:
         """Finalise the bag (index, summary, metadata). Safe to call twice."""
         if self._impl is None:
@@ -339,3 +349,20 @@ def ns_to_stamp(ns: int) -> Any:
     Time = msg_class('builtin_interfaces/msg/Time')
     ns = int(ns)
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def read_metadata(path: str | Path, name: str) -> dict[str, str] | None:
+    """The metadata record ``name`` of an MCAP file (None if absent or not an MCAP file)."""
+    path = Path(path)
+    if path.suffix != '.mcap' or not path.is_file():
+        return None
+    try:
+        from mcap.reader import make_reader
+
+        with open(path, 'rb') as f:
+            for record in make_reader(f).iter_metadata():
+                if record.name == name:
+                    return dict(record.metadata)
+    except Exception as exc:  # a damaged file: no metadata, the readers will say why
+        logger.debug('%s: no metadata (%s)', path, exc)
+    return None

@@ -57,7 +57,7 @@ class MarkerTrackerNode(TrackingNode):
         map_file = p('marker_map_file', '', 'YAML marker map: frame_id, markers [{id, size_m, position, orientation_xyzw}]', read_only=True)
         map_text = p('marker_map', '', 'The marker map inline (same YAML document as marker_map_file); used when marker_map_file is empty', read_only=True)
         self.corner_sigma_px = p('corner_sigma_px', 0.1, 'Corner noise 1-sigma assumed for the pose covariance (floor; the reprojection RMS is used when larger), px', min_value=1e-4, max_value=10.0)
-        min_angle = p('min_corner_angle_deg', 25.0, 'A quad with an interior angle below this (or above 180 minus this) is seen edge-on: rejected', min_value=0.0, max_value=89.0, read_only=True)
+        min_angle = p('min_corner_angle_deg', 25.0, 'A quad with an interior angle below this (or above 180 minus this) is seen edge-on: rejected', min_value=0.0, max_value=89.99, read_only=True)
         min_side = p('min_side_px', 12.0, 'Markers with a side shorter than this are rejected, px', min_value=4.0, max_value=1000.0, read_only=True)
         self.max_position_sigma_m = p('max_position_sigma_m', 0.5, 'Poses whose position 1-sigma exceeds this are not published, m', min_value=1e-4, max_value=100.0)
         self.map_frame_id = p('map_frame_id', '', 'Frame of markers/pose (empty: the marker map frame_id)')

@@ -37,7 +37,13 @@ logger = logging.getLogger(__name__)
 #: listed: in the runner, the runner itself plays the bag.
 GRAPH_NODES: dict[str, str] = {
     'imu_magnetometer': 'ar_tracking.nodes.imu_magnetometer:ImuMagnetometerNode',
+    'panorama_mapper': 'ar_tracking.nodes.panorama_mapper:PanoramaMapperNode',
+    'marker_tracker': 'ar_tracking.nodes.marker_tracker:MarkerTrackerNode',
+    'visual_inertial_filter': 'ar_tracking.nodes.visual_inertial_filter:VisualInertialFilterNode',
 }
+
+#: Name of the MCAP metadata record in which an output bag says where it came from.
+RUN_METADATA = 'ar_tracking.run'
 
 #: Topics copied from the input bag to the output by default (prefix match).
 COPY_PREFIXES = ('/ground_truth/', '/tf_static', '/tf', '/gps/', '/imu/')
@@ -284,6 +290,10 @@ class GraphRunner:
             }
             writer = BagWriter(self.out_path, storage=self.storage, overwrite=True)  # type: ignore[arg-type]
             writer.open()
+            writer.add_metadata(RUN_METADATA, {
+                'source_bag': str(self.bag_path.resolve()), 'nodes': ','.join(names),
+                'clock': 'realtime' if realtime else 'lockstep',
+            })
             recorder = _Recorder(writer, output_types)
             clock_ns = [reader.start_ns]
 

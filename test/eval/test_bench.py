@@ -13,14 +13,16 @@ from ar_tracking.eval.bench import run_bench  # noqa: E402
 
 
 def test_bench_reports_the_design_names(tmp_path):
-    results = run_bench(tmp_path, duration_s=2.0)
+    results = run_bench(tmp_path, duration_s=2.0, areas=['graph', 'orientation'])
     graph = results['graph']
     for key in ('realtime_factor', 'transport_floor_factor', 'wall_s', 'input_messages'):
         assert key in graph
     assert graph['realtime_factor'] > 0 and graph['transport_floor_factor'] > 0
-    assert graph['input_messages'] == 400  # 2 s of IMU + magnetometer at 100 Hz
+    # 2 s of IMU + magnetometer at 100 Hz, and camera images + camera_info at 30 Hz
+    assert graph['input_messages'] == 400 + 120
     node = graph['nodes']['imu_magnetometer']
     assert node['n'] == 400 and 0 < node['p50_ms'] <= node['p95_ms']
+    assert graph['nodes']['panorama_mapper']['n'] == 120
     assert results['orientation']['imu_magnetometer_updates_per_s'] > 0
     json.dumps(results)  # JSON-able
 

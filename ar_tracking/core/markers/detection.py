@@ -59,6 +59,10 @@ def quad_shape_problem(quad: Array, min_corner_angle_deg: float, min_side_px: fl
     ratio = min(lengths[0] / lengths[2], lengths[2] / lengths[0], lengths[1] / lengths[3], lengths[3] / lengths[1])
     if ratio < 0.3:
         return f'seen edge-on (opposite sides differ {1 / ratio:.1f}x)'
+    # A square marker turned by more than ~78 deg away from the camera looks like a sliver.
+    aspect = lengths.min() / lengths.max()
+    if aspect < 0.2:
+        return f'seen edge-on (aspect {aspect:.2f})'
     return None
 
 

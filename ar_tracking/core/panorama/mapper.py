@@ -113,8 +113,12 @@ class PanoramaMapper:
         return self._last_R @ _exp_rotation(self._velocity * dt)
 
     def process(self, frame: NDArray[np.uint8], K: Array, stamp_ns: int | None = None,
-                gray: NDArray[np.uint8] | None = None) -> FrameResult:
-        """Track and map one frame (grey (H, W) or RGB (H, W, 3) uint8) with intrinsics K."""
+                gray: NDArray[np.uint8] | None = None, prior: Array | None = None) -> FrameResult:
+        """Track and map one frame (grey (H, W) or RGB (H, W, 3) uint8) with intrinsics K.
+
+        ``prior``: an optional R_pano_cam from elsewhere (a gyro, or the capture design of a
+        photo sequence) used instead of the constant-motion prediction and as the
+        re-localisation hint; the estimate still comes from the map alone."""
         frame = np.asarray(frame)
         if frame.dtype != np.uint8 or frame.ndim not in (2, 3) or (frame.ndim == 3 and frame.shape[2] != 3):
             raise PanoramaError(f'frame must be uint8 grey or RGB, got {frame.dtype} {frame.shape}')
@@ -142,14 +146,14 @@ class PanoramaMapper:
             return self._lose(f'frame has no texture (std {float(gray.std()):.1f})')
         status = 'tracked'
         res: TrackResult | None = None
-        if self._tracking:
-            R_pred = self.predict(stamp_ns)
+        if self._tracking or prior is not None:
+            R_pred = self.predict(stamp_ns) if prior is None else np.asarray(prior, float)
             res = self.tracker.track(gray, K, R_pred, self.map)
             if not res.ok:
                 res = self.tracker.track(gray, K, R_pred, self.map, self.config.wide_radius_px)
         if res is None or not res.ok:
             status = 'relocalised'
-            hint = self._last_R
+            hint = self._last_R if prior is None else np.asarray(prior, float)
             for R_hyp in self.relocaliser.hypotheses(gray, K, hint, self.map):
                 res = self.tracker.track(gray, K, R_hyp, self.map, self.config.wide_radius_px)
                 if res.ok:

@@ -1,0 +1,60 @@
+"""Extra report figures from an output bag: products that are images in their own right.
+
+Each function returns PNG bytes or None when the bag does not have the product.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..io.bags import BagError, BagReader
+
+logger = logging.getLogger(__name__)
+
+PANORAMA_IMAGE_TOPIC = '/panorama/image'
+
+
+def panorama_png(bag_path: str | Path) -> bytes | None:
+    """The last panorama map of the bag (16-bit EDR map shown with a linear tone-mapping)."""
+    with BagReader(bag_path) as bag:
+        if PANORAMA_IMAGE_TOPIC not in bag.topics:
+            return None
+        last = None
+        for m in bag.messages([PANORAMA_IMAGE_TOPIC]):
+            last = m
+        if last is None:
+            return None
+        try:
+            msg = bag.deserialize(last)
+        except BagError as exc:
+            logger.warning('panorama image not shown: %s', exc)
+            return None
+    dtype = np.uint16 if msg.encoding in ('mono16', 'rgb16', '16UC1', '16UC3') else np.uint8
+    channels = 3 if msg.encoding in ('rgb16', 'rgb8', 'bgr8', '16UC3') else 1
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    rows = data[: msg.step * msg.height].reshape(msg.height, msg.step)
+    itemsize = np.dtype(dtype).itemsize
+    pixels = rows[:, : msg.width * channels * itemsize].copy().view(
+        np.dtype(dtype).newbyteorder('>' if msg.is_bigendian else '<'))
+    img = pixels.reshape(msg.height, msg.width, channels).astype(np.float64)
+    mapped = img > 0
+    if mapped.any():  # linear tone-mapping of the mapped range to 8 bits
+        lo, hi = np.percentile(img[mapped], [0.5, 99.5])
+        img = np.clip((img - lo) / max(hi - lo, 1e-9) * 255.0, 0, 255)
+    out = img.astype(np.uint8)
+    if channels == 3 and msg.encoding.startswith('rgb'):
+        out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR)
+    ok, png = cv2.imencode('.png', out if channels == 3 else out[:, :, 0])
+    return png.tobytes() if ok else None
+
+
+def extra_figures(bag_path: str | Path) -> list[tuple[str, bytes]]:
+    """(caption, PNG) of every extra product the bag holds."""
+    figures: list[tuple[str, bytes]] = []
+    pano = panorama_png(bag_path)
+    if pano is not None:
+        figures.append(('Panorama map built during the run (panorama/image, last message)', pano))
+    return figures

@@ -1,0 +1,95 @@
+"""Marker corners (Caarls 2009 sec. 2.4): log-parabola, lens model eq. 2, refinement, pose."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ar_tracking.core.markers import MarkerError
+from ar_tracking.core.markers.detection import MarkerDetector, quad_shape_problem
+from ar_tracking.core.markers.edge_refinement import log_parabola_offset
+from ar_tracking.core.markers.lens_model import LensModel, eq2_distort, eq2_undistort
+from ar_tracking.core.markers.pose import MapMarker, MarkerMap, estimate_camera_pose
+from ar_tracking.eval.vi_metrics import marker_corner_accuracy
+from ar_tracking.sim import robot_arcs as ra
+
+
+def test_log_parabola_is_exact_for_a_gaussian_gradient_profile():
+    for x_edge in np.linspace(-0.5, 0.5, 11):
+        for s in (0.7, 1.0, 1.6):
+            g = np.exp(-0.5 * ((np.array([-1.0, 0.0, 1.0]) - x_edge) / s) ** 2)
+            assert np.isclose(log_parabola_offset(g[:1], g[1:2], g[2:])[0], x_edge, atol=1e-9)
+            plain = 0.5 * (g[0] - g[2]) / (g[0] - 2 * g[1] + g[2])
+            if 0.2 < abs(x_edge) < 0.45:  # the plain parabola is biased where the log one is exact
+                assert abs(plain - x_edge) > 1e-3
+
+
+def test_eq2_lens_model_round_trip_and_opencv_model():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-0.6, 0.6, (50, 2))
+    for k in ([0.1, -0.02, 0.003], [-0.2, 0.05, 0.0]):
+        d = eq2_distort(p, np.array(k))
+        assert np.allclose(eq2_undistort(d, np.array(k)), p, atol=1e-10)
+    K = ra.Camera().K
+    for lens in (LensModel(K, 'opencv', np.array([-0.1, 0.02, 0.001, -0.001, 0.0])),
+                 LensModel(K, 'caarls_eq2', eq2_k=np.array([0.08, -0.01, 0.0]))):
+        px = lens.distort(p * 0.5)
+        assert np.allclose(lens.undistort(px), p * 0.5, atol=1e-7)
+    with pytest.raises(MarkerError):
+        LensModel(K, 'fisheye')
+
+
+def test_seed_refinement_beats_opencv_subpix_and_bias_is_small():
+    res = marker_corner_accuracy(seed=1, n_poses=6, n_noisy=1)
+    assert res['n_corners'] >= 16
+    assert res['corner_rmse_px']['caarls'] <= res['corner_rmse_px']['opencv_subpix']
+    assert res['corner_bias_px']['caarls'] < 0.02
+    assert res['corner_rmse_px']['caarls'] < res['corner_rmse_px']['none']
+
+
+def test_edge_on_and_tiny_quads_are_rejected():
+    square = np.array([[0, 0], [50, 0], [50, 50], [0, 50]], float)
+    assert quad_shape_problem(square, 25, 12) is None
+    sliver = np.array([[0, 0], [50, 0], [52, 6], [2, 6]], float)
+    assert 'edge-on' in quad_shape_problem(sliver, 25, 5)
+    assert 'small' in quad_shape_problem(square / 10, 25, 12)
+
+
+def _map() -> MarkerMap:
+    mapped, _ = ra.wall_markers()
+    return MarkerMap('enu', {m.id: MapMarker(m.id, m.size_m, m.position, m.R_world_marker) for m in mapped})
+
+
+def test_pose_from_all_markers_with_covariance_and_unknown_id_rejected():
+    cam = ra.Camera()
+    lens = LensModel(cam.K)
+    mapped, unknown = ra.wall_markers()
+    sched = ra.ArcSchedule.make(5.0)
+    tr = ra.truth_at(sched, np.array([2.0]))
+    img, _ = ra.render_frame(cam, tr.R_enu_cam[0], tr.position[0], mapped + unknown, np.random.default_rng(3))
+    mm = _map()
+    obs, rej = MarkerDetector().detect(img, lens, mm.ids)
+    assert sorted(o.id for o in obs) == [0, 1, 2, 3]
+    assert [r.id for r in rej] == [17] and 'not in the marker map' in rej[0].reason
+    est = estimate_camera_pose(obs, mm, lens.focal_px)
+    assert est is not None and est.n_points == 16
+    assert np.linalg.norm(est.p_map_cam - tr.position[0]) < 0.01
+    assert np.all(np.linalg.eigvalsh(est.cov) > 0)
+    sig = np.sqrt(np.diag(est.cov)[:3])
+    assert np.all(sig < 0.05) and np.all(sig > 1e-5)
+    one = estimate_camera_pose(obs[:1], mm, lens.focal_px)
+    assert one is not None and np.linalg.norm(one.p_map_cam - tr.position[0]) < 0.05
+    assert np.trace(one.cov[:3, :3]) > np.trace(est.cov[:3, :3])  # more markers, more precise
+
+
+def test_marker_map_text_and_errors(tmp_path):
+    doc = ra.marker_map_doc(ra.wall_markers()[0])
+    import yaml
+    path = tmp_path / 'm.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    assert MarkerMap.from_yaml(path).ids == {0, 1, 2, 3}
+    with pytest.raises(MarkerError):
+        MarkerMap.from_text('markers: [{id: 1, size_m: -1, position: [0, 0, 0]}]')
+    with pytest.raises(MarkerError):
+        MarkerMap.from_text('[1, 2')
+    with pytest.raises(MarkerError):
+        MarkerMap.from_arrays([1, 1], [0.1, 0.1], [0, 0, 0, 0, 0, 0, 1] * 2)
