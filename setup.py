@@ -15,6 +15,7 @@ NODES = [
     'bag_replay',
     'imu_magnetometer',
     'panorama_mapper',
+    'hybrid_orientation_filter',
     'marker_tracker',
     'visual_inertial_filter',
 ]

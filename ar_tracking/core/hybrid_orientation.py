@@ -55,6 +55,8 @@ logger = logging.getLogger(__name__)
 Array = NDArray[np.float64]
 
 UP = np.array([0.0, 0.0, 1.0])
+_I3 = np.eye(3)
+_I3.setflags(write=False)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -71,8 +73,8 @@ def so3_exp(v: Array) -> Array:
     theta = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     K = skew(v)
     if theta < 1e-8:
-        return np.eye(3) + K
-    return np.eye(3) + (math.sin(theta) / theta) * K + ((1.0 - math.cos(theta)) / theta**2) * (K @ K)
+        return _I3 + K
+    return _I3 + (math.sin(theta) / theta) * K + ((1.0 - math.cos(theta)) / theta**2) * (K @ K)
 
 
 def so3_log(R: Array) -> Array:
@@ -87,7 +89,7 @@ def so3_log(R: Array) -> Array:
     # Near pi: the axis from the symmetric part.
     B = 0.5 * (R + R.T) - cos_t * np.eye(3)
     i = int(np.argmax(np.diag(B)))
-    axis = B[:, i] / math.sqrt(max(B[i, i], 1e-12))
+    axis = B[:, i] / max(float(np.linalg.norm(B[:, i])), 1e-12)  # B = (1 - cos) a a^T
     if np.dot(axis, w) < 0:
         axis = -axis
     return theta * axis
@@ -167,7 +169,7 @@ class HybridFilterParams:
 
     #: Random walk of R_PN, rad/sqrt(s): lets the estimate follow a visual tracker's slow drift
     #: (the paper's fixed process noise, sec. 6.2).
-    process_noise_rad_sqrt_s: float = 0.003
+    process_noise_rad_sqrt_s: float = 0.001
     #: Noise of the visual orientation, 1-sigma rad (added to the sensor's, sec. 6.2).
     visual_noise_rad: float = 0.001
     #: Sensor noise used when the input has no covariance (REP-145 -1), 1-sigma rad.
@@ -238,14 +240,15 @@ class PanoramaWorldFilter:
         self.heading_gated = False
         self.rejecting_since_ns = None
 
-    def predict(self, t_ns: int) -> None:
-        """Constant model: m stays 0, P grows by the process noise over the elapsed time."""
+    def predict(self, t_ns: int, scale: float = 1.0) -> None:
+        """Constant model: m stays 0, P grows by the process noise over the elapsed time
+        (times ``scale``, see :meth:`update`)."""
         if self.t_ns is None:
             self.t_ns = int(t_ns)
             return
         dt = (int(t_ns) - self.t_ns) * 1e-9
         if dt > 0:
-            self.P = self.P + np.eye(3) * (self.params.process_noise_rad_sqrt_s**2 * dt)
+            self.P = self.P + _I3 * (self.params.process_noise_rad_sqrt_s**2 * dt * scale)
             self.t_ns = int(t_ns)
 
     def world_covariance(self) -> Array:
@@ -289,7 +292,9 @@ class PanoramaWorldFilter:
             cov_enu = np.eye(3) * p.default_sensor_sigma_rad**2
         cov_enu = np.asarray(cov_enu, dtype=float)
         floor = p.min_sensor_sigma_rad**2
-        cov_enu = cov_enu + np.diag(np.maximum(floor - np.diag(cov_enu), 0.0))
+        diag = cov_enu.diagonal()
+        if diag.min() < floor:
+            cov_enu = cov_enu + np.diag(np.maximum(floor - diag, 0.0))
         # Eq. 2: R_PN = R_DP^-1 R_DN, i.e. R_pano_enu = R_pano_cam R_cam_enu.
         R_meas = R_pano_cam @ R_enu_cam.T
         if not self.initialized:
@@ -299,11 +304,14 @@ class PanoramaWorldFilter:
             self._direction_factor(R_enu_cam, 0.0)
             self.updates += 1
             return UpdateResult(True, 'seeded')
-        self.predict(t_ns)
         factor = self._direction_factor(R_enu_cam, dt_s)
+        # A stay in one direction also slows the forgetting: the filter's memory is counted in
+        # directions visited, not in seconds (otherwise the random walk reopens P and the stay
+        # pulls the estimate anyway, only later).
+        self.predict(t_ns, 1.0 / factor)
         z = so3_log(R_meas @ self.R_hat.T)  # eq. 6: expected m, identity Jacobian
         # Sensor error e (world axes, R_enu_sensor = exp(e) R_true) enters as -R_pano_enu e.
-        Rm = self.R_hat @ cov_enu @ self.R_hat.T * factor + np.eye(3) * p.visual_noise_rad**2
+        Rm = self.R_hat @ cov_enu @ self.R_hat.T * factor + _I3 * p.visual_noise_rad**2
         S = self.P + Rm
         S_inv = np.linalg.inv(S)
         d2 = float(z @ S_inv @ z)
@@ -326,7 +334,7 @@ class PanoramaWorldFilter:
         K = self.P @ S_inv  # H = I
         m = K @ z
         self.R_hat = so3_exp(m) @ self.R_hat  # fold the error into R_hat, reset m to 0
-        I_K = np.eye(3) - K
+        I_K = _I3 - K
         self.P = I_K @ self.P @ I_K.T + K @ Rm @ K.T  # Joseph form: stays symmetric positive
         self.updates += 1
         if self.updates % 1000 == 0:
@@ -437,12 +445,15 @@ class GyroBackup:
         p = self.params
         t_ns = int(t_ns)
         self.visual.add(t_ns, R_pano_cam)
-        t_old = t_ns - int(p.bias_window_s * 1e9)
-        R_vis_old = self.visual.at(t_old)
-        C_old, C_new = self.chain.at(t_old), self.chain.at(t_ns)
-        if R_vis_old is None or C_old is None or C_new is None:
+        if self.chain.newest_ns is None:
             return
-        dR_vis = R_vis_old.T @ R_pano_cam  # camera at t_old -> camera at t_ns
+        t_new = min(t_ns, self.chain.newest_ns)  # the gyro may not have reached the frame yet
+        t_old = t_new - int(p.bias_window_s * 1e9)
+        R_vis_old, R_vis_new = self.visual.at(t_old), self.visual.at(t_new)
+        C_old, C_new = self.chain.at(t_old), self.chain.at(t_new)
+        if R_vis_old is None or R_vis_new is None or C_old is None or C_new is None:
+            return
+        dR_vis = R_vis_old.T @ R_vis_new  # camera at t_old -> camera at t_new
         dR_gyro = self.R_imu_cam.T @ (C_old.T @ C_new) @ self.R_imu_cam
         # dR_gyro ~ dR_vis exp(b_cam dt) for a short window: the residual is the bias (cam axes).
         b_cam = so3_log(dR_vis.T @ dR_gyro) / p.bias_window_s

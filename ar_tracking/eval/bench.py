@@ -99,7 +99,10 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
         raise ValueError(f'unknown bench area(s) {", ".join(unknown)}; known: {", ".join(AREAS)}')
     results: dict[str, Any] = {'machine': machine()}
     if 'orientation' in chosen:
+        from .bench_hybrid import bench_hybrid
+
         results['orientation'] = bench_orientation()
+        results['orientation'].update(bench_hybrid(workdir, duration_s=duration_s))
     if 'graph' in chosen:
         results['graph'] = bench_graph(workdir, duration_s)
     if 'panorama' in chosen:

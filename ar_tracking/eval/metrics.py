@@ -308,12 +308,19 @@ def _read_disturbance(
     return np.asarray(stamps, dtype=np.int64)[order], np.asarray(values)[order]
 
 
+#: Orientation topics that are not of a camera or device body: the hybrid filter's estimate of
+#: the panorama frame in the world (a frame relation, scored through orientation/global).
+NOT_BODY_ORIENTATIONS = frozenset({'/orientation/panorama_in_world'})
+
+
 def estimate_topics(topics: dict[str, str]) -> list[str]:
     """Topics whose type has an extractor, apart from the ground truth, in name order."""
     return sorted(
         name
         for name, msgtype in topics.items()
-        if msgtype in EXTRACTORS and not name.startswith(GROUND_TRUTH_PREFIX)
+        if msgtype in EXTRACTORS
+        and not name.startswith(GROUND_TRUTH_PREFIX)
+        and name not in NOT_BODY_ORIENTATIONS
     )
 
 

@@ -38,6 +38,7 @@ logger = logging.getLogger(__name__)
 GRAPH_NODES: dict[str, str] = {
     'imu_magnetometer': 'ar_tracking.nodes.imu_magnetometer:ImuMagnetometerNode',
     'panorama_mapper': 'ar_tracking.nodes.panorama_mapper:PanoramaMapperNode',
+    'hybrid_orientation_filter': 'ar_tracking.nodes.hybrid_orientation_filter:HybridOrientationFilterNode',
     'marker_tracker': 'ar_tracking.nodes.marker_tracker:MarkerTrackerNode',
     'visual_inertial_filter': 'ar_tracking.nodes.visual_inertial_filter:VisualInertialFilterNode',
 }
@@ -127,6 +128,26 @@ def _satisfied(requirement: str | tuple[str, ...], available: set[str]) -> bool:
     if isinstance(requirement, str):
         return requirement in available
     return any(t in available for t in requirement)
+
+
+def _init_private_context(rclpy: Any, context: Any, lockstep: bool) -> None:
+    """Initialise the runner's context so that no other process can join its graph.
+
+    Lockstep graphs live in one process: DDS discovery is switched off for them
+    (ROS_AUTOMATIC_DISCOVERY_RANGE=OFF still connects the nodes of one process), so two runs on
+    one machine can never hear each other whatever their domain. Realtime graphs stay on
+    localhost discovery (nodes may run as separate processes) on their own domain id.
+    """
+    key = 'ROS_AUTOMATIC_DISCOVERY_RANGE'
+    previous = os.environ.get(key)
+    os.environ[key] = 'OFF' if lockstep else (previous or 'LOCALHOST')
+    try:
+        rclpy.init(context=context, domain_id=_domain_id())
+    finally:
+        if previous is None:
+            del os.environ[key]
+        else:
+            os.environ[key] = previous
 
 
 def _domain_id() -> int:
@@ -235,8 +256,7 @@ class GraphRunner:
                 f'{self.bag_path}: no node can run on this bag '
                 f'(topics: {", ".join(sorted(bag_types)) or "none"})'
             )
-        os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-        rclpy.init(context=context, domain_id=_domain_id())
+        _init_private_context(rclpy, context, lockstep=self.rate == 0)
         nodes: list[Any] = []
         writer = None
         executor = None

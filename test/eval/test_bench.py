@@ -13,7 +13,7 @@ from ar_tracking.eval.bench import run_bench  # noqa: E402
 
 
 def test_bench_reports_the_design_names(tmp_path):
-    results = run_bench(tmp_path, duration_s=2.0, areas=['graph', 'orientation'])
+    results = run_bench(tmp_path, duration_s=2.0, areas=['graph'])
     graph = results['graph']
     for key in ('realtime_factor', 'transport_floor_factor', 'wall_s', 'input_messages'):
         assert key in graph
@@ -23,7 +23,9 @@ def test_bench_reports_the_design_names(tmp_path):
     node = graph['nodes']['imu_magnetometer']
     assert node['n'] == 400 and 0 < node['p50_ms'] <= node['p95_ms']
     assert graph['nodes']['panorama_mapper']['n'] == 120
-    assert results['orientation']['imu_magnetometer_updates_per_s'] > 0
+    from ar_tracking.eval.bench import bench_orientation
+
+    assert bench_orientation(samples=500)['imu_magnetometer_updates_per_s'] > 0
     json.dumps(results)  # JSON-able
 
 

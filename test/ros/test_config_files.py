@@ -20,13 +20,15 @@ def node_classes():
     from ar_tracking.nodes.bag_replay import BagReplayNode
     from ar_tracking.nodes.camera_replay import CameraReplayNode
     from ar_tracking.nodes.imu_magnetometer import ImuMagnetometerNode
+    from ar_tracking.nodes.hybrid_orientation_filter import HybridOrientationFilterNode
     from ar_tracking.nodes.marker_tracker import MarkerTrackerNode
     from ar_tracking.nodes.panorama_mapper import PanoramaMapperNode
     from ar_tracking.nodes.visual_inertial_filter import VisualInertialFilterNode
 
     return {'imu_magnetometer': ImuMagnetometerNode, 'bag_replay': BagReplayNode, 'camera_replay': CameraReplayNode,
             'panorama_mapper': PanoramaMapperNode, 'marker_tracker': MarkerTrackerNode,
-            'visual_inertial_filter': VisualInertialFilterNode}
+            'visual_inertial_filter': VisualInertialFilterNode,
+            'hybrid_orientation_filter': HybridOrientationFilterNode}
 
 
 def test_every_node_has_a_config_file_and_it_is_packaged():

@@ -152,3 +152,21 @@ def test_undecodable_messages_end_the_run_with_one_error(tmp_path):
         GraphRunner(path, tmp_path / 'out.mcap', step_timeout_s=0.5).run()
     with BagReader(tmp_path / 'out.mcap') as out:  # closed cleanly all the same
         assert out.message_count(['/imu/mag']) > 0
+
+
+def test_concurrent_lockstep_runs_on_one_domain_do_not_hear_each_other(tmp_path):
+    """Two runs at once, forced onto the same DDS domain: each output is still its own bag's."""
+    import os
+
+    fast = write_turning_imu_bag(tmp_path / 'a.mcap', seconds=3.0, yaw_rate_rad_s=0.5)
+    slow = write_turning_imu_bag(tmp_path / 'b.mcap', seconds=3.0, yaw_rate_rad_s=-0.2)
+    env = dict(os.environ, AR_TRACKING_DOMAIN_ID='77')
+    procs = [subprocess.Popen(CLI + ['run', str(bag), '-o', str(tmp_path / f'{bag.stem}.out.mcap'), '-q'],
+                              env=env, stderr=subprocess.PIPE, text=True) for bag in (fast, slow)]
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+    for bag in (fast, slow):
+        out = tmp_path / f'{bag.stem}.out.mcap'
+        assert len(messages(out, '/imu/data')) == 300
+        assert evaluate_bag(out)['orientation']['imu/data']['max_deg'] < 1e-3

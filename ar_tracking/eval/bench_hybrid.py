@@ -1,0 +1,275 @@
+"""Benchmark of the hybrid orientation filter (issue #4): core speed, accuracy against peers.
+
+``bench_hybrid(workdir)`` returns one JSON-able dict (DESIGN sec. 8, area ``orientation``)::
+
+    {'filter_updates_per_s': ..,
+     'peers': {'hybrid': {'heading_rmse_deg': ..}, 'imu_magnetometer': {...},
+               'vqf': {...}, 'madgwick': {...}},          # 60 s rotation_sweep with disturbances
+     'sim': {'seed': .., 'bag': .., 'orientation/global': {...}, 'imu/data': {...}},
+     'real': {'broad/<trial>': {'imu_magnetometer': {..}, 'vqf': {..}, 'madgwick': {..}}}}
+
+The peers run on the same calibrated IMU/magnetometer samples (the sidecar calibration that
+imu_magnetometer gets), their body orientation is turned into the camera's with the bag's
+R_imu_cam and scored with the same heading/tilt split (:func:`heading_tilt_error_deg`) against
+the truth slerped at the IMU stamps. VQF is PyPI ``vqf`` (Laidig & Seel 2023, with magnetic
+disturbance rejection), Madgwick is ``imufusion`` (x-io's revision of Madgwick's filter, with its
+acceleration and magnetic rejection). Peers are benchmark-only dependencies, imported here.
+
+On BROAD (../shared/data/broad, optical ground truth, ENU but not north-referenced) the heading
+error is taken after removing each estimator's mean heading offset over the movement phase (the
+BROAD convention); only the sensor-only estimators run there (no visual tracker in BROAD).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.rotations import heading_tilt_error_deg, interpolate_rotations, quat_wxyz_to_xyzw, quat_xyzw_to_matrix
+
+logger = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+R_IMU_CAM_PHONE = np.diag([1.0, -1.0, -1.0])
+BROAD_DIR = Path(__file__).resolve().parents[3] / 'shared' / 'data' / 'broad'
+
+
+# ----------------------------------------------------------------------------------------------
+# Core speed
+
+
+def bench_filter_updates(samples: int = 20000, seed: int = 0) -> float:
+    """Updates per second of :class:`PanoramaWorldFilter` (eq. 5-6 with the gates), one core."""
+    from ..core.hybrid_orientation import PanoramaWorldFilter, so3_exp
+
+    rng = np.random.default_rng(seed)
+    R_pe = so3_exp(np.array([0.3, -0.2, 1.0]))
+    vis = [so3_exp(v) for v in rng.normal(0.0, 1.0, (samples, 3))]
+    sens = [R_pe.T @ V @ so3_exp(e) for V, e in zip(vis, rng.normal(0.0, 0.02, (samples, 3)))]
+    cov = np.eye(3) * 0.02**2
+    f = PanoramaWorldFilter()
+    start = time.perf_counter()
+    for k in range(samples):
+        f.update(k * 10_000_000 + 1, vis[k], sens[k], cov)
+    return samples / (time.perf_counter() - start)
+
+
+# ----------------------------------------------------------------------------------------------
+# Peers
+
+
+def _world_to_enu(quat_wxyz: Array) -> Array:
+    """R_enu_world of a peer's output frame, found from a level device with the field north.
+
+    A level device facing north has R_enu_body = I; whatever the peer returns for it is
+    R_world_enu, so its frame convention is checked, not assumed.
+    """
+    R_world_body = quat_xyzw_to_matrix(quat_wxyz_to_xyzw(np.asarray(quat_wxyz, dtype=float)))
+    # Snap to the nearest rotation about up by a multiple of 90 deg (ENU / NWU / ...).
+    yaw = math.atan2(R_world_body[1, 0], R_world_body[0, 0])
+    yaw = round(yaw / (math.pi / 2)) * (math.pi / 2)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz(-yaw)
+
+
+def run_vqf(gyro: Array, accel: Array, mag_ut: Array, rate_hz: float) -> Array:
+    """R_enu_body (N, 3, 3) from VQF (9D)."""
+    from vqf import VQF
+
+    def batch(g: Array, a: Array, m: Array) -> Array:
+        out = VQF(1.0 / rate_hz).updateBatch(np.ascontiguousarray(g, dtype=float),
+                                             np.ascontiguousarray(a, dtype=float),
+                                             np.ascontiguousarray(m, dtype=float))
+        return out['quat9D']
+
+    n = 20 * int(rate_hz)
+    probe = batch(np.zeros((n, 3)), np.tile([0.0, 0.0, 9.81], (n, 1)), np.tile([0.0, 20.0, -40.0], (n, 1)))
+    R_enu_world = _world_to_enu(probe[-1])
+    return R_enu_world @ quat_xyzw_to_matrix(quat_wxyz_to_xyzw(batch(gyro, accel, mag_ut)))
+
+
+def run_madgwick(gyro: Array, accel: Array, mag_ut: Array, rate_hz: float) -> Array:
+    """R_enu_body (N, 3, 3) from imufusion's AHRS (Madgwick-type, with rejection)."""
+    import imufusion
+
+    def run(g: Array, a: Array, m: Array) -> Array:
+        ahrs = imufusion.Ahrs()
+        ahrs.set_settings(imufusion.AhrsSettings(
+            sample_rate=float(rate_hz), convention=imufusion.CONVENTION_ENU, gain=0.5,
+            gyroscope_range=2000.0, acceleration_rejection=10.0, magnetic_rejection=10.0,
+            rejection_timeout=int(5 * rate_hz)))
+        ahrs.set_sample_period(1.0 / rate_hz)
+        gd, ag = np.degrees(g), a / 9.80665
+        q = np.empty((len(g), 4))
+        for k in range(len(g)):
+            ahrs.update(gd[k], ag[k], m[k])
+            q[k] = ahrs.get_quaternion()
+        return q
+
+    n = 10 * int(rate_hz)
+    probe = run(np.zeros((n, 3)), np.tile([0.0, 0.0, 9.81], (n, 1)), np.tile([0.0, 20.0, -40.0], (n, 1)))
+    R_enu_world = _world_to_enu(probe[-1])
+    return R_enu_world @ quat_xyzw_to_matrix(quat_wxyz_to_xyzw(run(gyro, accel, mag_ut)))
+
+
+def run_imu_magnetometer(accel: Array, mag: Array, field_t: float = 0.0, dip_rad: float = 0.0) -> Array:
+    """R_enu_body (N, 3, 3) from the imu_magnetometer core (eq. 3-4); NaN where undefined."""
+    from ..core.imu_orientation import FieldModel, GravityFieldOrientation
+
+    core = GravityFieldOrientation(model=FieldModel(field_t=field_t, dip_rad=dip_rad))
+    out = np.full((len(accel), 3, 3), np.nan)
+    for k in range(len(accel)):
+        est = core.estimate(accel[k], mag[k])
+        if est is not None:
+            out[k] = est.R_enu_body
+    return out
+
+
+def heading_stats(R_est: Array, R_true: Array, remove_offset: bool = False) -> dict[str, Any]:
+    """Heading / tilt RMSE in degrees over the samples where both are finite."""
+    ok = np.all(np.isfinite(R_est), axis=(1, 2)) & np.all(np.isfinite(R_true), axis=(1, 2))
+    if not ok.any():
+        return {'heading_rmse_deg': None, 'tilt_rmse_deg': None, 'n': 0}
+    _, heading, tilt = heading_tilt_error_deg(R_est[ok], R_true[ok])
+    heading = np.atleast_1d(heading)
+    offset = 0.0
+    if remove_offset:
+        offset = math.degrees(math.atan2(np.mean(np.sin(np.radians(heading))), np.mean(np.cos(np.radians(heading)))))
+        heading = (heading - offset + 180.0) % 360.0 - 180.0
+    out = {'heading_rmse_deg': round(float(np.sqrt(np.mean(heading**2))), 4),
+           'tilt_rmse_deg': round(float(np.sqrt(np.mean(np.square(tilt)))), 4), 'n': int(ok.sum())}
+    if remove_offset:
+        out['heading_offset_deg'] = round(offset, 3)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Simulated bag
+
+
+def _bag_imu(bag_path: Path, params: dict[str, Any]) -> dict[str, Array]:
+    """Calibrated IMU/mag samples, their stamps and the truth at those stamps, from a sim bag."""
+    from ..io.bags import BagReader, stamp_to_ns
+
+    with BagReader(bag_path) as bag:
+        imu = [m for _, m in bag.read_all('/imu/data_raw')]
+        mag = {stamp_to_ns(m.header.stamp): m for _, m in bag.read_all('/imu/mag')}
+        truth = [m for _, m in bag.read_all('/ground_truth/orientation')]
+    t = np.array([stamp_to_ns(m.header.stamp) for m in imu], dtype=np.int64)
+    keep = np.array([int(s) in mag for s in t])
+    imu = [m for m, k in zip(imu, keep) if k]
+    t = t[keep]
+    gyro = np.array([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z] for m in imu])
+    accel = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z] for m in imu])
+    field = np.array([[mag[int(s)].magnetic_field.x, mag[int(s)].magnetic_field.y, mag[int(s)].magnetic_field.z] for s in t])
+    gyro = gyro - np.asarray(params.get('gyro_bias', [0.0] * 3))
+    accel = accel - np.asarray(params.get('accel_bias', [0.0] * 3))
+    soft = np.asarray(params.get('soft_iron_matrix', np.eye(3).ravel())).reshape(3, 3)
+    field = (field - np.asarray(params.get('hard_iron_offset', [0.0] * 3))) @ soft.T
+    tt = np.array([stamp_to_ns(m.header.stamp) for m in truth], dtype=np.int64)
+    RT = np.array([quat_xyzw_to_matrix(np.array([m.transform.rotation.x, m.transform.rotation.y,
+                                                 m.transform.rotation.z, m.transform.rotation.w])) for m in truth])
+    R_true, inside = interpolate_rotations((tt - tt[0]).astype(float), RT, (t - tt[0]).astype(float))
+    R_full = np.full((len(t), 3, 3), np.nan)
+    R_full[inside] = R_true
+    return {'t': t, 'gyro': gyro, 'accel': accel, 'mag_t': field, 'R_enu_cam': R_full}
+
+
+def bench_sim(workdir: Path, seed: int = 1, duration_s: float = 60.0, vision: str = 'panorama') -> dict[str, Any]:
+    """Run imu_magnetometer + hybrid_orientation_filter on a rotation_sweep bag, evaluate, and
+    score VQF and Madgwick on the same IMU data.
+
+    ``vision='panorama'``: the relative orientation comes from the real panorama_mapper on the
+    bag's images (the whole Langlotz chain); ``'synthetic'``: from the ground truth with drift,
+    noise and lost stretches (sim/visual_orientation.py), to test the filter alone.
+    """
+    import yaml
+
+    from ..eval.metrics import evaluate_bag
+    from ..nodes.hybrid_orientation_filter import HybridOrientationFilterNode
+    from ..nodes.imu_magnetometer import ImuMagnetometerNode
+    from ..ros.runner import GraphRunner
+
+    graph: dict[str, Any] = {'imu_magnetometer': ImuMagnetometerNode}
+    if vision == 'panorama':
+        from ..nodes.panorama_mapper import PanoramaMapperNode
+        from .bench import benchmark_bag
+
+        bag = benchmark_bag(workdir, duration_s, seed=seed)
+        graph['panorama_mapper'] = PanoramaMapperNode
+    elif vision == 'synthetic':
+        from ..sim.visual_orientation import visual_bag
+
+        bag = visual_bag(workdir, seed=seed, duration_s=duration_s)
+    else:
+        raise ValueError(f'vision must be panorama or synthetic, not {vision!r}')
+    graph['hybrid_orientation_filter'] = HybridOrientationFilterNode
+    sidecar = bag.with_name(bag.name[: -len(bag.suffix)] + '.params.yaml')
+    params_files = [sidecar] if sidecar.exists() else []
+    out = workdir / f'hybrid_{vision}_seed{seed}.out.mcap'
+    run = GraphRunner(bag, out, params_files=params_files, graph=graph).run()
+    metrics = evaluate_bag(out)['orientation']
+    calib: dict[str, Any] = {}
+    if sidecar.exists():
+        calib = (yaml.safe_load(sidecar.read_text()) or {}).get('imu_magnetometer', {}).get('ros__parameters', {})
+    data = _bag_imu(bag, calib)
+    rate = 1e9 / float(np.median(np.diff(data['t'])))
+    R_true = data['R_enu_cam']
+    peers = {
+        'hybrid': {k: metrics.get('orientation/global', {}).get(k) for k in ('heading_rmse_deg', 'tilt_rmse_deg', 'n')},
+        'imu_magnetometer': {k: metrics.get('imu/data', {}).get(k) for k in ('heading_rmse_deg', 'tilt_rmse_deg', 'n')},
+        'vqf': heading_stats(run_vqf(data['gyro'], data['accel'], data['mag_t'] * 1e6, rate) @ R_IMU_CAM_PHONE, R_true),
+        'madgwick': heading_stats(run_madgwick(data['gyro'], data['accel'], data['mag_t'] * 1e6, rate) @ R_IMU_CAM_PHONE, R_true),
+    }
+    return {'seed': seed, 'vision': vision, 'bag': str(bag), 'wall_s': round(run.wall_s, 3), 'peers': peers,
+            'orientation/global': metrics.get('orientation/global'), 'imu/data': metrics.get('imu/data')}
+
+
+# ----------------------------------------------------------------------------------------------
+# Real data: BROAD
+
+
+def bench_broad(folder: Path = BROAD_DIR, max_trials: int | None = None) -> dict[str, Any]:
+    """imu_magnetometer core vs VQF vs Madgwick on the BROAD trials present (heading after
+    removing the mean offset: the optical frame is not north-referenced)."""
+    from scipy.io import loadmat
+
+    results: dict[str, Any] = {}
+    files = sorted(folder.glob('*.mat')) if folder.is_dir() else []
+    for path in files[:max_trials]:
+        d = loadmat(path)
+        rate = float(np.ravel(d['sampling_rate'])[0])
+        gyro, accel, mag_ut = d['imu_gyr'], d['imu_acc'], d['imu_mag']
+        q = d['opt_quat']
+        move = np.ravel(d['movement']).astype(bool) & np.all(np.isfinite(q), axis=1)
+        R_true = np.full((len(q), 3, 3), np.nan)
+        R_true[move] = quat_xyzw_to_matrix(quat_wxyz_to_xyzw(q[move]))
+        trial = {
+            'imu_magnetometer': heading_stats(run_imu_magnetometer(accel, mag_ut * 1e-6)[move], R_true[move], True),
+            'vqf': heading_stats(run_vqf(gyro, accel, mag_ut, rate)[move], R_true[move], True),
+            'madgwick': heading_stats(run_madgwick(gyro, accel, mag_ut, rate)[move], R_true[move], True),
+        }
+        results[f'broad/{path.stem}'] = trial
+    return results
+
+
+def bench_hybrid(workdir: Path, duration_s: float = 60.0, seed: int = 1, real: bool = True,
+                 max_real_trials: int | None = None) -> dict[str, Any]:
+    """The issue #4 benchmark (see the module docstring)."""
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    sim = bench_sim(workdir, seed=seed, duration_s=duration_s)
+    result: dict[str, Any] = {
+        'filter_updates_per_s': round(bench_filter_updates(), 1),
+        'peers': sim['peers'],
+        'sim': {k: v for k, v in sim.items() if k != 'peers'},
+    }
+    if real:
+        result['real'] = bench_broad(max_trials=max_real_trials) if BROAD_DIR.is_dir() else {}
+    return result

@@ -1,0 +1,52 @@
+"""Plumbing of the hybrid benchmark on short data (speed is measured by the bench, not here)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ar_tracking.core.rotations import rot_z
+from ar_tracking.eval import bench_hybrid as bh
+from conftest import SHARED_DATA
+
+
+def level_facing(heading_rad: float, n: int = 3000):
+    """Static IMU samples (ENU body = rot_z(-heading)) with the field of a dip of 64 deg."""
+    R_enu_body = rot_z(-heading_rad)
+    field_enu = np.array([0.0, 21.0, -43.0])  # uT
+    accel = np.tile(R_enu_body.T @ [0.0, 0.0, 9.81], (n, 1))
+    mag = np.tile(R_enu_body.T @ field_enu, (n, 1))
+    return R_enu_body, np.zeros((n, 3)), accel, mag
+
+
+@pytest.mark.parametrize('runner', [bh.run_vqf, bh.run_madgwick])
+def test_peers_are_converted_to_enu(runner):
+    R_true, gyro, accel, mag = level_facing(0.6)
+    R = runner(gyro, accel, mag, 100.0)
+    stats = bh.heading_stats(R[-100:], np.repeat(R_true[None], 100, axis=0))
+    assert stats['heading_rmse_deg'] < 1.0, stats
+
+
+def test_heading_stats_removes_the_offset_only_when_asked():
+    R_true = np.repeat(np.eye(3)[None], 10, axis=0)
+    R_est = np.repeat(rot_z(np.radians(5.0))[None], 10, axis=0)
+    assert bh.heading_stats(R_est, R_true)['heading_rmse_deg'] == pytest.approx(5.0, abs=1e-3)
+    assert bh.heading_stats(R_est, R_true, remove_offset=True)['heading_rmse_deg'] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_filter_update_rate_is_measured():
+    assert bh.bench_filter_updates(samples=200) > 0
+
+
+def test_sim_bench_runs_on_a_short_bag(tmp_path):
+    result = bh.bench_hybrid(tmp_path, duration_s=5.0, real=False)
+    assert set(result['peers']) == {'hybrid', 'imu_magnetometer', 'vqf', 'madgwick'}
+    assert result['peers']['hybrid']['n'] > 100
+    assert result['peers']['hybrid']['heading_rmse_deg'] < result['peers']['imu_magnetometer']['heading_rmse_deg']
+
+
+@pytest.mark.skipif(not (SHARED_DATA / 'broad').is_dir(), reason='BROAD data not present')
+def test_broad_trial_is_scored_for_every_estimator():
+    result = bh.bench_broad(SHARED_DATA / 'broad', max_trials=1)
+    (trial,) = result.values()
+    assert set(trial) == {'imu_magnetometer', 'vqf', 'madgwick'}
+    assert all(v['n'] > 1000 for v in trial.values())

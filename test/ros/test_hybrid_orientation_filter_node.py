@@ -1,0 +1,210 @@
+"""hybrid_orientation_filter in-process: vision + imu/data in, orientation/global out; backup; bad input."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from geometry_msgs.msg import PoseStamped, TransformStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Imu  # noqa: E402
+
+from ar_tracking.core.rotations import heading_tilt_error_deg, rot_z  # noqa: E402
+from ar_tracking.nodes.hybrid_orientation_filter import HybridOrientationFilterNode  # noqa: E402
+from ar_tracking.ros.conversions import rotation_from_quaternion, set_covariance, set_quaternion, to_stamp  # noqa: E402
+from conftest import spin_until  # noqa: E402
+
+T0 = 1_700_000_000_000_000_000
+R0_ENU_CAM = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+R_IMU_CAM = np.diag([1.0, -1.0, -1.0])
+R_PANO_ENU = (rot_z(-0.7) @ R0_ENU_CAM).T  # the panorama's first frame looked 0.7 rad east of north
+
+
+def truth(t_s: float) -> np.ndarray:
+    return rot_z(-0.7 - 0.4 * math.sin(t_s)) @ R0_ENU_CAM  # R_enu_cam
+
+
+class Harness:
+    def __init__(self, context, params=None):
+        overrides = [Parameter(k, value=v) for k, v in (params or {}).items()]
+        self.node = HybridOrientationFilterNode(context=context, parameter_overrides=overrides)
+        self.src = rclpy.create_node('test_source', context=context)
+        self.out: list[Imu] = []
+        self.frames: list[TransformStamped] = []
+        self.src.create_subscription(Imu, 'orientation/global', self.out.append, 500)
+        self.src.create_subscription(TransformStamped, 'orientation/panorama_in_world', self.frames.append, 500)
+        vis_type = PoseStamped if (params or {}).get('relative_input_type') == 'pose' else TransformStamped
+        self.pub_vis = self.src.create_publisher(vis_type, 'panorama/orientation', 500)
+        self.pub_imu = self.src.create_publisher(Imu, 'imu/data', 500)
+        self.pub_raw = self.src.create_publisher(Imu, 'imu/data_raw', 500)
+        self.ex = SingleThreadedExecutor(context=context)
+        self.ex.add_node(self.node)
+        self.ex.add_node(self.src)
+        assert spin_until(self.ex, lambda: all(p.get_subscription_count() > 0 for p in (self.pub_vis, self.pub_imu, self.pub_raw))
+                          and self.node.pub_global.get_subscription_count() > 0)
+        self.sent = 0
+
+    def _count(self) -> int:
+        return sum(len(s.durations_ms) for s in self.node.callback_stats.values())
+
+    def send(self, pub, msg):
+        self.sent += 1
+        pub.publish(msg)
+        assert spin_until(self.ex, lambda: self._count() >= self.sent, 5.0)
+
+    def visual(self, t_ns, R_pano_cam, pose=False):
+        if pose:
+            msg = PoseStamped()
+            msg.header.frame_id = 'map'
+            set_quaternion(msg.pose.orientation, R_pano_cam)
+        else:
+            msg = TransformStamped()
+            msg.header.frame_id = 'panorama'
+            msg.child_frame_id = 'camera_optical'
+            set_quaternion(msg.transform.rotation, R_pano_cam)
+        msg.header.stamp = to_stamp(t_ns)
+        self.send(self.pub_vis, msg)
+
+    def sensor(self, t_ns, R_enu_imu, sigma=0.02, quat=None):
+        msg = Imu()
+        msg.header.stamp = to_stamp(t_ns)
+        msg.header.frame_id = 'imu'
+        set_quaternion(msg.orientation, R_enu_imu)
+        if quat is not None:
+            msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = quat
+        set_covariance(msg.orientation_covariance, np.eye(3) * sigma**2)
+        self.send(self.pub_imu, msg)
+
+    def gyro(self, t_ns, w_imu):
+        msg = Imu()
+        msg.header.stamp = to_stamp(t_ns)
+        msg.header.frame_id = 'imu'
+        msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = map(float, w_imu)
+        set_covariance(msg.orientation_covariance, None)
+        self.send(self.pub_raw, msg)
+
+    def play(self, t0_s, t1_s, rng, sensor=True, visual=True, compass_bias=0.0, pose=False):
+        """Sensor + gyro at 50 Hz, vision at 25 Hz, true motion of truth()."""
+        for k in range(int(round(t0_s * 50)), int(round(t1_s * 50))):
+            t = k / 50.0
+            t_ns = T0 + k * 20_000_000
+            R = truth(t)
+            w_cam = np.array([0.0, 0.4 * math.cos(t), 0.0])  # heading rate about camera y (down)
+            self.gyro(t_ns, R_IMU_CAM @ w_cam)
+            if sensor:
+                noise = rot_z(compass_bias + rng.normal(0, 0.01))
+                self.sensor(t_ns, noise @ R @ R_IMU_CAM.T)
+            if visual and k % 2 == 0:
+                self.visual(t_ns, R_PANO_ENU @ R, pose=pose)
+
+    def close(self):
+        self.ex.shutdown()
+        self.node.destroy_node()
+        self.src.destroy_node()
+
+
+def heading_err(msg) -> float:
+    t_s = ((msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec) - T0) * 1e-9
+    R = rotation_from_quaternion(msg.orientation)
+    return float(heading_tilt_error_deg(R, truth(t_s))[1])
+
+
+def finite(msg) -> bool:
+    q = [msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w]
+    return bool(np.all(np.isfinite(q)) and np.all(np.isfinite(msg.orientation_covariance)))
+
+
+@pytest.mark.parametrize('pose', [False, True])
+def test_global_orientation_is_eq_1_with_the_filtered_panorama_frame(ros_context, pose):
+    params = {'relative_input_type': 'pose'} if pose else None
+    h = Harness(ros_context, params)
+    try:
+        h.play(0.0, 3.0, np.random.default_rng(0), pose=pose)
+        assert len(h.out) >= 70
+        assert all(m.header.frame_id == 'camera_optical' for m in h.out)
+        assert all(abs(heading_err(m)) < 0.5 for m in h.out[-20:])
+        assert h.out[-1].orientation_covariance[8] > 0
+        assert h.out[-1].orientation_covariance[8] < h.out[0].orientation_covariance[8]
+        R_enu_pano = rotation_from_quaternion(h.frames[-1].transform.rotation)
+        assert h.frames[-1].header.frame_id == 'enu'
+        assert heading_tilt_error_deg(R_enu_pano, R_PANO_ENU.T)[0] < 0.5
+    finally:
+        h.close()
+
+
+def test_gyro_backup_publishes_while_vision_is_lost_and_vision_resumes(ros_context):
+    h = Harness(ros_context)
+    try:
+        rng = np.random.default_rng(1)
+        h.play(0.0, 2.0, rng)
+        n_before = len(h.out)
+        h.play(2.0, 3.0, rng, visual=False)  # lost for 1 s
+        backup = h.out[n_before:]
+        assert len(backup) >= 20  # ~30 Hz from the gyro
+        assert all(abs(heading_err(m)) < 1.0 for m in backup)
+        assert backup[-1].orientation_covariance[0] > h.out[n_before - 1].orientation_covariance[0]
+        h.play(3.0, 3.6, rng)
+        assert abs(heading_err(h.out[-1])) < 0.5
+    finally:
+        h.close()
+
+
+def test_bad_input_is_skipped_never_crashes_never_nan(ros_context):
+    h = Harness(ros_context)
+    try:
+        rng = np.random.default_rng(2)
+        h.play(0.0, 1.0, rng)
+        n = len(h.out)
+        t_ns = T0 + 50 * 20_000_000
+        h.sensor(t_ns + 1, np.eye(3), quat=(float('nan'), 0.0, 0.0, 1.0))  # NaN quaternion
+        h.sensor(t_ns + 2, np.eye(3), quat=(0.0, 0.0, 0.5, 0.5))  # not unit
+        bad = TransformStamped()
+        bad.header.stamp = to_stamp(t_ns + 3)
+        bad.transform.rotation.w = 2.0  # not unit
+        h.send(h.pub_vis, bad)
+        h.visual(T0 + 10 * 20_000_000, R_PANO_ENU @ truth(0.2))  # stamp out of order
+        h.gyro(t_ns + 4, [float('nan'), 0.0, 0.0])
+        assert len(h.out) == n  # nothing published for bad messages
+        assert all(s.failures == 0 for s in h.node.callback_stats.values())
+        # imu/data silent for 2 s (e.g. a magnetometer stuck at zero upstream): vision goes on,
+        # the covariance grows, the estimate stays.
+        cov_before = h.out[-1].orientation_covariance[8]
+        h.play(1.0, 3.0, rng, sensor=False)
+        assert len(h.out) > n + 40
+        assert h.out[-1].orientation_covariance[8] > cov_before
+        assert all(abs(heading_err(m)) < 1.0 for m in h.out[n:])
+        assert all(finite(m) for m in h.out)
+    finally:
+        h.close()
+
+
+def test_disturbed_compass_does_not_pull_the_heading(ros_context):
+    h = Harness(ros_context)
+    try:
+        rng = np.random.default_rng(3)
+        h.play(0.0, 3.0, rng)
+        h.play(3.0, 5.0, rng, compass_bias=math.radians(8.0))  # field turned by 8 deg, same |B|
+        assert all(abs(heading_err(m)) < 1.0 for m in h.out[-50:])
+    finally:
+        h.close()
+
+
+def test_config_file_keys_are_declared_with_equal_defaults(ros_context):
+    from pathlib import Path
+
+    import yaml
+
+    path = Path(__file__).resolve().parents[2] / 'config' / 'hybrid_orientation_filter.yaml'
+    params = yaml.safe_load(path.read_text())['hybrid_orientation_filter']['ros__parameters']
+    node = HybridOrientationFilterNode(context=ros_context)
+    try:
+        declared = {name: node.get_parameter(name).value for name in node._parameters if name not in ('use_sim_time', 'start_type_description_service')}
+        assert set(params) == set(declared)
+        for key, value in params.items():
+            assert declared[key] == pytest.approx(value) if isinstance(value, float) else declared[key] == value, key
+    finally:
+        node.destroy_node()
