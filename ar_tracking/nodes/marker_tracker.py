@@ -46,6 +46,8 @@ class MarkerTrackerNode(TrackingNode):
         'markers/detections': 'visualization_msgs/msg/MarkerArray',
     }
     REQUIRED_INPUTS = [('camera/image_raw', 'camera/image_raw/compressed'), 'camera/camera_info']
+    #: The graph runner starts this node only with a marker map (without one it can do nothing).
+    REQUIRED_PARAMS = [('marker_map_file', 'marker_map')]
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('marker_tracker', **kwargs)

@@ -85,11 +85,14 @@ def plan_nodes(
     bag_topics: Iterable[str],
     only: Iterable[str] | None = None,
     graph: dict[str, Any] | None = None,
+    params: Callable[[str], dict[str, Any]] | None = None,
 ) -> tuple[list[str], dict[str, str]]:
-    """Which nodes can run: those whose inputs are in the bag or produced by a node that runs.
+    """Which nodes can run: those whose inputs are in the bag or produced by a node that runs,
+    and whose REQUIRED_PARAMS (e.g. marker_tracker's marker map) are set in their parameters.
 
-    ``graph`` maps node names to classes or "module:Class" specs (default: GRAPH_NODES).
-    Returns (node names in start order, reasons for the ones left out).
+    ``graph`` maps node names to classes or "module:Class" specs (default: GRAPH_NODES);
+    ``params(name)`` gives a node's merged parameters. Returns (node names in start order,
+    reasons for the ones left out).
     """
     graph = GRAPH_NODES if graph is None else graph
     available = {t.lstrip('/') for t in bag_topics}
@@ -97,6 +100,15 @@ def plan_nodes(
     unknown = [n for n in wanted if n not in graph]
     if unknown:
         raise RunError(f'unknown node(s) {", ".join(unknown)}; known: {", ".join(graph)}')
+    reasons: dict[str, str] = {}
+    for name in list(wanted):
+        required = getattr(load_node_class(graph[name]), 'REQUIRED_PARAMS', [])
+        given = params(name) if params is not None else {}
+        missing = [r if isinstance(r, str) else ' or '.join(r) for r in required
+                   if not any(given.get(k) for k in ((r,) if isinstance(r, str) else r))]
+        if missing:
+            reasons[name] = f'needs the parameter {", ".join(missing)}'
+            wanted.remove(name)
     started: list[str] = []
     pending = list(wanted)
     progress = True
@@ -110,7 +122,6 @@ def plan_nodes(
                 available.update(cls.OUTPUTS)
                 pending.remove(name)
                 progress = True
-    reasons = {}
     for name in pending:
         cls = load_node_class(graph[name])
         needed = cls.REQUIRED_INPUTS if hasattr(cls, 'REQUIRED_INPUTS') else list(cls.INPUTS)
@@ -248,7 +259,8 @@ class GraphRunner:
         from .conversions import message_class
 
         bag_types = reader.topics
-        names, skipped = plan_nodes(bag_types, self.only_nodes, self.graph)
+        node_params = {name: params_for_node(name, self.params_files) for name in self.graph}
+        names, skipped = plan_nodes(bag_types, self.only_nodes, self.graph, node_params.__getitem__)
         for name, why in skipped.items():
             logger.warning('%s not started: %s', name, why)
         if not names:
@@ -266,7 +278,7 @@ class GraphRunner:
         try:
             for name in names:
                 cls = load_node_class(self.graph[name])
-                params = params_for_node(name, self.params_files)
+                params = dict(node_params[name])
                 if realtime:
                     params['use_sim_time'] = True
                 try:

@@ -170,3 +170,15 @@ def test_concurrent_lockstep_runs_on_one_domain_do_not_hear_each_other(tmp_path)
         out = tmp_path / f'{bag.stem}.out.mcap'
         assert len(messages(out, '/imu/data')) == 300
         assert evaluate_bag(out)['orientation']['imu/data']['max_deg'] < 1e-3
+
+
+def test_plan_skips_nodes_without_their_required_parameters():
+    from ar_tracking.ros.runner import plan_nodes
+
+    topics = ['/camera/image_raw', '/camera/camera_info', '/imu/data_raw', '/imu/mag']
+    names, why = plan_nodes(topics, params=lambda name: {})
+    assert 'marker_tracker' not in names and 'marker_map' in why['marker_tracker']
+    assert 'visual_inertial_filter' not in names  # its markers/pose would come from marker_tracker
+    assert {'imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter'} <= set(names)
+    names, _ = plan_nodes(topics, params=lambda name: {'marker_map': 'markers: []'} if name == 'marker_tracker' else {})
+    assert {'marker_tracker', 'visual_inertial_filter'} <= set(names)

@@ -147,8 +147,11 @@ class ActiveSearchTracker:
         S = P + 2 * r
         off = np.arange(-half - r, half + r + 1)
         Wn = frame[(yr[:, None] + off[None, :])[:, :, None], (xr[:, None] + off[None, :])[:, None, :]].astype(np.float64)
-        views = sliding_window_view(Wn, (P, P), axis=(1, 2))  # (n, 2r+1, 2r+1, P, P)
-        num = np.einsum('nabij,nij->nab', views, Tz)
+        # Cross-correlation of each template with every window position as one batched
+        # matrix product (float32: exact enough for 8-bit pixels, and about twice as fast).
+        side = 2 * r + 1
+        views = sliding_window_view(Wn.astype(np.float32), (P, P), axis=(1, 2)).reshape(n, side * side, P * P)
+        num = np.matmul(views, Tz.astype(np.float32).reshape(n, P * P, 1)).reshape(n, side, side).astype(np.float64)
         ii = np.zeros((n, S + 1, S + 1))
         ii[:, 1:, 1:] = Wn.cumsum(1).cumsum(2)
         ii2 = np.zeros((n, S + 1, S + 1))
