@@ -192,7 +192,7 @@ class HybridFilterParams:
     #: Heading bins for the direction weighting (0 disables it).
     direction_bins: int = 12
     #: Samples per bin that count in full; more in one bin weigh less (see module docstring).
-    direction_ref_count: float = 100.0
+    direction_ref_count: float = 20.0
     #: Forgetting time of the bin counts, s.
     direction_memory_s: float = 60.0
 
