@@ -2,8 +2,10 @@
 
     ros2 launch ar_tracking ar_tracking.launch.py bag:=/path/to/bag.mcap rate:=1.0
 
-Plays the bag (camera and IMU/magnetometer topics, /clock) and starts the processing nodes
-with use_sim_time, each with its config/<node>.yaml.
+Plays the bag (camera and IMU/magnetometer topics, /clock) and starts the Langlotz chain
+(imu_magnetometer, panorama_mapper, hybrid_orientation_filter) with use_sim_time, each with its
+config/<node>.yaml. marker_tracker and visual_inertial_filter need a marker map: start them with
+`ros2 run ar_tracking marker_tracker --ros-args -p marker_map_file:=map.yaml`.
 """
 import os
 
@@ -26,4 +28,8 @@ def generate_launch_description() -> LaunchDescription:
              parameters=[os.path.join(config, 'bag_replay.yaml'), {'bag_path': bag, 'rate': rate}]),
         Node(package='ar_tracking', executable='imu_magnetometer', name='imu_magnetometer',
              parameters=[os.path.join(config, 'imu_magnetometer.yaml'), sim_time]),
+        Node(package='ar_tracking', executable='panorama_mapper', name='panorama_mapper',
+             parameters=[os.path.join(config, 'panorama_mapper.yaml'), sim_time]),
+        Node(package='ar_tracking', executable='hybrid_orientation_filter', name='hybrid_orientation_filter',
+             parameters=[os.path.join(config, 'hybrid_orientation_filter.yaml'), sim_time]),
     ])

@@ -192,7 +192,7 @@ def _label_axes(axes: Any) -> None:
         _ensure_span(ax, MIN_Y_SPAN_DEG)
     axes[0].legend(loc='upper right', fontsize=8)
     if axes[3].get_legend_handles_labels()[0]:
-        axes[3].legend(loc='upper right', fontsize=8)
+        axes[3].legend(loc='lower left', fontsize=8)
     axes[3].set_xlabel('time since the first ground-truth stamp [s]')
 
 
