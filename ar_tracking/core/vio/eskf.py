@@ -279,19 +279,13 @@ def update_orientation(s: OrientationState, quat_meas_wxyz: Array, R_meas_body: 
     """Kalman update of (dtheta, db_g) with H = [I 0], then transfer to the real states:
     q+ = q- * dq+, b_g+ = b_g- + db+ (Fig. 8); the error state is zero again."""
     z, S = orientation_innovation(s, quat_meas_wxyz, R_meas_body)
-    Sinv = np.linalg.inv(S)
-    d2 = float(z @ Sinv @ z)
-    if not math.isfinite(d2) or (gate is not None and d2 > gate):
-        return UpdateResult(False, d2)
-    if apply:
-        K = s.P[:, :3] @ Sinv
-        x = K @ z
-        s.P = s.P - K @ S @ K.T
-        s.P = 0.5 * (s.P + s.P.T)
+    result, x, P = _gated_update(s.P, z, S, gate, apply)
+    if x is not None:
+        s.P = P
         q = quat_mul(s.quat_wxyz, quat_exp(x[:3]))
         s.quat_wxyz = q / np.linalg.norm(q)
         s.gyro_bias = s.gyro_bias + x[3:]
-    return UpdateResult(True, d2)
+    return result
 
 
 def position_innovation(s: PositionState, p_meas: Array, R_meas: Array) -> tuple[Array, Array]:
@@ -303,16 +297,26 @@ def update_position(s: PositionState, p_meas: Array, R_meas: Array,
                     gate: float | None = CHI2_3DOF_999, apply: bool = True) -> UpdateResult:
     """Kalman update of (dp, dv, db_a) with H = [I 0 0], then transfer: p+ = p- + dp, etc."""
     z, S = position_innovation(s, p_meas, R_meas)
-    Sinv = np.linalg.inv(S)
-    d2 = float(z @ Sinv @ z)
-    if not math.isfinite(d2) or (gate is not None and d2 > gate):
-        return UpdateResult(False, d2)
-    if apply:
-        K = s.P[:, :3] @ Sinv
-        x = K @ z
-        s.P = s.P - K @ S @ K.T
-        s.P = 0.5 * (s.P + s.P.T)
+    result, x, P = _gated_update(s.P, z, S, gate, apply)
+    if x is not None:
+        s.P = P
         s.p = s.p + x[:3]
         s.v = s.v + x[3:6]
         s.accel_bias = s.accel_bias + x[6:]
-    return UpdateResult(True, d2)
+    return result
+
+
+def _gated_update(P: Array, z: Array, S: Array, gate: float | None,
+                  apply: bool) -> tuple[UpdateResult, Array | None, Array]:
+    """The shared Kalman step of both filters, H = [I 0 ...]: Mahalanobis gate on the
+    innovation z (covariance S), then the error-state estimate x and the updated covariance.
+    x is None when the measurement is rejected or only tested (apply=False)."""
+    Sinv = np.linalg.inv(S)
+    d2 = float(z @ Sinv @ z)
+    if not math.isfinite(d2) or (gate is not None and d2 > gate):
+        return UpdateResult(False, d2), None, P
+    if not apply:
+        return UpdateResult(True, d2), None, P
+    K = P[:, :3] @ Sinv
+    P_new = P - K @ S @ K.T
+    return UpdateResult(True, d2), K @ z, 0.5 * (P_new + P_new.T)
