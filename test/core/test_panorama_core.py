@@ -112,6 +112,7 @@ def test_seam_error_sees_steps_not_texture():
     dirty = seam_error(stepped, contrib)
     assert clean['step'] < 1.5
     assert dirty['step'] == pytest.approx(12.0, abs=2.0)
+    assert dirty['mean_step'] == pytest.approx(12.0, abs=2.0) and clean['mean_step'] < 1.5
     assert seam_error(stepped, contrib, min_gap=100)['pairs'] == 0
 
 
@@ -186,3 +187,64 @@ def test_edr_corrects_exposure_steps(world):
             offs = [r.intensity_offset for r in res]
             assert abs(np.mean(offs[10:90])) < 2.0 and np.mean(offs[120:]) < -20
     assert results[True] < 0.5 * results[False]
+
+
+# -- EDR exposure model and photo mode ----------------------------------------------------------
+
+def test_exposure_filter_smooths_noise_and_follows_jumps():
+    from ar_tracking.core.panorama import ExposureConfig, ExposureFilter
+
+    rng = np.random.default_rng(7)
+    truth = np.where(np.arange(300) < 150, 0.0, math.log(1 / 1.35))
+    z = truth + rng.normal(0, 0.01, truth.size)
+    filt = ExposureFilter(ExposureConfig())
+    raw = ExposureFilter(ExposureConfig(smooth=False))
+    est = np.array([filt.update(v, 0.01, 1 / 30) for v in z])
+    est_raw = np.array([raw.update(v, 0.01, 1 / 30) for v in z])
+    np.testing.assert_allclose(est_raw, z)  # unsmoothed: each frame's own estimate
+    steady = np.r_[20:150, 170:300]
+    assert np.std(est[steady] - truth[steady]) < 0.5 * np.std(z[steady] - truth[steady])
+    assert abs(est[150] - truth[150]) < 0.04  # the jump is followed at once, not averaged in
+    assert filt.jumps >= 1
+    assert filt.update(float('nan'), float('inf'), 1 / 30) == est[-1]  # no information: kept
+
+
+def test_gain_model_corrects_multiplicative_exposure_better_than_offset(world):
+    # A gain of 1.35 (an exposure change) half-way round the turn: the log-domain estimate
+    # recovers 1 / 1.35; a single offset fits only the keypoints' mean brightness.
+    Rs = sweep(200, 2.0, seed=5)
+    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
+    seams = {}
+    for model in ('gain', 'offset'):
+        mapper = PanoramaMapper(MapperConfig(edr_correction=model))
+        res = run(mapper, world, Rs, gains=gains)
+        assert all(r.R_pano_cam is not None for r in res)
+        seams[model] = mapper.seam_error(min_gap=30)['step']
+        if model == 'gain':
+            g = np.array([r.intensity_gain for r in res])
+            assert np.all(np.abs(g[5:95] - 1.0) < 0.01)
+            assert np.all(np.abs(g[110:] * 1.35 - 1.0) < 0.02)
+    assert seams['gain'] < seams['offset']
+    with pytest.raises(ValueError):
+        MapperConfig(edr_correction='affine')
+
+
+def test_photo_mode_tracks_photos_20_degrees_apart(world):
+    from ar_tracking.core.panorama.cylinder import rotation_about_axis_y
+    from ar_tracking.eval.bench_panorama import photo_config
+
+    Rs = [rot('y', -20.0 * k) @ rot('x', 1.0 * math.sin(k)) for k in range(18)]  # 360 deg
+    mapper = PanoramaMapper(photo_config())
+    last = None
+    yaws = []
+    for k, R in enumerate(Rs):
+        img = world.render(R, gain=1.0 + 0.1 * math.sin(k), rng=np.random.default_rng(k))
+        prior = None if last is None else last @ rotation_about_axis_y(math.radians(-20.0))
+        res = mapper.process(img, K, (k + 1) * 1_000_000_000, prior=prior)
+        mapper.background()
+        assert res.R_pano_cam is not None, (k, res.reason)
+        assert angle_deg(res.R_pano_cam, Rs[0].T @ R) < 0.3
+        last = res.R_pano_cam
+        yaws.append(math.degrees(math.atan2(last[0, 2], last[2, 2])))
+    steps = np.mod(np.diff(yaws), 360) - 360
+    np.testing.assert_allclose(steps, -20.0, atol=0.3)

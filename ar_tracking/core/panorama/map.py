@@ -9,7 +9,8 @@ lockstep run stays deterministic.
 
 Sec. 4.1 (extended dynamic range, EDR): the map holds 16 bits per channel; the first frame's
 intensities are the baseline and each later frame is shifted by an intensity offset (the mean
-difference of its matched keypoint pairs, computed by the tracker) before it is mapped, so the
+difference of its matched keypoint pairs, computed by the tracker) or scaled by a gain (the
+same mean in the log domain, exposure.py) before it is mapped, so the
 map can hold values above 255 and below 0 of the 8-bit scale without clipping. Storage:
 ``stored = round(64 * (value + 256))``: values from -256 to 767.98 in steps of 1/64. It is
 shown through a linear tone-mapping (:meth:`PanoramaMap.tone_mapped`). With ``edr=False`` the
@@ -184,12 +185,14 @@ class PanoramaMap:
         return u0, u1, v0, v1
 
     def map_frame(self, frame: NDArray[np.uint8], K: Array, R_pano_cam: Array, frame_index: int,
-                  offset: float = 0.0, frame_gray: NDArray[np.uint8] | None = None) -> int:
+                  offset: float = 0.0, frame_gray: NDArray[np.uint8] | None = None,
+                  gain: float = 1.0) -> int:
         """Write the not-yet-mapped map pixels that the frame sees; returns how many.
 
-        ``frame`` is grey (H, W) or RGB (H, W, 3) uint8 (channels as configured); ``offset``
-        is the EDR intensity correction in 8-bit units (ignored when EDR is off);
-        ``frame_gray`` the grey version of an RGB frame (computed when not given).
+        ``frame`` is grey (H, W) or RGB (H, W, 3) uint8 (channels as configured); the EDR
+        correction maps a frame value I to ``gain * I + offset`` (8-bit units; both ignored
+        when EDR is off); ``frame_gray`` the grey version of an RGB frame (computed when not
+        given).
         """
         cfg = self.config
         h, w = frame.shape[:2]
@@ -226,9 +229,9 @@ class PanoramaMap:
         else:
             col = g.reshape(-1, 1)
         if cfg.edr:
-            off = np.float32(offset)
-            gray_val = g + off
-            stored = np.clip(np.rint((col + off + np.float32(EDR_OFFSET)) * np.float32(EDR_SCALE)), 0, 65535)
+            off, gn = np.float32(offset), np.float32(gain)
+            gray_val = g * gn + off
+            stored = np.clip(np.rint((col * gn + off + np.float32(EDR_OFFSET)) * np.float32(EDR_SCALE)), 0, 65535)
             self.stored[vv, uu] = stored.astype(np.uint16)
         else:
             gray_val = g
@@ -317,6 +320,8 @@ def seam_error(values: NDArray[np.floating], contribution: NDArray[np.integer], 
 
     * ``step``: sqrt of the length-weighted mean of max(mean^2 - var/n, 0) over the boundaries
       of at least ``min_pairs`` samples (RMS systematic step, 8-bit units) - the seam error;
+    * ``mean_step``: the length-weighted mean of sqrt(max(mean^2 - var/n, 0)) over the same
+      boundaries (mean absolute systematic step; weights small steps more than ``step``);
     * ``abs``: the mean absolute step across boundaries (texture included);
     * ``pairs``: the number of samples on boundaries; ``boundaries``: how many were used.
 
@@ -360,4 +365,5 @@ def seam_error(values: NDArray[np.floating], contribution: NDArray[np.integer], 
     if not use.any():
         return {'step': float('nan'), **out}
     sys2 = np.maximum(means[use] ** 2 - var[use] / counts[use], 0.0)
+    out['mean_step'] = float(np.sum(counts[use] * np.sqrt(sys2)) / counts[use].sum())
     return {'step': float(np.sqrt(np.sum(counts[use] * sys2) / counts[use].sum())), **out}

@@ -10,7 +10,9 @@ in the panorama frame, and the rotation R_pano_cam with d_i ~ R b_i is estimated
 RANSAC over two-point Kabsch (SVD) hypotheses, then a Kabsch fit on the inliers.
 
 The same matches give the EDR exposure correction of sec. 4.1: the mean intensity difference
-between the map's patches (baseline units) and the frame's matched patches.
+between the map's patches (baseline units) and the frame's matched patches (``intensity_offset``)
+and the same mean of log intensities (``log_gain``, with its standard error; patches touching
+0 or 255 or darker than ``min_photometric_level`` do not vote), see exposure.py.
 """
 from __future__ import annotations
 
@@ -44,6 +46,8 @@ class TrackerConfig:
     #: RANSAC inlier threshold, pixels (angle * focal length).
     inlier_px: float = 1.5
     ransac_iterations: int = 32
+    #: Patches darker than this (8-bit units) do not vote for the exposure gain (log noise).
+    min_photometric_level: float = 12.0
     #: Quality gate: the frame is tracked only with this many inliers ...
     min_inliers: int = 10
     #: ... and this fraction of the searched keypoints being inliers.
@@ -65,9 +69,16 @@ class TrackResult:
     matched: int = 0
     inliers: int = 0
     rms_px: float = float('nan')
-    #: Mean (map - frame) intensity of the inlier pairs, 8-bit units (sec. 4.1).
+    #: Mean (map - frame) intensity of the inlier pairs, 8-bit units (sec. 4.1, additive).
     intensity_offset: float = 0.0
     reason: str = ''
+    #: Mean (log map - log frame) intensity of the usable inlier pairs (sec. 4.1 in the log
+    #: domain: the exposure is a gain, so exp(log_gain) is the frame's multiplicative correction).
+    log_gain: float = 0.0
+    #: Standard error of ``log_gain`` (spread of the pairs / sqrt(n)); inf without usable pairs.
+    log_gain_se: float = float('inf')
+    #: Pairs used for ``log_gain`` (inliers neither dark nor touching the 8-bit limits).
+    photometric_pairs: int = 0
 
 
 def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
@@ -92,6 +103,16 @@ def _trimmed_mean(x: Array, trim: float = 0.2) -> float:
     x = np.sort(x)
     k = int(trim * x.size)
     return float(np.mean(x[k:x.size - k])) if x.size > 2 * k else float(np.mean(x))
+
+
+def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
+    """Trimmed mean and its standard error (spread of the kept values / sqrt(kept))."""
+    x = np.sort(x)
+    k = int(trim * x.size)
+    c = x[k:x.size - k] if x.size > 2 * k else x
+    if c.size < 2:
+        return (float(c.mean()) if c.size else 0.0), float('inf')
+    return float(c.mean()), float(c.std(ddof=1) / np.sqrt(c.size))
 
 
 class ActiveSearchTracker:
@@ -213,9 +234,20 @@ class ActiveSearchTracker:
         f_mean = ((1 - ax) * (1 - ay) * box[k, byk, bxk] + ax * (1 - ay) * box[k, byk, bxk + ox]
                   + (1 - ax) * ay * box[k, byk + oy, bxk] + ax * ay * box[k, byk + oy, bxk + ox]) / (P * P)
         offset = _trimmed_mean((t_mean[k] - f_mean)[inl]) if n_in else 0.0
+        # The exposure is a gain on the encoded values: its estimate is the same mean, of log
+        # intensities. Pairs whose frame patch touches 0 or 255 (clipped: the gain is not seen
+        # there) or that are dark (log noise) do not vote.
+        peak_patch = views[k, best[k]]
+        unclipped = (peak_patch.max(axis=1) < 254.5) & (peak_patch.min(axis=1) > 0.5)
+        use = inl & unclipped & (f_mean > cfg.min_photometric_level) & (t_mean[k] > cfg.min_photometric_level)
+        if np.count_nonzero(use) >= 3:
+            log_gain, log_se = _trimmed_mean_se(np.log(t_mean[k][use]) - np.log(f_mean[use]))
+        else:
+            log_gain, log_se = 0.0, float('inf')
         ok = n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * n
         reason = '' if ok else f'{n_in} inliers of {n} searched keypoints'
-        return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason)
+        return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
+                           log_gain, log_se, int(np.count_nonzero(use)))
 
     def _spread(self, idx: NDArray[np.int64], x: Array, y: Array, score: Array, w: int, h: int
                 ) -> NDArray[np.int64]:
