@@ -101,6 +101,8 @@ def photo_panorama(folder: Path, prefix: str, workdir: Path) -> dict[str, Any] |
     files = sorted(folder.glob(f'{prefix}*.jpg'))
     if not files:
         return None
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
     focal: dict[str, float] = {}
     if (folder / 'pano.txt').exists():
         for line in (folder / 'pano.txt').read_text().splitlines():
