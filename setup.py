@@ -16,6 +16,8 @@ NODES = [
     'imu_magnetometer',
     'panorama_mapper',
     'hybrid_orientation_filter',
+    'annotation_matcher',
+    'ar_view',
     'marker_tracker',
     'visual_inertial_filter',
 ]

@@ -57,6 +57,34 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_annotate(args: argparse.Namespace) -> int:
+    """Store annotations from an authoring bag: patches of its panorama at given positions
+    (or at the simulator's ground-truth anchors), with the bag's GPS fix (Langlotz sec. 3.2)."""
+    from .annotate import annotate_bag
+
+    positions = None
+    if args.positions:
+        positions = []
+        for line in Path(args.positions).read_text().splitlines():
+            if line.strip() and not line.lstrip().startswith('#'):
+                text, u, v = line.rsplit(',', 2)
+                positions.append((text.strip(), float(u), float(v)))
+    update, close = _progress_bar(not args.quiet and sys.stderr.isatty(), 'annotate')
+    progress = (lambda f: update(int(f * 1000), 1000)) if update else None
+    try:
+        report = annotate_bag(args.bag, args.store, positions=positions, patch_px=args.patch_px,
+                              author=args.author, panorama_id=args.panorama_id, edr=not args.no_edr,
+                              world_orientation=args.world_orientation, progress=progress)
+    finally:
+        close()
+    for text, reason in report.skipped:
+        print(f'skipped {text!r}: {reason}', file=sys.stderr)
+    print(json.dumps({'panorama_id': report.panorama_id, 'stored': len(report.stored),
+                      'skipped': len(report.skipped), 'latitude_deg': report.latitude_deg,
+                      'longitude_deg': report.longitude_deg}))
+    return 0 if report.stored else 1
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .ros.runner import GraphRunner
 
@@ -181,6 +209,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_make_bag)
 
+    p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches at the anchors)')
+    p.add_argument('bag', help='authoring-session bag')
+    p.add_argument('--store', '-s', required=True, help='annotation store (SQLite file; created if missing)')
+    p.add_argument('--positions', help='text file of "text,u,v" map positions (default: /ground_truth/annotations)')
+    p.add_argument('--patch-px', type=int, default=16, choices=[8, 16, 24, 32])
+    p.add_argument('--author', default='')
+    p.add_argument('--panorama-id', default=None)
+    p.add_argument('--no-edr', action='store_true', help='8-bit map instead of the EDR map')
+    p.add_argument('--world-orientation', default='ground_truth', choices=['ground_truth', 'none'])
+    p.add_argument('--quiet', '-q', action='store_true')
+    p.set_defaults(func=cmd_annotate)
+
     p = sub.add_parser('run', help='run every node that can run on a bag; record the outputs')
     p.add_argument('bag')
     p.add_argument('--out', '-o', help='output bag (default out/<bag>.out.mcap)')
@@ -243,6 +283,12 @@ def _user_errors() -> tuple[type[BaseException], ...]:
         from .sim.bagmaker import SimError
 
         errors.append(SimError)
+    except ImportError:
+        pass
+    try:
+        from .core.annotations.store import StoreError
+
+        errors.append(StoreError)
     except ImportError:
         pass
     try:

@@ -17,7 +17,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-AREAS = ('graph', 'orientation', 'panorama', 'markers_vi')
+AREAS = ('graph', 'orientation', 'panorama', 'markers_vi', 'annotations')
 
 
 def percentiles_ms(values: list[float]) -> dict[str, float]:
@@ -113,4 +113,8 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
         from .bench_markers_vi import bench_markers_vi
 
         results.update(bench_markers_vi(workdir / 'markers_vi'))  # areas 'markers' and 'vi'
+    if 'annotations' in chosen:
+        from .bench_annotations import bench_annotations
+
+        results['annotations'] = bench_annotations()  # incl. the Fig. 7 table over 10+ spots (minutes)
     return results

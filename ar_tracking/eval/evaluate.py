@@ -20,6 +20,7 @@ logger = logging.getLogger(__name__)
 AREA_EVALUATORS: dict[str, str] = {
     'panorama': 'ar_tracking.eval.evaluate:evaluate_panorama_area',
     'vi': 'ar_tracking.eval.vi_metrics:evaluate_vi',
+    'annotations': 'ar_tracking.eval.annotation_metrics:evaluate_annotations',
 }
 
 

@@ -39,6 +39,8 @@ GRAPH_NODES: dict[str, str] = {
     'imu_magnetometer': 'ar_tracking.nodes.imu_magnetometer:ImuMagnetometerNode',
     'panorama_mapper': 'ar_tracking.nodes.panorama_mapper:PanoramaMapperNode',
     'hybrid_orientation_filter': 'ar_tracking.nodes.hybrid_orientation_filter:HybridOrientationFilterNode',
+    'annotation_matcher': 'ar_tracking.nodes.annotation_matcher:AnnotationMatcherNode',
+    'ar_view': 'ar_tracking.nodes.ar_view:ArViewNode',
     'marker_tracker': 'ar_tracking.nodes.marker_tracker:MarkerTrackerNode',
     'visual_inertial_filter': 'ar_tracking.nodes.visual_inertial_filter:VisualInertialFilterNode',
 }

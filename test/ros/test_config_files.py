@@ -17,6 +17,8 @@ CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def node_classes():
+    from ar_tracking.nodes.annotation_matcher import AnnotationMatcherNode
+    from ar_tracking.nodes.ar_view import ArViewNode
     from ar_tracking.nodes.bag_replay import BagReplayNode
     from ar_tracking.nodes.camera_replay import CameraReplayNode
     from ar_tracking.nodes.imu_magnetometer import ImuMagnetometerNode
@@ -28,7 +30,8 @@ def node_classes():
     return {'imu_magnetometer': ImuMagnetometerNode, 'bag_replay': BagReplayNode, 'camera_replay': CameraReplayNode,
             'panorama_mapper': PanoramaMapperNode, 'marker_tracker': MarkerTrackerNode,
             'visual_inertial_filter': VisualInertialFilterNode,
-            'hybrid_orientation_filter': HybridOrientationFilterNode}
+            'hybrid_orientation_filter': HybridOrientationFilterNode,
+            'annotation_matcher': AnnotationMatcherNode, 'ar_view': ArViewNode}
 
 
 def test_every_node_has_a_config_file_and_it_is_packaged():

@@ -1,0 +1,674 @@
+"""Re-detection of annotations in a new panorama map (Langlotz 2011 sec. 3.2, 4.2, 4.3).
+
+* :class:`TileMatcher` (sec. 3.2): the patches of the annotations are matched against one
+  finished tile of the map at a time, each tile once. A Walsh-transform pre-check comes first:
+  the low-sequency Walsh-Hadamard coefficients of the patch (4 x 4 blocks of block means, DC
+  dropped, normalised, which makes them invariant to gain and offset) are compared with those
+  of every patch position of the tile, for all annotations in one matrix product; only positions
+  and annotations that pass ``walsh_min`` get normalised cross-correlation (NCC). The three best
+  candidates per annotation are kept (:class:`CandidateList`).
+* Sensor prior (sec. 4.2): with the expected map position of an annotation from the absolute
+  orientation, the search is limited to a window of +-``prior_window_px`` (the compass error:
+  10 deg = 57 px) around it, and a window three times larger is searched with the NCC score
+  penalised by the distance from the inner window, so matches outside the inner window count
+  only when they are very good.
+* :func:`ransac_alignment` (sec. 4.3, Fig. 5): RANSAC over pairs of annotations and one of
+  their candidates; each hypothesis is the rotation that best aligns the two pairs of unit
+  vectors (absolute orientation, :func:`absolute_orientation`); annotations whose mapped
+  position is within ``inlier_px`` (10 map pixels) of one of their candidates are inliers; a
+  hypothesis needs more than 50 % inliers and the lowest normalised error (error / inliers)
+  wins; it is refined on all its inliers. The winning rotation places every annotation: at its
+  best-scoring candidate within ``placement_px`` of where the rotation puts it (matched) or,
+  with none, at that position (inferred).
+* Two extensions of ours, because the two standing points differ by up to 2 m (sec. 6.1) and
+  a pure rotation then leaves parallax residuals of a few pixels for near anchors: the
+  placement gate ``placement_px`` (25 px) is looser than the inlier gate, and an inferred
+  annotation is searched once more with NCC in a +-``placement_px`` window around its aligned
+  position (``guided_search``), which recovers true matches that were not among the three
+  best candidates. Both are switched off by ``placement_px = inlier_px`` and
+  ``guided_search = False``.
+* :class:`ReDetector` ties them together with the work queue of sec. 3.2 (finished tiles are
+  queued and processed under a budget per frame) and the choice between several source
+  panoramas near one GPS fix (sec. 6.1: the one whose annotations score best).
+
+Map coordinates are those of :mod:`ar_tracking.core.panorama.cylinder` (u right, wrapping at
+W; v down). A patch of side P with top-left pixel (x, y) has its centre at (x + (P-1)/2,
+y + (P-1)/2).
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import cv2
+import numpy as np
+import scipy.fft
+from numpy.typing import NDArray
+
+from ..panorama.cylinder import CylinderGeometry
+
+logger = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Parameters of tile matching, the sensor prior and the alignment (units: map pixels)."""
+
+    tile_size: int = 64
+    #: Low-sequency Walsh coefficients compared by the pre-check (of 15 non-DC).
+    walsh_coefficients: int = 10
+    #: Smallest Walsh correlation for NCC to be computed at a position.
+    walsh_min: float = 0.5
+    #: Smallest NCC of a candidate.
+    min_ncc: float = 0.55
+    #: Candidates kept per annotation (sec. 4.3: three).
+    candidates: int = 3
+    #: Candidates of one annotation closer than this are one candidate.
+    min_separation_px: float = 8.0
+    #: Windows with a smaller grey-level standard deviation (8-bit units) are not matched.
+    min_window_std: float = 2.0
+    #: Sensor prior (sec. 4.2) on/off; half-width of the inner window (compass error), pixels.
+    sensor_prior: bool = True
+    prior_window_px: float = 57.0
+    #: The outer window is this many times the inner one.
+    prior_outer_factor: float = 3.0
+    #: Score penalty at the edge of the outer window (linear in the distance from the inner).
+    prior_penalty: float = 0.3
+    #: Global alignment (sec. 4.3) on/off and its thresholds.
+    ransac: bool = True
+    inlier_px: float = 10.0
+    #: Annotations are placed at their best-scoring candidate within this distance of where
+    #: the rotation puts them (parallax between the two standing points shifts them by a few
+    #: pixels); with no candidate there, at the rotated position (inferred).
+    placement_px: float = 25.0
+    #: Score penalty of a candidate at the edge of the placement gate.
+    placement_penalty: float = 0.0
+    min_inlier_ratio: float = 0.5
+    min_inliers: int = 3
+    max_hypotheses: int = 4000
+    #: Guided re-detection of inferred annotations near their aligned position (an extension
+    #: of sec. 4.3): on/off, smallest NCC, penalty at the edge of the +-placement_px window.
+    guided_search: bool = True
+    guided_min_ncc: float = 0.7
+    guided_penalty: float = 0.2
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A match of one annotation: map position, penalised score and raw NCC."""
+
+    u: float
+    v: float
+    score: float
+    ncc: float
+
+
+class CandidateList:
+    """The best ``k`` candidates of one annotation, at least ``sep`` pixels apart."""
+
+    def __init__(self, k: int, sep: float, width: int) -> None:
+        self.k, self.sep, self.width = k, sep, width
+        self.items: list[Candidate] = []
+
+    def add(self, c: Candidate) -> bool:
+        for i, o in enumerate(self.items):
+            du = abs(o.u - c.u) % self.width
+            if math.hypot(min(du, self.width - du), o.v - c.v) < self.sep:
+                if c.score <= o.score:
+                    return False
+                self.items.pop(i)
+                break
+        self.items.append(c)
+        self.items.sort(key=lambda x: -x.score)
+        changed = c in self.items[:self.k]
+        del self.items[self.k:]
+        return changed
+
+    @property
+    def best(self) -> Candidate | None:
+        return self.items[0] if self.items else None
+
+
+#: 4-point Walsh functions in sequency order.
+_H4 = np.array([[1, 1, 1, 1], [1, 1, -1, -1], [1, -1, -1, 1], [1, -1, 1, -1]], np.float32)
+
+
+def _walsh_pairs(n_keep: int) -> list[tuple[int, int]]:
+    """(row, column) sequencies of the ``n_keep`` lowest-sequency 2-D Walsh functions, DC excluded."""
+    order = sorted(((i, j) for i in range(4) for j in range(4) if (i, j) != (0, 0)),
+                   key=lambda ij: (ij[0] + ij[1], max(ij), ij[0]))
+    return order[:n_keep]
+
+
+def _walsh_basis(n_keep: int) -> NDArray[np.float32]:
+    """(16, n_keep) projection of 4 x 4 block means onto the lowest-sequency 2-D Walsh
+    functions, DC excluded (unnormalised: the vectors are normalised afterwards)."""
+    return np.stack([np.outer(_H4[i], _H4[j]).ravel() for i, j in _walsh_pairs(n_keep)], 1)
+
+
+def _unit_rows(x: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    n = np.linalg.norm(x, axis=-1, keepdims=True)
+    ok = n[..., 0] > 1e-6
+    return x / np.where(n > 1e-6, n, 1.0), ok
+
+
+def patch_walsh(patches: NDArray[np.float32], basis: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Normalised Walsh vectors (n, k) of patches (n, P, P)."""
+    n, P, _ = patches.shape
+    b = P // 4
+    means = patches.reshape(n, 4, b, 4, b).mean(axis=(2, 4)).reshape(n, 16)
+    return _unit_rows(means @ basis)[0]
+
+
+class TileMatcher:
+    """Walsh pre-check + NCC of a set of equal-size patches against map tiles (sec. 3.2)."""
+
+    def __init__(self, patches: Sequence[NDArray[np.uint8]], config: MatchConfig | None = None,
+                 geometry: CylinderGeometry | None = None) -> None:
+        self.config = cfg = config or MatchConfig()
+        self.geometry = geometry or CylinderGeometry()
+        arr = np.asarray(patches, np.float32)
+        if arr.ndim != 3 or arr.shape[1] != arr.shape[2] or arr.shape[1] % 4:
+            raise ValueError(f'patches must be (n, P, P) with P a multiple of 4, got {arr.shape}')
+        self.patches = arr
+        self.P = arr.shape[1]
+        self.basis = _walsh_basis(cfg.walsh_coefficients)
+        self.pairs = _walsh_pairs(cfg.walsh_coefficients)
+        self.basis_t = np.ascontiguousarray(self.basis.T)
+        self.walsh = patch_walsh(arr, self.basis)
+        flat = arr.reshape(len(arr), -1) - arr.reshape(len(arr), -1).mean(axis=1, keepdims=True)
+        unit = (flat / np.maximum(np.linalg.norm(flat, axis=1, keepdims=True), 1e-6)).astype(np.float32)
+        self.n_fft = cfg.tile_size + self.P
+        flipped = unit.reshape(arr.shape)[:, ::-1, ::-1]
+        self.patch_fft = scipy.fft.rfft2(flipped, s=(self.n_fft, self.n_fft))
+        self.ncc_ops = 0
+        self.walsh_rejected = 0
+
+    def region(self, gray: NDArray[np.float32], mapped: NDArray[np.bool_] | None, tile: int
+               ) -> tuple[NDArray[np.float32], NDArray[np.float32], int, int]:
+        """(region, mapped fraction, x0, y0): the map pixels all patch positions with their
+        top-left in the tile need; columns wrap, rows outside the map are unmapped."""
+        T, P, h = self.config.tile_size, self.P, self.P // 2
+        H, W = gray.shape
+        cols_n = W // T
+        tr, tc = divmod(tile, cols_n)
+        x0, y0 = tc * T - h, tr * T - h
+        n = T + P - 1
+        if 0 <= x0 and x0 + n <= W and 0 <= y0 and y0 + n <= H:  # no wrap, inside: views
+            reg = np.ascontiguousarray(gray[y0:y0 + n, x0:x0 + n], dtype=np.float32)
+            if mapped is None:
+                return reg, np.ones((n, n), np.float32), x0, y0
+            m = mapped[y0:y0 + n, x0:x0 + n].astype(np.float32)
+            return np.where(m > 0, reg, np.float32(0.0)), m, x0, y0
+        cols = np.arange(x0, x0 + n) % W
+        rows = np.arange(y0, y0 + n)
+        inside = (rows >= 0) & (rows < H)
+        rows_c = np.clip(rows, 0, H - 1)
+        reg = gray[np.ix_(rows_c, cols)].astype(np.float32, copy=False)
+        if mapped is None:
+            m = np.ones((n, n), np.float32)
+        else:
+            m = mapped[np.ix_(rows_c, cols)].astype(np.float32)
+        m[~inside] = 0.0
+        reg = np.where(m > 0, reg, 0.0).astype(np.float32)
+        return reg, m, x0, y0
+
+    def match_tile(self, gray: NDArray[np.float32], mapped: NDArray[np.bool_] | None, tile: int,
+                   active: Sequence[int] | None = None, expected_uv: Array | None = None
+                   ) -> dict[int, list[Candidate]]:
+        """Candidates (up to ``candidates`` per annotation) whose patch top-left lies in
+        ``tile``, for the annotations ``active`` (default all). ``expected_uv`` (n, 2): the
+        sensor prior's expected positions (NaN rows: no prior for that annotation)."""
+        cfg, P, T = self.config, self.P, self.config.tile_size
+        W = self.geometry.width
+        idx = list(range(len(self.patches))) if active is None else list(active)
+        out: dict[int, list[Candidate]] = {}
+        if not idx:
+            return out
+        reg, m, x0, y0 = self.region(gray, mapped, tile)
+        c = (P - 1) / 2.0
+        # Prior: which annotations can appear in this tile at all (outer window).
+        us = x0 + c + np.arange(T)
+        vs = y0 + c + np.arange(T)
+        penalty = {}
+        if cfg.sensor_prior and expected_uv is not None:
+            inner = cfg.prior_window_px
+            outer = inner * cfg.prior_outer_factor
+            keep = []
+            for i in idx:
+                eu, ev = expected_uv[i]
+                if not (np.isfinite(eu) and np.isfinite(ev)):
+                    keep.append(i)
+                    continue
+                du = np.abs((us - eu + W / 2) % W - W / 2)
+                dv = np.abs(vs - ev)
+                if du.min() > outer or dv.min() > outer:
+                    continue
+                dist = np.maximum(np.maximum(du[None, :], dv[:, None]) - inner, 0.0)
+                pen = cfg.prior_penalty * dist / max(outer - inner, 1e-9)
+                pen[np.maximum(du[None, :], dv[:, None]) > outer] = np.inf
+                penalty[i] = pen
+                keep.append(i)
+            idx = keep
+            if not idx:
+                return out
+        # Valid windows: fully mapped and textured.
+        box = (P, P)
+        frac = cv2.boxFilter(m, -1, box, anchor=(0, 0), normalize=True, borderType=cv2.BORDER_CONSTANT)[:T, :T]
+        mean = cv2.boxFilter(reg, -1, box, anchor=(0, 0), normalize=True, borderType=cv2.BORDER_CONSTANT)[:T, :T]
+        sq = cv2.boxFilter(reg * reg, -1, box, anchor=(0, 0), normalize=True, borderType=cv2.BORDER_CONSTANT)[:T, :T]
+        valid = (frac > 0.999) & (sq - mean * mean > cfg.min_window_std ** 2)
+        if not valid.any():
+            return out
+        # Walsh pre-check for all positions and annotations at once.
+        b = P // 4
+        bm = cv2.boxFilter(reg, -1, (b, b), anchor=(0, 0), normalize=True, borderType=cv2.BORDER_CONSTANT)
+        # Walsh coefficients of the 4 x 4 block means at every position: the 16 shifted
+        # block-mean images (16, T*T) times the basis, one matrix product; annotation-major.
+        feats = np.empty((16, T, T), np.float32)
+        for q in range(16):
+            i, j = divmod(q, 4)
+            feats[q] = bm[i * b:i * b + T, j * b:j * b + T]
+        coef = self.basis_t @ feats.reshape(16, T * T)  # (k, T*T)
+        norm = np.sqrt(np.einsum('kp,kp->p', coef, coef))
+        ok = (norm > 1e-6) & valid.reshape(-1)
+        wscore = (self.walsh[idx] @ coef) / np.where(norm > 1e-6, norm, 1.0)  # (n, T*T)
+        passed = (wscore >= cfg.walsh_min) & ok[None, :]
+        alive = np.flatnonzero(passed.any(axis=1))
+        self.walsh_rejected += len(idx) - alive.size
+        if alive.size == 0:
+            return out
+        # NCC of the survivors: one batched FFT correlation with the zero-mean, unit-norm
+        # patches; the window norms (shared by all annotations) from the box filters.
+        sel = [idx[k] for k in alive]
+        n_fft = self.n_fft
+        corr = scipy.fft.irfft2(scipy.fft.rfft2(reg, s=(n_fft, n_fft))[None] * self.patch_fft[sel],
+                                s=(n_fft, n_fft), workers=1)[:, P - 1:P - 1 + T, P - 1:P - 1 + T]
+        wnorm = np.sqrt(np.maximum(sq - mean * mean, 1e-12) * (P * P))
+        ncc = np.where(passed[alive].reshape(-1, T, T), corr / wnorm[None], -1.0).astype(np.float32)
+        self.ncc_ops += alive.size
+        best = ncc.reshape(len(sel), -1).max(axis=1)
+        for k in np.flatnonzero(best >= cfg.min_ncc):
+            i = sel[k]
+            res = ncc[k]
+            score = res - penalty[i].astype(np.float32) if i in penalty else res.copy()
+            cands = self._peaks(res, score, x0, y0)
+            if cands:
+                out[i] = cands
+        return out
+
+    def _peaks(self, res: NDArray[np.float32], s: NDArray[np.float32], x0: int, y0: int) -> list[Candidate]:
+        """Up to ``candidates`` local maxima of the (penalised) score ``s`` (modified in place),
+        at least ``min_separation_px`` apart, refined to sub-pixel on the NCC surface."""
+        cfg = self.config
+        W = self.geometry.width
+        c = (self.P - 1) / 2.0
+        s[res < cfg.min_ncc] = -np.inf
+        out: list[Candidate] = []
+        r = int(math.ceil(cfg.min_separation_px))
+        T = res.shape[0]
+        for _ in range(cfg.candidates):
+            _, top, _, (x, y) = cv2.minMaxLoc(s)
+            if not np.isfinite(top) or top < -1.5:
+                break
+            dx = dy = 0.0
+            if 0 < x < T - 1 and res[y, x - 1] > -1 and res[y, x + 1] > -1:
+                den = float(res[y, x - 1] - 2 * res[y, x] + res[y, x + 1])
+                dx = min(0.5, max(-0.5, 0.5 * float(res[y, x - 1] - res[y, x + 1]) / den)) if den < 0 else 0.0
+            if 0 < y < T - 1 and res[y - 1, x] > -1 and res[y + 1, x] > -1:
+                den = float(res[y - 1, x] - 2 * res[y, x] + res[y + 1, x])
+                dy = min(0.5, max(-0.5, 0.5 * float(res[y - 1, x] - res[y + 1, x]) / den)) if den < 0 else 0.0
+            out.append(Candidate(u=float((x0 + x + dx + c) % W), v=float(y0 + y + dy + c),
+                                 score=float(top), ncc=float(res[y, x])))
+            s[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1] = -np.inf
+        return out
+
+# -- global alignment (sec. 4.3) ------------------------------------------------------------
+
+def absolute_orientation(a: Array, b: Array, weights: Array | None = None) -> Array:
+    """The rotation R minimising sum w |R a_i - b_i|^2 for unit vectors (n >= 2, 3)
+    (the absolute orientation of two sets of directions, Horn 1987, via SVD)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    w = np.ones(len(a)) if weights is None else np.asarray(weights, float)
+    M = (b * w[:, None]).T @ a
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+@dataclass
+class Placement:
+    """Where one annotation is placed in the target panorama."""
+
+    index: int
+    u: float
+    v: float
+    direction: Array
+    status: str  # 'matched' | 'inferred'
+    score: float
+
+
+@dataclass
+class Alignment:
+    """Outcome of the alignment: R_target_source (None without a valid hypothesis)."""
+
+    R_target_source: Array | None
+    placements: list[Placement] = field(default_factory=list)
+    inliers: list[int] = field(default_factory=list)
+    normalised_error_px: float = float('nan')
+    hypotheses: int = 0
+
+
+def _map_dist(geometry: CylinderGeometry, u1: Array, v1: Array, u2: Array, v2: Array) -> Array:
+    W = geometry.width
+    du = np.abs((np.asarray(u1) - u2 + W / 2) % W - W / 2)
+    return np.hypot(du, np.asarray(v1) - v2)
+
+
+def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
+                              geometry: CylinderGeometry) -> list[Placement]:
+    """Without alignment: every annotation with a candidate at its best one (sec. 3.2)."""
+    out = []
+    for i, cands in enumerate(candidates):
+        if cands:
+            c = cands[0]
+            d = geometry.unproject(np.array(c.u), np.array(c.v))
+            out.append(Placement(i, c.u, c.v, d, 'matched', c.score))
+    return out
+
+
+def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
+                     config: MatchConfig | None = None, geometry: CylinderGeometry | None = None,
+                     rng: np.random.Generator | None = None) -> Alignment:
+    """Global rotation between the source and the target panorama (sec. 4.3; module docstring).
+
+    ``source_dirs`` (n, 3): unit vectors of the annotations in the source panorama;
+    ``candidates[i]``: candidates of annotation i in the target map (best first). All pairs of
+    annotations and candidates are tried when there are at most ``max_hypotheses`` of them,
+    else that many random ones (seeded)."""
+    cfg = config or MatchConfig()
+    geo = geometry or CylinderGeometry()
+    src = np.asarray(source_dirs, float).reshape(-1, 3)
+    n = len(src)
+    with_c = [i for i in range(n) if candidates[i]]
+    result = Alignment(None)
+    if len(with_c) < max(2, cfg.min_inliers):
+        return result
+    # Candidate directions and positions, flattened.
+    cu = [np.array([c.u for c in candidates[i]]) for i in range(n)]
+    cv_ = [np.array([c.v for c in candidates[i]]) for i in range(n)]
+    cd = [geo.unproject(cu[i], cv_[i]) if len(cu[i]) else np.zeros((0, 3)) for i in range(n)]
+    pairs = [(i, j, a, b) for i, j in itertools.combinations(with_c, 2)
+             for a in range(len(candidates[i])) for b in range(len(candidates[j]))]
+    if len(pairs) > cfg.max_hypotheses:
+        rng = rng or np.random.default_rng(cfg.seed)
+        pairs = [pairs[k] for k in rng.choice(len(pairs), cfg.max_hypotheses, replace=False)]
+    tol_rad = cfg.inlier_px / geo.f
+    need = max(cfg.min_inliers, int(math.floor(cfg.min_inlier_ratio * len(with_c))) + 1)
+    P = np.array(pairs, dtype=np.int64)
+    a1, a2 = src[P[:, 0]], src[P[:, 1]]
+    b1 = np.array([cd[i][k] for i, k in zip(P[:, 0], P[:, 2])])
+    b2 = np.array([cd[j][k] for j, k in zip(P[:, 1], P[:, 3])])
+    ang_a = np.arccos(np.clip(np.einsum('ij,ij->i', a1, a2), -1, 1))
+    ang_b = np.arccos(np.clip(np.einsum('ij,ij->i', b1, b2), -1, 1))
+    ok = (ang_a >= math.radians(2.0)) & (ang_b >= math.radians(2.0)) & (np.abs(ang_a - ang_b) <= 2 * tol_rad)
+    if not ok.any():
+        return result
+    a1, a2, b1, b2 = a1[ok], a2[ok], b1[ok], b2[ok]
+    result.hypotheses = int(ok.sum())
+    # Least-squares rotation of two vector pairs (absolute orientation): it maps the bisector
+    # and the normal of (a1, a2) onto those of (b1, b2).
+    Rs = _frames(b1, b2) @ np.swapaxes(_frames(a1, a2), 1, 2)
+    # Every hypothesis against every annotation's candidates at once.
+    pu, pv = geo.project(np.einsum('hij,nj->hni', Rs, src[with_c]))
+    W = geo.width
+    k_max = max(len(cu[i]) for i in with_c)
+    CU = np.full((len(with_c), k_max), np.nan)
+    CV = np.full((len(with_c), k_max), np.nan)
+    for r, i in enumerate(with_c):
+        CU[r, :len(cu[i])] = cu[i]
+        CV[r, :len(cv_[i])] = cv_[i]
+    du = np.abs((pu[:, :, None] - CU[None] + W / 2) % W - W / 2)
+    dist = np.nanmin(np.hypot(du, pv[:, :, None] - CV[None]), axis=2)  # (H, n)
+    inl = dist < cfg.inlier_px
+    n_inl = inl.sum(axis=1)
+    valid = n_inl >= need
+    if not valid.any():
+        return result
+    nerr = np.where(valid, np.where(inl, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
+    # Lowest normalised error wins; among equal errors, more inliers.
+    h = int(np.lexsort((-n_inl, np.round(nerr, 9)))[0])
+    best = (float(nerr[h]), Rs[h], [with_c[r] for r in np.flatnonzero(inl[h])])
+    # Refine on all inliers (their nearest candidates), then score once more.
+    R = best[1]
+    for _ in range(2):
+        a_in, b_in = [], []
+        for i in _score(R, src, with_c, cu, cv_, geo, cfg.inlier_px)[0]:
+            k = _consistent(R, src[i], candidates[i], cu[i], cv_[i], geo, cfg.inlier_px)
+            a_in.append(src[i])
+            b_in.append(cd[i][k])
+        if len(a_in) >= 2:
+            R_new = absolute_orientation(np.array(a_in), np.array(b_in))
+            if len(_score(R_new, src, with_c, cu, cv_, geo, cfg.inlier_px)[0]) >= len(a_in):
+                R = R_new
+    inl, err = _score(R, src, with_c, cu, cv_, geo, cfg.inlier_px)
+    if len(inl) < need:
+        R, inl, err = best[1], best[2], best[0] * len(best[2])
+    result.R_target_source = R
+    result.inliers = inl
+    result.normalised_error_px = err / len(inl)
+    for i in range(n):
+        d = R @ src[i]
+        pu, pv = geo.project(d)
+        if i in inl:
+            k = _consistent(R, src[i], candidates[i], cu[i], cv_[i], geo, max(cfg.inlier_px, cfg.placement_px),
+                            cfg.placement_penalty)
+            c = candidates[i][k]
+            result.placements.append(Placement(i, c.u, c.v, cd[i][k], 'matched', c.score))
+        elif candidates[i] and float(np.min(_map_dist(geo, cu[i], cv_[i], pu, pv))) < cfg.placement_px:
+            # Not an inlier, but a candidate lies within the looser placement gate: the
+            # rotation confirms it (parallax moved it beyond inlier_px).
+            k = _consistent(R, src[i], candidates[i], cu[i], cv_[i], geo, cfg.placement_px, cfg.placement_penalty)
+            c = candidates[i][k]
+            result.placements.append(Placement(i, c.u, c.v, cd[i][k], 'matched', c.score))
+        else:
+            result.placements.append(Placement(i, float(pu), float(pv), d, 'inferred', float('nan')))
+    return result
+
+
+def _consistent(R: Array, a: Array, cands: Sequence[Candidate], cu: Array, cv_: Array,
+                geo: CylinderGeometry, inlier_px: float, penalty: float = 0.0) -> int:
+    """Index of the candidate within ``inlier_px`` of where R puts ``a`` with the best score
+    minus ``penalty`` x distance / ``inlier_px`` (the nearest one when none is): parallax
+    between the two standing points shifts the prediction by a few pixels, so the nearest
+    candidate is not always the right one, nor is the best-scoring one (repeated facades)."""
+    pu, pv = geo.project(R @ a)
+    dist = _map_dist(geo, cu, cv_, pu, pv)
+    near = np.flatnonzero(dist < inlier_px)
+    if near.size == 0:
+        return int(np.argmin(dist))
+    return int(near[np.argmax([cands[k].score - penalty * dist[k] / inlier_px for k in near])])
+
+
+def _frames(v1: Array, v2: Array) -> Array:
+    """(H, 3, 3) orthonormal frames [bisector, normal, bisector x normal] of vector pairs."""
+    m = v1 + v2
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    n = np.cross(v1, v2)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return np.stack([m, n, np.cross(m, n)], axis=2)
+
+
+def _score(R: Array, src: Array, with_c: list[int], cu: list[Array], cv_: list[Array],
+           geo: CylinderGeometry, inlier_px: float) -> tuple[list[int], float]:
+    pu, pv = geo.project(src[with_c] @ R.T)
+    inl, err = [], 0.0
+    for k, i in enumerate(with_c):
+        dmin = float(np.min(_map_dist(geo, cu[i], cv_[i], pu[k], pv[k])))
+        if dmin < inlier_px:
+            inl.append(i)
+            err += dmin
+    return inl, err
+
+
+# -- the scheduler: queue, budget, several source panoramas ----------------------------------
+
+def expected_positions(source_dirs: Array, R_enu_source: Sequence[Array | None],
+                       R_enu_target: Array, geometry: CylinderGeometry) -> Array:
+    """(n, 2) expected map positions of the annotations in the target panorama from the
+    absolute orientations of both panoramas (sec. 4.2); NaN where the source's is unknown."""
+    out = np.full((len(source_dirs), 2), np.nan)
+    for i, (d, R) in enumerate(zip(source_dirs, R_enu_source)):
+        if R is not None:
+            u, v = geometry.project(R_enu_target.T @ (R @ d))
+            out[i] = (float(u), float(v))
+    return out
+
+
+class ReDetector:
+    """Matching state of one browsing panorama against a set of annotations.
+
+    The annotations may come from several source panoramas (``groups``: one id per
+    annotation); matching runs on all of them, the alignment per group, and :meth:`result`
+    gives the group whose annotations score best (sec. 6.1). Newly finished tiles go into a
+    FIFO (:meth:`add_finished_tiles`), :meth:`step` does at most ``max_ops`` tile x annotation
+    comparisons (the per-frame budget of sec. 3.2)."""
+
+    def __init__(self, patches: Sequence[NDArray[np.uint8]], source_dirs: Array,
+                 groups: Sequence[str], config: MatchConfig | None = None,
+                 geometry: CylinderGeometry | None = None,
+                 R_enu_source: Sequence[Array | None] | None = None) -> None:
+        self.config = cfg = config or MatchConfig()
+        self.geometry = geo = geometry or CylinderGeometry()
+        self.source_dirs = np.asarray(source_dirs, float).reshape(-1, 3)
+        n = len(self.source_dirs)
+        self.groups = list(groups)
+        self.R_enu_source = list(R_enu_source) if R_enu_source is not None else [None] * n
+        # One TileMatcher per patch size.
+        self.matchers: list[tuple[TileMatcher, list[int]]] = []
+        for side in sorted({p.shape[0] for p in patches}):
+            ids = [i for i, p in enumerate(patches) if p.shape[0] == side]
+            self.matchers.append((TileMatcher([patches[i] for i in ids], cfg, geo), ids))
+        self.candidates = [CandidateList(cfg.candidates, cfg.min_separation_px, geo.width) for _ in range(n)]
+        self.queue: deque[int] = deque()
+        self.seen: set[int] = set()
+        self.expected_uv: Array | None = None
+        self.dirty = False
+        self.tiles_done = 0
+        self._cache: tuple[str, Alignment] | None = None
+        self._map: tuple[NDArray[np.float32], NDArray[np.bool_] | None] | None = None
+
+    @property
+    def n(self) -> int:
+        return len(self.source_dirs)
+
+    def add_finished_tiles(self, tiles: NDArray) -> int:
+        """Queue the finished tiles (mono8 tile image, >0 finished) not seen before."""
+        new = [int(t) for t in np.flatnonzero(np.asarray(tiles).reshape(-1) > 0) if int(t) not in self.seen]
+        self.seen.update(new)
+        self.queue.extend(new)
+        return len(new)
+
+    def set_orientation(self, R_enu_target: Array | None) -> None:
+        """The browsing panorama's absolute orientation (R_enu_panorama) for the prior."""
+        if R_enu_target is None or not self.config.sensor_prior:
+            self.expected_uv = None
+        else:
+            self.expected_uv = expected_positions(self.source_dirs, self.R_enu_source,
+                                                  np.asarray(R_enu_target, float), self.geometry)
+
+    def step(self, gray: NDArray[np.float32], mapped: NDArray[np.bool_] | None, max_ops: int | None = None) -> int:
+        """Match queued tiles until ``max_ops`` tile x annotation comparisons are done (at
+        least one tile); returns the number of tiles processed."""
+        self._map = (gray, mapped)
+        done = ops = 0
+        while self.queue and (max_ops is None or ops < max_ops or done == 0):
+            tile = self.queue.popleft()
+            for matcher, ids in self.matchers:
+                exp = self.expected_uv[ids] if self.expected_uv is not None else None
+                found = matcher.match_tile(gray, mapped, tile, None, exp)
+                ops += len(ids)
+                for k, cands in found.items():
+                    for c in cands:
+                        if self.candidates[ids[k]].add(c):
+                            self.dirty = True
+            done += 1
+        self.tiles_done += done
+        if done:
+            self._cache = None if self.dirty else self._cache
+        return done
+
+    def _guided(self, p: Placement) -> None:
+        """Guided re-detection of an inferred annotation: NCC in a small window around where the
+        alignment puts it (+-``placement_px``), scores penalised by the distance from there;
+        a good enough match turns the placement into a match."""
+        if self._map is None:
+            return
+        gray, mapped = self._map
+        cfg, geo = self.config, self.geometry
+        patch = None
+        for matcher, ids in self.matchers:
+            if p.index in ids:
+                patch = matcher.patches[ids.index(p.index)]
+        if patch is None:
+            return
+        P = patch.shape[0]
+        r = int(math.ceil(cfg.placement_px))
+        x0 = int(round(p.u - (P - 1) / 2)) - r
+        y0 = int(round(p.v - (P - 1) / 2)) - r
+        n = P + 2 * r
+        if y0 < 0 or y0 + n > gray.shape[0]:
+            return
+        cols = np.arange(x0, x0 + n) % geo.width
+        reg = gray[y0:y0 + n][:, cols].astype(np.float32)
+        if mapped is not None:
+            m = mapped[y0:y0 + n][:, cols].astype(np.float32)
+            full = cv2.boxFilter(m, -1, (P, P), anchor=(0, 0), normalize=True, borderType=cv2.BORDER_CONSTANT)[:2 * r + 1, :2 * r + 1]
+        else:
+            full = np.ones((2 * r + 1, 2 * r + 1), np.float32)
+        res = cv2.matchTemplate(reg, patch.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+        res[(full < 0.999) | ~np.isfinite(res)] = -1.0
+        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+        score = res - cfg.guided_penalty * np.hypot(xx, yy) / max(r, 1)
+        y, x = np.unravel_index(int(np.argmax(score)), score.shape)
+        if res[y, x] < cfg.guided_min_ncc:
+            return
+        c = (P - 1) / 2.0
+        p.u = float((x0 + x + c) % geo.width)
+        p.v = float(y0 + y + c)
+        p.direction = geo.unproject(np.array(p.u), np.array(p.v))
+        p.status = 'matched'
+        p.score = float(res[y, x])
+
+    def result(self) -> tuple[str | None, Alignment]:
+        """(source panorama id, alignment/placements) of the best-scoring group."""
+        if self._cache is not None and not self.dirty:
+            return self._cache
+        self.dirty = False
+        best: tuple[float, str | None, Alignment] = (-1.0, None, Alignment(None))
+        for g in dict.fromkeys(self.groups):
+            ids = [i for i, gi in enumerate(self.groups) if gi == g]
+            cands = [self.candidates[i].items for i in ids]
+            score = float(np.mean([c[0].ncc if c else 0.0 for c in cands]))
+            if score <= best[0]:
+                continue
+            if self.config.ransac:
+                al = ransac_alignment(self.source_dirs[ids], cands, self.config, self.geometry)
+                if al.R_target_source is None:
+                    al.placements = best_candidate_placements(cands, self.geometry)
+            else:
+                al = Alignment(None, best_candidate_placements(cands, self.geometry))
+            for p in al.placements:
+                p.index = ids[p.index]
+                if p.status == 'inferred' and self.config.guided_search:
+                    self._guided(p)
+            best = (score, g, al)
+        self._cache = (best[1], best[2])
+        return self._cache

@@ -1,0 +1,367 @@
+"""The annotation store (Langlotz 2011 sec. 3.2 and 4.3, Fig. 2).
+
+An annotation is a small record (about 2 kB): its text, the image patch of its support area
+(cut from the source panorama map), the unit vector from the camera to the anchor in the source
+panorama frame (sec. 4.3, Fig. 5), the GPS position where it was authored, the source panorama
+id, the author and the creation time. Optionally the source panorama's orientation in the world
+(ENU), which the sensor prior of sec. 4.2 needs to predict where an annotation appears.
+
+A browsing device asks for "everything within 50 m of this fix" (sec. 4.3). :class:`AnnotationStore`
+is the interface; :class:`SqliteAnnotationStore` implements it on one SQLite file: WAL journal
+(readers never block the writer), every write in one transaction, and an R-tree (sqlite's rtree
+module) over latitude/longitude so the radius query is an index query followed by an exact
+great-circle check. A PostgreSQL/PostGIS backend would implement the same four methods
+(``add``, ``near``, ``all``, ``close``) with ``ST_DWithin`` on a geography column.
+
+Errors are :class:`StoreError` with one line (missing, locked or corrupt files); an existing file
+is never overwritten or re-initialised. Bad records (wrong patch size, NaN or zero vector, ...)
+are skipped and reported, never stored.
+"""
+from __future__ import annotations
+
+import abc
+import logging
+import math
+import sqlite3
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+logger = logging.getLogger(__name__)
+
+#: Patch sides (pixels) a record may have.
+PATCH_SIDES = (8, 16, 24, 32)
+#: Search radius of sec. 4.3 ("all datasets created within proximity of 50 m").
+DEFAULT_RADIUS_M = 50.0
+EARTH_RADIUS_M = 6_371_008.8
+SCHEMA = 'ar_tracking.annotations'
+SCHEMA_VERSION = 1
+
+
+class StoreError(Exception):
+    """The store cannot be opened, read or written: one line for the user."""
+
+
+@dataclass(frozen=True)
+class Annotation:
+    """One annotation record (see the module docstring).
+
+    ``direction`` is a unit 3-vector in the source panorama frame (x right, y down, z forward of
+    its first camera frame); ``panorama_in_world_quat_xyzw`` is R_enu_panorama of the source
+    panorama when known (NaN otherwise)."""
+
+    text: str
+    patch: NDArray[np.uint8]
+    direction: NDArray[np.float64]
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+    panorama_id: str
+    author: str = ''
+    created_ns: int = 0
+    panorama_in_world_quat_xyzw: NDArray[np.float64] = field(
+        default_factory=lambda: np.full(4, np.nan))
+    id: int | None = None
+
+    @property
+    def patch_side(self) -> int:
+        return int(self.patch.shape[0])
+
+    def has_world_orientation(self) -> bool:
+        q = np.asarray(self.panorama_in_world_quat_xyzw, float)
+        return q.shape == (4,) and bool(np.all(np.isfinite(q))) and abs(np.linalg.norm(q) - 1) < 1e-3
+
+
+def validate_annotation(a: Annotation) -> str | None:
+    """None if the record can be stored, else the reason (one line)."""
+    patch = np.asarray(a.patch)
+    if patch.dtype != np.uint8 or patch.ndim != 2 or patch.shape[0] != patch.shape[1] \
+            or patch.shape[0] not in PATCH_SIDES:
+        return f'patch must be a square uint8 image of side {PATCH_SIDES}, got {patch.dtype} {patch.shape}'
+    if float(patch.std()) < 1.0:
+        return 'patch has no texture'
+    d = np.asarray(a.direction, float)
+    if d.shape != (3,) or not np.all(np.isfinite(d)):
+        return f'direction must be a finite 3-vector, got {d.tolist()}'
+    if abs(np.linalg.norm(d) - 1.0) > 1e-3:
+        return f'direction must be a unit vector (norm {np.linalg.norm(d):.3g})'
+    if not (math.isfinite(a.latitude_deg) and -90 <= a.latitude_deg <= 90
+            and math.isfinite(a.longitude_deg) and -180 <= a.longitude_deg <= 180):
+        return f'position ({a.latitude_deg}, {a.longitude_deg}) is not a valid latitude/longitude'
+    if not math.isfinite(a.altitude_m):
+        return f'altitude {a.altitude_m} is not finite'
+    if not a.text.strip():
+        return 'text is empty'
+    if not a.panorama_id:
+        return 'panorama_id is empty'
+    return None
+
+
+def distance_m(lat1: float, lon1: float, lat2: NDArray | float, lon2: NDArray | float) -> NDArray:
+    """Great-circle (haversine) distance in metres."""
+    p1, p2 = math.radians(lat1), np.radians(lat2)
+    dp, dl = p2 - p1, np.radians(lon2) - math.radians(lon1)
+    h = np.sin(dp / 2) ** 2 + math.cos(p1) * np.cos(p2) * np.sin(dl / 2) ** 2
+    return 2 * EARTH_RADIUS_M * np.arcsin(np.sqrt(np.clip(h, 0.0, 1.0)))
+
+
+@dataclass
+class AddReport:
+    """Outcome of :meth:`AnnotationStore.add`: ids of the stored records, reasons of the skipped."""
+
+    ids: list[int] = field(default_factory=list)
+    skipped: list[tuple[int, str]] = field(default_factory=list)  # (index in the input, reason)
+
+
+class AnnotationStore(abc.ABC):
+    """What the matcher and the authoring tool need from a store (SQLite, PostGIS, ...)."""
+
+    #: Reasons of the stored records that could not be read back by the last query.
+    skipped: list[str]
+
+    @abc.abstractmethod
+    def add(self, annotations: Iterable[Annotation]) -> AddReport:
+        """Store the valid records in one transaction; skip and report the others."""
+
+    @abc.abstractmethod
+    def near(self, latitude_deg: float, longitude_deg: float,
+             radius_m: float = DEFAULT_RADIUS_M) -> list[Annotation]:
+        """Every record authored within ``radius_m`` of the position (an index query)."""
+
+    @abc.abstractmethod
+    def all(self) -> list[Annotation]:
+        """Every record (used when GPS is poor)."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the connection."""
+
+    def __enter__(self) -> 'AnnotationStore':
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_SQLITE_MAGIC = b'SQLite format 3\x00'
+
+
+class SqliteAnnotationStore(AnnotationStore):
+    """SQLite implementation (see the module docstring). One instance per thread/process."""
+
+    def __init__(self, path: str | Path, *, create: bool = False, timeout_s: float = 5.0,
+                 read_only: bool = False) -> None:
+        self.path = Path(path)
+        self.skipped = []
+        exists = self.path.exists()
+        if not exists and not create:
+            raise StoreError(f'{self.path}: no such annotation store')
+        if exists:
+            self._check_header()
+        elif not self.path.parent.is_dir():
+            raise StoreError(f'{self.path}: directory {self.path.parent} does not exist')
+        mode = 'ro' if read_only else ('rwc' if create and not exists else 'rw')
+        try:
+            self._db = sqlite3.connect(f'file:{self.path}?mode={mode}', uri=True,
+                                       timeout=timeout_s, isolation_level=None)
+        except sqlite3.Error as exc:
+            raise StoreError(f'{self.path}: cannot open the annotation store ({exc})') from exc
+        try:
+            if exists:
+                self._check_schema()
+            else:
+                self._create_schema()
+            if not read_only:
+                self._db.execute('PRAGMA journal_mode=WAL')
+                self._db.execute('PRAGMA synchronous=NORMAL')
+        except sqlite3.Error as exc:
+            self._db.close()
+            raise self._error(exc, 'cannot open') from exc
+        except StoreError:
+            self._db.close()
+            raise
+
+    # -- opening ---------------------------------------------------------------------------
+
+    def _check_header(self) -> None:
+        try:
+            with open(self.path, 'rb') as f:
+                head = f.read(16)
+        except OSError as exc:
+            raise StoreError(f'{self.path}: cannot read the annotation store ({exc.strerror})') from exc
+        if head != _SQLITE_MAGIC:
+            raise StoreError(f'{self.path}: corrupt annotation store (not an SQLite database); left untouched')
+
+    def _create_schema(self) -> None:
+        db = self._db
+        db.execute('BEGIN IMMEDIATE')
+        try:
+            db.execute('CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)')
+            db.executemany('INSERT INTO meta VALUES (?, ?)',
+                           [('schema', SCHEMA), ('version', str(SCHEMA_VERSION))])
+            db.execute('''CREATE TABLE annotations (
+                id INTEGER PRIMARY KEY, text TEXT NOT NULL, patch BLOB NOT NULL,
+                patch_side INTEGER NOT NULL, dx REAL NOT NULL, dy REAL NOT NULL, dz REAL NOT NULL,
+                latitude REAL NOT NULL, longitude REAL NOT NULL, altitude REAL NOT NULL,
+                panorama_id TEXT NOT NULL, author TEXT NOT NULL, created_ns INTEGER NOT NULL,
+                pano_qx REAL, pano_qy REAL, pano_qz REAL, pano_qw REAL)''')
+            db.execute('CREATE VIRTUAL TABLE annotations_rtree USING rtree('
+                       'id, min_lat, max_lat, min_lon, max_lon)')
+            db.execute('COMMIT')
+        except BaseException:
+            db.execute('ROLLBACK')
+            raise
+
+    def _check_schema(self) -> None:
+        try:
+            rows = dict(self._db.execute('SELECT key, value FROM meta').fetchall())
+        except sqlite3.DatabaseError as exc:
+            raise self._error(exc, 'not an annotation store') from exc
+        if rows.get('schema') != SCHEMA:
+            raise StoreError(f'{self.path}: not an annotation store (schema {rows.get("schema")!r}); left untouched')
+        if int(rows.get('version', '0')) > SCHEMA_VERSION:
+            raise StoreError(f'{self.path}: annotation store version {rows["version"]} is newer than this program ({SCHEMA_VERSION})')
+
+    def _error(self, exc: sqlite3.Error, what: str) -> StoreError:
+        text = str(exc)
+        if 'locked' in text or 'busy' in text:
+            return StoreError(f'{self.path}: annotation store is locked by another process ({text})')
+        if isinstance(exc, sqlite3.DatabaseError) and ('malformed' in text or 'not a database' in text
+                                                       or 'no such table' in text):
+            return StoreError(f'{self.path}: corrupt annotation store ({text}); left untouched')
+        return StoreError(f'{self.path}: {what} ({text})')
+
+    # -- interface -------------------------------------------------------------------------
+
+    def add(self, annotations: Iterable[Annotation]) -> AddReport:
+        report = AddReport()
+        rows = []
+        for i, a in enumerate(annotations):
+            reason = validate_annotation(a)
+            if reason is not None:
+                report.skipped.append((i, reason))
+                logger.warning('annotation %d (%r) skipped: %s', i, getattr(a, 'text', ''), reason)
+                continue
+            d = np.asarray(a.direction, float)
+            q = np.asarray(a.panorama_in_world_quat_xyzw, float)
+            q = [float(v) for v in q] if a.has_world_orientation() else [None] * 4
+            rows.append((a.text, np.ascontiguousarray(a.patch).tobytes(), a.patch_side,
+                         float(d[0]), float(d[1]), float(d[2]), float(a.latitude_deg),
+                         float(a.longitude_deg), float(a.altitude_m), a.panorama_id, a.author,
+                         int(a.created_ns), *q))
+        if not rows:
+            return report
+        db = self._db
+        try:
+            db.execute('BEGIN IMMEDIATE')
+            try:
+                for row in rows:
+                    cur = db.execute('INSERT INTO annotations (text, patch, patch_side, dx, dy, dz, '
+                                     'latitude, longitude, altitude, panorama_id, author, created_ns, '
+                                     'pano_qx, pano_qy, pano_qz, pano_qw) '
+                                     'VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)', row)
+                    rid = int(cur.lastrowid)
+                    db.execute('INSERT INTO annotations_rtree VALUES (?, ?, ?, ?, ?)',
+                               (rid, row[6], row[6], row[7], row[7]))
+                    report.ids.append(rid)
+                db.execute('COMMIT')
+            except BaseException:
+                report.ids.clear()
+                db.execute('ROLLBACK')
+                raise
+        except sqlite3.Error as exc:
+            raise self._error(exc, 'cannot write') from exc
+        return report
+
+    def near(self, latitude_deg: float, longitude_deg: float,
+             radius_m: float = DEFAULT_RADIUS_M) -> list[Annotation]:
+        if not (math.isfinite(latitude_deg) and math.isfinite(longitude_deg) and radius_m >= 0):
+            raise StoreError(f'invalid query position ({latitude_deg}, {longitude_deg}) or radius {radius_m}')
+        dlat = math.degrees(radius_m / EARTH_RADIUS_M) * 1.01 + 1e-6
+        coslat = max(math.cos(math.radians(latitude_deg)), 1e-6)
+        dlon = min(180.0, dlat / coslat)
+        # R-tree boxes overlapping the query box; the rtree stores 32-bit floats, rounded
+        # outwards, so the exact distance check below decides.
+        sql = ('SELECT a.* FROM annotations_rtree r JOIN annotations a ON a.id = r.id '
+               'WHERE r.max_lat >= ? AND r.min_lat <= ? AND r.max_lon >= ? AND r.min_lon <= ? '
+               'ORDER BY a.id')
+        rows = self._query(sql, (latitude_deg - dlat, latitude_deg + dlat,
+                                 longitude_deg - dlon, longitude_deg + dlon))
+        out = [a for a in rows
+               if float(distance_m(latitude_deg, longitude_deg, a.latitude_deg, a.longitude_deg)) <= radius_m]
+        return out
+
+    def all(self) -> list[Annotation]:
+        return self._query('SELECT * FROM annotations ORDER BY id', ())
+
+    def count(self) -> int:
+        try:
+            return int(self._db.execute('SELECT COUNT(*) FROM annotations').fetchone()[0])
+        except sqlite3.Error as exc:
+            raise self._error(exc, 'cannot read') from exc
+
+    def integrity_ok(self) -> bool:
+        """sqlite's integrity check of the file (also of the R-tree)."""
+        try:
+            ok = self._db.execute('PRAGMA integrity_check').fetchone()[0] == 'ok'
+            n_tree = self._db.execute('SELECT COUNT(*) FROM annotations_rtree').fetchone()[0]
+            return ok and n_tree == self.count()
+        except sqlite3.Error:
+            return False
+
+    def close(self) -> None:
+        db = getattr(self, '_db', None)
+        if db is not None:
+            db.close()
+            self._db = None  # type: ignore[assignment]
+
+    # -- reading ---------------------------------------------------------------------------
+
+    def _query(self, sql: str, args: Sequence[object]) -> list[Annotation]:
+        try:
+            rows = self._db.execute(sql, args).fetchall()
+        except sqlite3.Error as exc:
+            raise self._error(exc, 'cannot read') from exc
+        self.skipped = []
+        out = []
+        for row in rows:
+            a, reason = self._from_row(row)
+            if a is None:
+                self.skipped.append(f'record {row[0]}: {reason}')
+                logger.warning('%s: record %s skipped: %s', self.path, row[0], reason)
+            else:
+                out.append(a)
+        return out
+
+    @staticmethod
+    def _from_row(row: tuple) -> tuple[Annotation | None, str]:
+        (rid, text, blob, side, dx, dy, dz, lat, lon, alt, pano, author, created,
+         qx, qy, qz, qw) = row
+        try:
+            patch = np.frombuffer(blob, np.uint8)
+            if patch.size != side * side:
+                return None, f'patch has {patch.size} bytes, expected {side}x{side}'
+            q = np.array([np.nan] * 4 if qw is None else [qx, qy, qz, qw], float)
+            a = Annotation(text=text, patch=patch.reshape(side, side).copy(),
+                           direction=np.array([dx, dy, dz], float), latitude_deg=float(lat),
+                           longitude_deg=float(lon), altitude_m=float(alt), panorama_id=pano,
+                           author=author, created_ns=int(created), panorama_in_world_quat_xyzw=q,
+                           id=int(rid))
+        except (TypeError, ValueError) as exc:
+            return None, str(exc)
+        reason = validate_annotation(a)
+        return (None, reason) if reason else (a, '')
+
+
+def open_store(url: str | Path, *, create: bool = False, timeout_s: float = 5.0) -> AnnotationStore:
+    """A store from a path or URL: ``sqlite:///path``, a plain path (SQLite), or
+    ``postgresql://`` (not implemented here: a StoreError says so)."""
+    text = str(url)
+    if text.startswith(('postgresql://', 'postgres://')):
+        raise StoreError('PostgreSQL/PostGIS stores are not implemented yet; use an SQLite file')
+    if text.startswith('sqlite:///'):
+        text = text[len('sqlite:///'):]
+    return SqliteAnnotationStore(text, create=create, timeout_s=timeout_s)

@@ -1,0 +1,226 @@
+"""``ar-tracking bench --areas annotations``: speed of re-detection and the Fig. 7 table
+(Langlotz 2011 sec. 3.2, 4.3, 6.1).
+
+* ``tile_match_ms``: one 64 x 64 tile against 12 annotations (Walsh pre-check + NCC), median
+  (seed: 28 ms on an HTC HD2; target here <= 1 ms);
+* ``ransac_ms``: one global alignment with 8 annotations and 3 candidates each (seed: 30 ms;
+  target <= 2 ms);
+* ``fig7.<row>.<column>``: redetection rate over ``spots`` simulated spots (4-6 annotations
+  each), rows baseline, +sensor, +RANSAC, +sensor+RANSAC, +EDR, all; columns ``same_lighting``
+  (browsing walk under the authoring sun) and ``changed_lighting`` (browsing session: midday
+  sun, other shadows, flare, other exposure). Also ``fig7.<row>.<column>_wrong``.
+
+The Fig. 7 pipeline runs the cores without ROS and without bags (frames rendered by the
+simulator straight into :class:`PanoramaMapper`): authoring map -> patches at the anchors ->
+browsing map -> :class:`ReDetector` on all finished tiles; the sensor prior is the browsing
+panorama's orientation from gravity + field (eq. 3-4, the device calibration of the sidecar)
+averaged over the tracked frames, i.e. with the simulated compass errors.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..annotate import cut_patch
+from ..core.annotations.matching import (Candidate, MatchConfig, ReDetector, TileMatcher,
+                                         ransac_alignment)
+from ..core.panorama import MapConfig, MapperConfig, PanoramaMapper
+from ..core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
+
+logger = logging.getLogger(__name__)
+
+ROWS = {
+    'baseline': dict(edr=False, sensor_prior=False, ransac=False),
+    'sensor': dict(edr=False, sensor_prior=True, ransac=False),
+    'ransac': dict(edr=False, sensor_prior=False, ransac=True),
+    'sensor_ransac': dict(edr=False, sensor_prior=True, ransac=True),
+    'edr': dict(edr=True, sensor_prior=False, ransac=False),
+    'all': dict(edr=True, sensor_prior=True, ransac=True),
+}
+COLUMNS = {'same_lighting': 'authoring', 'changed_lighting': 'browsing'}
+CORRECT_DEG = 1.0
+
+
+def _median_ms(fn, n: int) -> float:
+    for _ in range(max(3, n // 10)):
+        fn()
+    times = []
+    for _ in range(n):
+        t = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t) * 1e3)
+    return round(float(np.median(times)), 4)
+
+
+def _texture(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = np.zeros((512, 2048), np.float32)
+    for sigma, amp in ((1.0, 40.0), (3.0, 60.0), (8.0, 50.0)):
+        n = cv2.GaussianBlur(rng.normal(0, 1, (512, 2048)).astype(np.float32), (0, 0), sigma)
+        img += amp * n / n.std()
+    return np.clip(img + 128.0, 0, 255)
+
+
+def bench_tile_match(n: int = 300, seed: int = 0) -> float:
+    """Median ms of one 64x64 tile against 12 annotations (no prior: all 12 are tested)."""
+    gray = _texture(seed)
+    rng = np.random.default_rng(seed)
+    patches = []
+    for x, y in zip(rng.integers(0, 2000, 12), rng.integers(100, 400, 12)):
+        p = gray[y:y + 16, x:x + 16]
+        patches.append(np.round((p - p.min()) * 255 / (p.max() - p.min())).astype(np.uint8))
+    matcher = TileMatcher(patches, MatchConfig(sensor_prior=False))
+    tile = 3 * 32 + 10
+    return _median_ms(lambda: matcher.match_tile(gray, None, tile), n)
+
+
+def bench_ransac(n: int = 200, seed: int = 0) -> float:
+    """Median ms of one alignment: 8 annotations, 3 candidates each (2 of 8 only wrong ones)."""
+    geo = CylinderGeometry()
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0, 2048, 8)
+    v = rng.uniform(150, 350, 8)
+    dirs = geo.unproject(u, v)
+    R = rotation_about_axis_y(0.7)
+    tu, tv = geo.project(dirs @ R.T)
+    cands = []
+    for i in range(8):
+        c = [Candidate(float((tu[i] + rng.uniform(100, 1900)) % 2048), float(tv[i] + rng.uniform(-40, 40)), 0.8, 0.8)
+             for _ in range(2)]
+        if i >= 2:
+            c.insert(int(rng.integers(0, 3)), Candidate(float(tu[i]), float(tv[i]), 0.7, 0.7))
+        cands.append(c)
+    cfg = MatchConfig()
+    return _median_ms(lambda: ransac_alignment(dirs, cands, cfg, geo), n)
+
+
+# -- Fig. 7 ---------------------------------------------------------------------------------
+
+def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) -> dict[str, Any]:
+    """Run the mapper (EDR and 8-bit) over one simulated session; the truth and the sensor prior."""
+    from ..core.imu_orientation import FieldModel, GravityFieldOrientation, ImuCalibration
+    from ..sim import rotation_sweep as rs
+    from ..sim.bagmaker import EXPOSURE_COMPENSATION, EXPOSURE_TARGET, _world
+    from ..sim.world import FrameRenderer, PinholeCamera, make_lighting, render_panorama, rng_stream
+
+    scn = rs.make_scenario(seed, trajectory, duration_s)
+    world = _world(seed)
+    light = make_lighting(seed, lighting, world)
+    spot = rs.session_offset(seed, trajectory)
+    pano = render_panorama(world, light, spot)
+    cam = PinholeCamera()
+    renderer = FrameRenderer(pano, light, cam, rng_stream(seed, 'pixel-noise', trajectory))
+    n_cam = int(math.ceil(duration_s * rs.CAMERA_RATE_HZ))
+    cam_ns = (np.arange(n_cam, dtype=np.int64) * 1_000_000_000) // rs.CAMERA_RATE_HZ
+    factor, wb = rs.make_exposure(seed, trajectory, duration_s).at(cam_ns * 1e-9)
+    gain = (EXPOSURE_TARGET / max(pano.mean_radiance, 1e-3)) ** EXPOSURE_COMPENSATION * factor
+    imu = rs.simulate_imu(scn, cam_ns * 1e-9)
+    params = rs.calibration_params(scn)
+    core = GravityFieldOrientation(
+        ImuCalibration(gyro_bias=params['gyro_bias'], accel_bias=params['accel_bias'],
+                       hard_iron_offset=params['hard_iron_offset'], soft_iron_matrix=params['soft_iron_matrix']),
+        FieldModel(field_t=params['expected_field_t'], dip_rad=params['expected_dip_rad'],
+                   declination_rad=params['declination_rad']))
+    mappers = {edr: PanoramaMapper(MapperConfig(map=MapConfig(edr=edr))) for edr in (True, False)}
+    init = {edr: None for edr in mappers}
+    prior: dict[bool, list[np.ndarray]] = {edr: [] for edr in mappers}
+    for k, t in enumerate(cam_ns):
+        rgb = renderer.render(rs.blur_samples(scn.trajectory, t * 1e-9, cam.fx), float(gain[k]), wb[k])
+        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        est = core.estimate(imu.accel_m_s2[k], imu.mag_t[k])
+        for edr, m in mappers.items():
+            res = m.process(gray, cam.K, int(t))
+            m.background()
+            if res.status == 'initialised':
+                init[edr] = k
+            if res.R_pano_cam is not None and est is not None:
+                prior[edr].append(est.R_enu_body @ rs.R_IMU_CAM @ res.R_pano_cam.T)
+    out = {'spot': spot, 'anchors': world.anchors}
+    for edr, m in mappers.items():
+        Rs = np.stack(prior[edr]) if prior[edr] else None
+        R_prior = None
+        if Rs is not None:
+            U, _, Vt = np.linalg.svd(Rs.sum(axis=0))
+            R_prior = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        out[edr] = {'gray': m.map.gray.copy(), 'mapped': m.map.mapped.copy(), 'tiles': m.map.tiles_image(),
+                    'R_enu_pano': imu.R_enu_cam[init[edr]] if init[edr] is not None else None,
+                    'R_enu_pano_sensor': R_prior}
+    return out
+
+
+def fig7_spot(seed: int, duration_s: float = 30.0) -> dict[str, dict[str, list[float]]]:
+    """Per row and column, the placement error (deg, inf when not placed) of every annotation of
+    one spot: the anchors whose support area the authoring panorama covers (the others could
+    not have been annotated)."""
+    geo = CylinderGeometry()
+    auth = _session_maps(seed, 'authoring', 'authoring', duration_s)
+    browse = {col: _session_maps(seed, 'browsing', light, duration_s) for col, light in COLUMNS.items()}
+    out: dict[str, dict[str, list[float]]] = {}
+    for row, opts in ROWS.items():
+        edr = opts['edr']
+        src = auth[edr]
+        if src['R_enu_pano'] is None:
+            continue
+        patches, dirs, labels = [], [], []
+        for a in auth['anchors']:
+            u, v = geo.project(src['R_enu_pano'].T @ a.direction)
+            patch, d, _ = cut_patch(src['gray'], src['mapped'], float(u), float(v), 16, geo)
+            if patch is not None:
+                patches.append(patch)
+                dirs.append(d)
+                labels.append(a)
+        out[row] = {}
+        for col in COLUMNS:
+            tgt = browse[col][edr]
+            errors = [math.inf] * len(labels)  # the annotations that could be authored
+            if patches and tgt['R_enu_pano'] is not None:
+                cfg = MatchConfig(sensor_prior=opts['sensor_prior'], ransac=opts['ransac'])
+                det = ReDetector(patches, np.array(dirs), ['p'] * len(patches), cfg, geo,
+                                 [src['R_enu_pano']] * len(patches))
+                det.set_orientation(tgt['R_enu_pano_sensor'])
+                det.add_finished_tiles(tgt['tiles'])
+                det.step(tgt['gray'], tgt['mapped'])
+                _, al = det.result()
+                spot = browse[col]['spot']
+                for p in al.placements:
+                    a = labels[p.index]
+                    d = a.position_enu - spot
+                    truth = tgt['R_enu_pano'].T @ (d / np.linalg.norm(d))
+                    errors[p.index] = float(np.degrees(math.acos(np.clip(p.direction @ truth, -1, 1))))
+            out[row][col] = errors
+    return out
+
+
+def bench_fig7(spots: int = 10, first_seed: int = 1, duration_s: float = 30.0) -> dict[str, Any]:
+    """The Fig. 7 table over ``spots`` seeds (see the module docstring)."""
+    errors: dict[str, dict[str, list[float]]] = {r: {c: [] for c in COLUMNS} for r in ROWS}
+    for seed in range(first_seed, first_seed + spots):
+        t = time.perf_counter()
+        res = fig7_spot(seed, duration_s)
+        for r, cols in res.items():
+            for c, e in cols.items():
+                errors[r][c].extend(e)
+        logger.info('fig7: spot %d done in %.1f s', seed, time.perf_counter() - t)
+    table: dict[str, Any] = {'spots': spots, 'annotations': len(errors['all']['changed_lighting'])}
+    for r in ROWS:
+        table[r] = {}
+        for c in COLUMNS:
+            e = np.asarray(errors[r][c])
+            if e.size == 0:
+                continue
+            table[r][c] = round(float(np.mean(e <= CORRECT_DEG)), 4)
+            table[r][c + '_wrong'] = round(float(np.mean((e > CORRECT_DEG) & np.isfinite(e))), 4)
+    return table
+
+
+def bench_annotations(fig7_spots: int = 10, duration_s: float = 30.0) -> dict[str, Any]:
+    """The ``annotations`` area of ``ar-tracking bench`` (fig7_spots=0 skips the table)."""
+    out: dict[str, Any] = {'tile_match_ms': bench_tile_match(), 'ransac_ms': bench_ransac()}
+    if fig7_spots > 0:
+        out['fig7'] = bench_fig7(fig7_spots, duration_s=duration_s)
+    return out

@@ -1,0 +1,317 @@
+"""annotation_matcher: re-detects stored annotations in the panorama being built (Langlotz 2011
+sec. 3.2, 4.2, 4.3).
+
+Subscribes ``panorama/image`` (mono16/mono8 map) and ``panorama/tiles`` (mono8, 255 finished,
+same stamp as the map) from panorama_mapper, ``gps/fix`` (NavSatFix) to load the annotations
+within ``radius_m`` from the store (all of them when GPS is poor), and for the sensor prior
+``orientation/panorama_in_world`` (TransformStamped enu -> panorama) or ``orientation/global``
+(Imu, camera in ENU, paired by stamp with ``panorama/orientation``). Newly finished tiles go to a
+work queue; every map and orientation message (the frame clock) drains it within
+``budget_ms``, counted with a fixed cost per tile x annotation (``op_cost_ms``) so that lockstep
+runs stay reproducible. Publishes ``annotations/markers`` (MarkerArray, one TEXT marker per
+placed annotation in the panorama frame, ns ``matched`` or ``inferred``) and
+``annotations/alignment`` (TransformStamped panorama <- source panorama, child_frame_id = the
+source panorama id). The algorithm is :mod:`ar_tracking.core.annotations`; this node converts.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import TransformStamped
+from sensor_msgs.msg import Image, Imu, NavSatFix, NavSatStatus
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ..core.annotations.matching import MatchConfig, ReDetector
+from ..core.annotations.store import Annotation, SqliteAnnotationStore, StoreError
+from ..core.panorama.cylinder import CylinderGeometry
+from ..core.rotations import quat_xyzw_to_matrix
+from ..ros.conversions import ConversionError, image_to_array, rotation_from_quaternion, set_quaternion, stamp_ns, to_stamp
+from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.stamp_guard import StampGuard, StampVerdict
+
+
+class AnnotationMatcherNode(TrackingNode):
+    INPUTS = {
+        'panorama/image': 'sensor_msgs/msg/Image',
+        'panorama/tiles': 'sensor_msgs/msg/Image',
+        'gps/fix': 'sensor_msgs/msg/NavSatFix',
+        'orientation/panorama_in_world': 'geometry_msgs/msg/TransformStamped',
+        'orientation/global': 'sensor_msgs/msg/Imu',
+        'panorama/orientation': 'geometry_msgs/msg/TransformStamped',
+    }
+    OUTPUTS = {
+        'annotations/markers': 'visualization_msgs/msg/MarkerArray',
+        'annotations/alignment': 'geometry_msgs/msg/TransformStamped',
+    }
+    REQUIRED_INPUTS = ['panorama/image', 'panorama/tiles', 'gps/fix']
+    REQUIRED_PARAMS = ['store_path']
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('annotation_matcher', **kwargs)
+        p = self.param
+        self.store_path: str = p('store_path', '', 'Annotation store (SQLite file) to load annotations from', read_only=True)
+        self.radius_m = p('radius_m', 50.0, 'Annotations authored within this distance of the GPS fix are loaded (sec. 4.3), m', min_value=1.0, max_value=100000.0)
+        self.poor_gps_m = p('poor_gps_sigma_m', 25.0, 'A fix whose horizontal 1-sigma exceeds this is poor: every annotation of the store is loaded, m', min_value=0.0, max_value=100000.0)
+        self.reload_period_ns = int(1e9 * p('reload_period_s', 10.0, 'Least time between two store queries (new fix, nothing loaded yet), s', min_value=0.0, max_value=3600.0))
+        self.budget_ms = p('budget_ms', 10.0, 'Matching work per frame (map or orientation message), ms (sec. 3.2)', min_value=0.1, max_value=1000.0)
+        self.op_cost_ms = p('op_cost_ms', 0.25, 'Planned cost of matching one tile against one annotation, ms (the budget counts these, so runs are reproducible)', min_value=0.001, max_value=100.0)
+        prior = p('sensor_prior', True, 'Sensor prior (sec. 4.2): search around the position expected from the absolute orientation')
+        window_deg = p('prior_window_deg', 10.0, 'Half-width of the inner prior window (compass error), degrees', min_value=0.5, max_value=180.0)
+        outer = p('prior_outer_factor', 3.0, 'The penalised outer window is this many times the inner one', min_value=1.0, max_value=20.0)
+        penalty = p('prior_penalty', 0.3, 'NCC penalty at the edge of the outer window', min_value=0.0, max_value=2.0)
+        ransac = p('ransac', True, 'Global alignment (sec. 4.3): RANSAC rotation between source and current panorama; places unmatched annotations too')
+        inlier_px = p('inlier_px', 10.0, 'RANSAC inlier threshold, map pixels', min_value=0.5, max_value=100.0)
+        ratio = p('min_inlier_ratio', 0.5, 'A hypothesis needs more than this share of inliers', min_value=0.0, max_value=1.0)
+        placement_px = p('placement_px', 25.0, 'Annotations are placed at their best candidate within this distance of the aligned position, map pixels', min_value=0.5, max_value=200.0)
+        guided = p('guided_search', True, 'Search inferred annotations again with NCC around their aligned position (extension of sec. 4.3)')
+        min_ncc = p('min_ncc', 0.55, 'Smallest NCC of a candidate match', min_value=-1.0, max_value=1.0)
+        walsh_min = p('walsh_min', 0.5, 'Walsh pre-check threshold (sec. 3.2): positions below it get no NCC', min_value=-1.0, max_value=1.0)
+        self.marker_distance_m = p('marker_distance_m', 10.0, 'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0)
+        self.marker_height_m = p('marker_height_m', 0.5, 'Text height of the markers, m', min_value=0.01, max_value=100.0)
+        self.frame_id: str = p('frame_id', 'panorama', 'frame_id of the outputs (the current panorama)')
+        reset_s = p('reset_after_s', 1.0, 'A map stamp this much older than the previous one means a new panorama (bag loop): start over', min_value=0.0, max_value=3600.0)
+
+        self.match_config = MatchConfig(
+            sensor_prior=prior, prior_window_px=math.radians(window_deg) * CylinderGeometry().f,
+            prior_outer_factor=outer, prior_penalty=penalty, ransac=ransac, inlier_px=inlier_px,
+            min_inlier_ratio=ratio, min_ncc=min_ncc, walsh_min=walsh_min,
+            placement_px=placement_px, guided_search=guided)
+        self.geometry = CylinderGeometry()
+        self.annotations: list[Annotation] = []
+        self.detector: ReDetector | None = None
+        self.gray: np.ndarray | None = None
+        self.mapped: np.ndarray | None = None
+        self.map_stamp: int | None = None
+        self.pending_tiles: tuple[int, np.ndarray] | None = None
+        self.finished_tiles: np.ndarray | None = None
+        self.last_query_ns: int | None = None
+        self.R_enu_pano: np.ndarray | None = None
+        self.pano_orientation: dict[int, np.ndarray] = {}
+        self.guard = StampGuard(reset_s)
+        self.published = 0
+
+        self.pub_markers = self.advertise(MarkerArray, 'annotations/markers', LATCHED_QOS)
+        self.pub_alignment = self.advertise(TransformStamped, 'annotations/alignment', RELIABLE_QOS)
+        self.subscribe(Image, 'panorama/image', self.on_map, LATCHED_QOS)
+        self.subscribe(Image, 'panorama/tiles', self.on_tiles, LATCHED_QOS)
+        self.subscribe(NavSatFix, 'gps/fix', self.on_fix, SENSOR_QOS)
+        self.subscribe(TransformStamped, 'orientation/panorama_in_world', self.on_panorama_in_world, RELIABLE_QOS)
+        self.subscribe(Imu, 'orientation/global', self.on_global, RELIABLE_QOS)
+        self.subscribe(TransformStamped, 'panorama/orientation', self.on_panorama_orientation, RELIABLE_QOS)
+        if not self.store_path:
+            self.get_logger().warning('annotation_matcher: no store_path set; nothing to match')
+        self.get_logger().info(f'annotation_matcher: store {self.store_path or "-"}, prior {"on" if prior else "off"}, '
+                               f'RANSAC {"on" if ransac else "off"}, budget {self.budget_ms} ms')
+
+    # -- annotations -----------------------------------------------------------------------
+
+    def on_fix(self, msg: NavSatFix) -> None:
+        lat, lon = float(msg.latitude), float(msg.longitude)
+        if msg.status.status < NavSatStatus.STATUS_FIX:
+            self.warn_throttled('gps/fix: no fix (status NO_FIX), ignored')
+            return
+        if not (math.isfinite(lat) and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180):
+            self.warn_throttled(f'gps/fix: invalid position ({lat}, {lon}), ignored')
+            return
+        t = stamp_ns(msg.header)
+        if self.detector is not None or not self.store_path:
+            return
+        if self.last_query_ns is not None and 0 <= t - self.last_query_ns < self.reload_period_ns:
+            return
+        self.last_query_ns = t
+        cov = float(msg.position_covariance[0])
+        poor = (msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN or not math.isfinite(cov)
+                or cov < 0 or math.sqrt(cov) > self.poor_gps_m)
+        try:
+            with SqliteAnnotationStore(self.store_path, read_only=True) as store:
+                found = store.all() if poor else store.near(lat, lon, self.radius_m)
+                skipped = list(store.skipped)
+        except StoreError as exc:
+            self.warn_throttled(f'annotation store: {exc}')
+            return
+        for reason in skipped:
+            self.warn_throttled(f'annotation store: {reason}, skipped')
+        if not found:
+            self.warn_throttled(f'no annotations within {self.radius_m:g} m of ({lat:.6f}, {lon:.6f})' if not poor
+                                else 'GPS is poor and the annotation store is empty')
+            return
+        self.set_annotations(found)
+        self.get_logger().info(f'{len(found)} annotations of {len({a.panorama_id for a in found})} source panorama(s) loaded'
+                               f'{" (GPS poor: all of them)" if poor else ""}')
+
+    def set_annotations(self, annotations: list[Annotation]) -> None:
+        self.annotations = list(annotations)
+        R_src = [quat_xyzw_to_matrix(np.asarray(a.panorama_in_world_quat_xyzw)) if a.has_world_orientation() else None
+                 for a in self.annotations]
+        self.detector = ReDetector([a.patch for a in self.annotations], np.array([a.direction for a in self.annotations]),
+                                   [a.panorama_id for a in self.annotations], self.match_config, self.geometry, R_src)
+        if self.R_enu_pano is not None:
+            self.detector.set_orientation(self.R_enu_pano)
+
+    # -- map -------------------------------------------------------------------------------
+
+    def on_map(self, msg: Image) -> None:
+        t = stamp_ns(msg.header)
+        verdict = self.guard.check(t)
+        if verdict is StampVerdict.RESET:
+            self.get_logger().warning('panorama/image: clock jumped back (new panorama?), matching starts over')
+            self._reset_panorama()
+        elif verdict is not StampVerdict.OK:
+            self.warn_throttled(f'panorama/image: {verdict.value}, dropped')
+            return
+        try:
+            arr = image_to_array(msg)
+        except ConversionError as exc:
+            self.warn_throttled(f'panorama/image: {exc}, dropped')
+            return
+        if arr.ndim == 3:
+            arr = arr.mean(axis=2)
+        if arr.shape != (self.geometry.height, self.geometry.width):
+            self.warn_throttled(f'panorama/image: map is {arr.shape[1]}x{arr.shape[0]}, expected '
+                                f'{self.geometry.width}x{self.geometry.height}; dropped')
+            return
+        scale = 255.0 / 65535.0 if arr.dtype == np.uint16 else 1.0
+        self.mapped = arr > 0
+        self.gray = arr.astype(np.float32) * np.float32(scale)
+        self.map_stamp = t
+        if self.pending_tiles is not None and self.pending_tiles[0] == t:
+            self._queue_tiles(self.pending_tiles[1])
+            self.pending_tiles = None
+        self._work(t)
+
+    def on_tiles(self, msg: Image) -> None:
+        try:
+            tiles = image_to_array(msg)
+        except ConversionError as exc:
+            self.warn_throttled(f'panorama/tiles: {exc}, dropped')
+            return
+        if tiles.ndim != 2 or self.geometry.width % max(tiles.shape[1], 1) or \
+                self.geometry.width // tiles.shape[1] != self.geometry.height // max(tiles.shape[0], 1):
+            self.warn_throttled(f'panorama/tiles: {tiles.shape} does not tile the map, dropped')
+            return
+        if self.match_config.tile_size != self.geometry.width // tiles.shape[1]:
+            self.match_config = dataclasses.replace(self.match_config, tile_size=self.geometry.width // tiles.shape[1])
+            if self.annotations:
+                self.set_annotations(self.annotations)
+        t = stamp_ns(msg.header)
+        if self.map_stamp == t:
+            self._queue_tiles(tiles)
+            self._work(t)
+        else:  # the map with this stamp has not arrived yet
+            self.pending_tiles = (t, tiles)
+
+    def _queue_tiles(self, tiles: np.ndarray) -> None:
+        self.finished_tiles = tiles
+        if self.detector is not None:
+            self.detector.add_finished_tiles(tiles)
+
+    def _reset_panorama(self) -> None:
+        self.gray = self.mapped = None
+        self.map_stamp = None
+        self.pending_tiles = None
+        self.R_enu_pano = None
+        self.pano_orientation.clear()
+        if self.annotations:
+            self.set_annotations(self.annotations)
+
+    # -- prior -----------------------------------------------------------------------------
+
+    def on_panorama_in_world(self, msg: TransformStamped) -> None:
+        try:
+            R = rotation_from_quaternion(msg.transform.rotation, 'orientation/panorama_in_world')
+        except ConversionError as exc:
+            self.warn_throttled(f'{exc}, dropped')
+            return
+        self._set_prior(R, stamp_ns(msg.header))
+
+    def on_panorama_orientation(self, msg: TransformStamped) -> None:
+        try:
+            R = rotation_from_quaternion(msg.transform.rotation, 'panorama/orientation')
+        except ConversionError as exc:
+            self.warn_throttled(f'{exc}, dropped')
+            return
+        self.pano_orientation[stamp_ns(msg.header)] = R
+        while len(self.pano_orientation) > 50:
+            self.pano_orientation.pop(next(iter(self.pano_orientation)))
+
+    def on_global(self, msg: Imu) -> None:
+        if msg.orientation_covariance[0] == -1.0:
+            return
+        t = stamp_ns(msg.header)
+        R_pano_cam = self.pano_orientation.get(t)
+        if R_pano_cam is None:
+            self._work(t)
+            return
+        try:
+            R_enu_cam = rotation_from_quaternion(msg.orientation, 'orientation/global')
+        except ConversionError as exc:
+            self.warn_throttled(f'{exc}, dropped')
+            return
+        self._set_prior(R_enu_cam @ R_pano_cam.T, t)
+
+    def _set_prior(self, R_enu_pano: np.ndarray, t: int) -> None:
+        self.R_enu_pano = R_enu_pano
+        if self.detector is not None:
+            self.detector.set_orientation(R_enu_pano)
+        self._work(t)
+
+    # -- work and outputs ------------------------------------------------------------------
+
+    def _work(self, t: int) -> None:
+        det = self.detector
+        if det is None or self.gray is None or not det.queue:
+            return
+        det.step(self.gray, self.mapped, max(1, int(self.budget_ms / self.op_cost_ms)))
+        if det.dirty:
+            self._publish(t)  # stamped when the result is available (the frame that did the work)
+
+    def _publish(self, t: int) -> None:
+        assert self.detector is not None
+        source, alignment = self.detector.result()
+        stamp = to_stamp(t)
+        out = MarkerArray()
+        clear = Marker()
+        clear.header.stamp = stamp
+        clear.header.frame_id = self.frame_id
+        clear.action = Marker.DELETEALL
+        out.markers.append(clear)
+        for pl in alignment.placements:
+            a = self.annotations[pl.index]
+            m = Marker()
+            m.header.stamp = stamp
+            m.header.frame_id = self.frame_id
+            m.ns = pl.status
+            m.id = int(a.id if a.id is not None else pl.index)
+            m.type = Marker.TEXT_VIEW_FACING
+            m.action = Marker.ADD
+            d = np.asarray(pl.direction, float) * self.marker_distance_m
+            m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(x) for x in d)
+            m.pose.orientation.w = 1.0
+            m.scale.z = self.marker_height_m
+            m.color.a = 1.0
+            if pl.status == 'matched':
+                m.color.g = 1.0
+            else:
+                m.color.r, m.color.g = 1.0, 0.55
+            m.text = a.text
+            out.markers.append(m)
+        self.pub_markers.publish(out)
+        self.published += 1
+        if alignment.R_target_source is not None and source is not None:
+            tf = TransformStamped()
+            tf.header.stamp = stamp
+            tf.header.frame_id = self.frame_id
+            tf.child_frame_id = source
+            set_quaternion(tf.transform.rotation, alignment.R_target_source)
+            self.pub_alignment.publish(tf)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(AnnotationMatcherNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

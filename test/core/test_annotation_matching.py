@@ -1,0 +1,206 @@
+"""Tile matching, sensor prior and global alignment (Langlotz 2011 sec. 3.2, 4.2, 4.3)."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from annotation_synth import GEO, make_case, tiles_of
+from ar_tracking.core.annotations.matching import (Candidate, CandidateList, MatchConfig, ReDetector,
+                                                   TileMatcher, _walsh_basis, absolute_orientation,
+                                                   ransac_alignment)
+
+
+def tile_of(u: float, v: float, side: int = 16, T: int = 64) -> int:
+    x0, y0 = int(round(u - (side - 1) / 2)) + side // 2, int(round(v - (side - 1) / 2)) + side // 2
+    return (y0 // T) * (GEO.width // T) + (x0 % GEO.width) // T
+
+
+def test_walsh_basis_is_orthogonal_and_has_no_dc():
+    B = _walsh_basis(15)
+    assert np.allclose(B.T @ B, 16 * np.eye(15))
+    assert np.allclose(B.sum(axis=0), 0.0)
+
+
+def test_tile_match_finds_patch_under_changed_lighting_subpixel():
+    case = make_case(seed=1)
+    m = TileMatcher(case.patches, MatchConfig(sensor_prior=False))
+    for i, (u, v) in enumerate(case.truth_uv):
+        found = m.match_tile(case.target, case.mapped, tile_of(u, v))
+        assert i in found, f'annotation {i} not found in its tile'
+        best = found[i][0]
+        assert best.ncc > 0.9
+        assert math.hypot(best.u - u, best.v - v) < 0.5
+        assert len(found[i]) <= 3
+
+
+def test_walsh_precheck_gates_the_ncc():
+    case = make_case(seed=2)
+    u, v = case.truth_uv[0]
+    strict = TileMatcher(case.patches, MatchConfig(walsh_min=1.01, sensor_prior=False))
+    assert strict.match_tile(case.target, case.mapped, tile_of(u, v)) == {}
+    assert strict.ncc_ops == 0 and strict.walsh_rejected == len(case.patches)
+
+
+def test_unmapped_tile_gives_no_candidates():
+    case = make_case(seed=3)
+    m = TileMatcher(case.patches, MatchConfig(sensor_prior=False))
+    u, v = case.truth_uv[0]
+    unmapped = case.mapped.copy()
+    unmapped[:, :] = False
+    assert m.match_tile(case.target, unmapped, tile_of(u, v)) == {}
+
+
+def test_sensor_prior_prefers_the_copy_inside_the_window():
+    case = make_case(seed=4)
+    u, v = case.truth_uv[0]
+    gray = case.target.copy()
+    x0, y0 = int(round(u - 7.5)), int(round(v - 7.5))
+    # A second copy of the support area 300 px away, slightly sharper (better NCC) than the true one.
+    gray[y0:y0 + 16, (x0 + 300):(x0 + 316)] = gray[y0:y0 + 16, x0:x0 + 16] * 1.1
+    m_off = TileMatcher(case.patches[:1], MatchConfig(sensor_prior=False))
+    m_on = TileMatcher(case.patches[:1], MatchConfig(sensor_prior=True))
+    near = np.array([[u + 20.0, v]])
+    assert 0 in m_off.match_tile(gray, case.mapped, tile_of(u + 300, v))
+    # With the prior, the copy lies outside the 3x window: never tested there.
+    assert m_on.match_tile(gray, case.mapped, tile_of(u + 300, v), expected_uv=near) == {}
+    inner = m_on.match_tile(gray, case.mapped, tile_of(u, v), expected_uv=near)[0][0]
+    assert math.hypot(inner.u - u, inner.v - v) < 0.5 and inner.score == pytest.approx(inner.ncc)
+    # In the outer window the score is penalised by the distance from the inner window.
+    far = np.array([[u + 57.0 + 100.0, v]])
+    outer = m_on.match_tile(gray, case.mapped, tile_of(u, v), expected_uv=far)[0][0]
+    assert outer.score < outer.ncc - 0.1
+
+
+def test_candidate_list_keeps_three_best_and_merges_neighbours():
+    cl = CandidateList(3, 8.0, 2048)
+    for k, s in enumerate([0.6, 0.9, 0.7, 0.8]):
+        cl.add(Candidate(100.0 * k, 200.0, s, s))
+    assert [c.score for c in cl.items] == [0.9, 0.8, 0.7]
+    cl.add(Candidate(103.0, 201.0, 0.95, 0.95))  # replaces its neighbour at u = 100
+    assert cl.best.u == 103.0 and len(cl.items) == 3
+    cl.add(Candidate(2047.0, 200.0, 0.99, 0.99))
+    cl.add(Candidate(1.0, 200.0, 0.5, 0.5))  # across the wrap: a neighbour, worse: dropped
+    assert all(c.u != 1.0 for c in cl.items)
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_absolute_orientation_recovers_rotation(seed):
+    R = Rotation.random(random_state=seed).as_matrix()
+    a = np.random.default_rng(seed).normal(size=(2, 3))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    assert np.allclose(absolute_orientation(a, a @ R.T), R, atol=1e-9)
+    assert np.isclose(np.linalg.det(absolute_orientation(a, a @ R.T)), 1.0)
+
+
+def _candidates(case, wrong: set[int], none: set[int], rng) -> list[list[Candidate]]:
+    out = []
+    for i, (u, v) in enumerate(case.truth_uv):
+        if i in none:
+            out.append([])
+            continue
+        cands = [Candidate(float((u + rng.uniform(100, 1800)) % 2048), float(v + rng.uniform(-50, 50)), 0.8, 0.8)
+                 for _ in range(2)]
+        if i not in wrong:
+            cands.insert(int(rng.integers(0, 3)), Candidate(float(u + rng.normal(0, 0.5)), float(v + rng.normal(0, 0.5)), 0.7, 0.7))
+        out.append(cands)
+    return out
+
+
+def test_ransac_finds_rotation_and_infers_unmatched():
+    case = make_case(seed=5, n=8)
+    rng = np.random.default_rng(0)
+    cands = _candidates(case, wrong={2, 5}, none={7}, rng=rng)
+    al = ransac_alignment(case.dirs, cands, MatchConfig())
+    assert al.R_target_source is not None
+    ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+    assert ang < 0.1
+    status = {p.index: p.status for p in al.placements}
+    assert len(al.placements) == 8
+    assert [i for i in range(8) if status[i] == 'inferred'] == [2, 5, 7]
+    for p in al.placements:
+        u, v = case.truth_uv[p.index]
+        assert math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v) < 2.0
+
+
+def test_ransac_needs_more_than_half_inliers():
+    case = make_case(seed=6, n=6)
+    cands = _candidates(case, wrong={0, 1, 2, 3}, none=set(), rng=np.random.default_rng(1))
+    al = ransac_alignment(case.dirs, cands, MatchConfig())
+    # Two consistent annotations of six cannot make a hypothesis with > 50 % inliers.
+    assert al.R_target_source is None
+    assert ransac_alignment(case.dirs, _candidates(case, wrong={0}, none=set(), rng=np.random.default_rng(1)),
+                            MatchConfig()).R_target_source is not None
+
+
+def test_redetector_queue_budget_each_tile_once_and_placements():
+    case = make_case(seed=7)
+    det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(sensor_prior=False))
+    tiles = tiles_of(case.mapped)
+    n_tiles = int((tiles > 0).sum())
+    assert det.add_finished_tiles(tiles) == n_tiles
+    assert det.add_finished_tiles(tiles) == 0  # each tile once
+    assert det.step(case.target, case.mapped, max_ops=1) == 1  # at least one tile per frame
+    assert len(det.queue) == n_tiles - 1
+    while det.queue:
+        det.step(case.target, case.mapped, max_ops=6 * 8)
+    source, al = det.result()
+    assert source == 'p' and al.R_target_source is not None
+    for p in al.placements:
+        u, v = case.truth_uv[p.index]
+        assert math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v) < 1.0
+
+
+def test_redetector_picks_the_best_scoring_source_panorama():
+    case = make_case(seed=8)
+    other = make_case(seed=9)
+    patches = case.patches + other.patches
+    dirs = np.vstack([case.dirs, other.dirs])
+    det = ReDetector(patches, dirs, ['right'] * 6 + ['other'] * 6, MatchConfig(sensor_prior=False))
+    det.add_finished_tiles(tiles_of(case.mapped))
+    det.step(case.target, case.mapped)
+    source, al = det.result()
+    assert source == 'right'
+    assert all(p.index < 6 for p in al.placements)
+
+
+def test_core_does_not_import_rclpy():
+    code = ('import sys; sys.modules["rclpy"] = None; '
+            'import ar_tracking.core.annotations.matching, ar_tracking.core.annotations.store; print("ok")')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and 'ok' in out.stdout, out.stderr
+
+
+def test_two_pair_frames_equal_the_svd_absolute_orientation():
+    from ar_tracking.core.annotations.matching import _frames
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(2, 3))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = a @ Rotation.random(random_state=4).as_matrix().T + rng.normal(0, 0.01, (2, 3))
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    R = _frames(b[:1], b[1:]) @ np.swapaxes(_frames(a[:1], a[1:]), 1, 2)
+    assert np.allclose(R[0], absolute_orientation(a, b), atol=1e-9)
+
+
+def test_guided_search_matches_an_annotation_its_tiles_missed():
+    case = make_case(seed=15)
+    u, v = case.truth_uv[2]
+    tiles = tiles_of(case.mapped)
+    flat = tiles.reshape(-1)
+    flat[tile_of(u, v)] = 0  # its tile is never matched: no candidates for annotation 2
+    statuses = {}
+    for guided in (False, True):
+        det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(sensor_prior=False, guided_search=guided))
+        det.add_finished_tiles(tiles)
+        det.step(case.target, case.mapped)
+        assert not det.candidates[2].items or all(math.hypot(c.u - u, c.v - v) > 8 for c in det.candidates[2].items)
+        _, al = det.result()
+        p = next(p for p in al.placements if p.index == 2)
+        statuses[guided] = p.status
+        assert math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v) < 1.0
+    assert statuses == {False: 'inferred', True: 'matched'}

@@ -1,0 +1,31 @@
+"""Label projection and drawing of the AR view (Langlotz 2011 sec. 3.2, 5)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ar_tracking.core.annotations.overlay import COLOURS_RGB, Label, draw_labels, project_labels
+from ar_tracking.core.rotations import rot_y
+
+K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+
+
+def test_label_ahead_lands_at_the_principal_point_and_behind_is_dropped():
+    ahead = Label('ahead', np.array([0.0, 0.0, 1.0]))
+    behind = Label('behind', np.array([0.0, 0.0, -1.0]))
+    aside = Label('aside', np.array([1.0, 0.0, 0.0]))
+    placed = project_labels([ahead, behind, aside], np.eye(3), K, (240, 320))
+    assert [p[0].text for p in placed] == ['ahead']
+    assert np.allclose(placed[0][1:], (159.5, 119.5))
+    # Turning the camera 90 degrees right (about y) brings 'aside' to the centre.
+    placed = project_labels([ahead, aside], rot_y(np.pi / 2), K, (240, 320))
+    assert [p[0].text for p in placed] == ['aside'] and np.allclose(placed[0][1:], (159.5, 119.5))
+
+
+def test_draw_uses_status_colours_and_leaves_input_untouched():
+    img = np.full((240, 320, 3), 128, np.uint8)
+    labs = [Label('m', np.array([0.0, 0.0, 1.0]), 'matched'), Label('i', np.array([0.3, 0.0, 1.0]), 'inferred')]
+    out = draw_labels(img, project_labels(labs, np.eye(3), K, (240, 320)))
+    assert (img == 128).all()
+    assert tuple(out[120, 160]) == COLOURS_RGB['matched']
+    x = int(round(159.5 + 300 * 0.3))
+    assert tuple(out[120, x]) == COLOURS_RGB['inferred']

@@ -1,0 +1,192 @@
+"""The SQLite annotation store (Langlotz 2011 sec. 4.3): records, radius query, bad files."""
+from __future__ import annotations
+
+import math
+import sqlite3
+import threading
+
+import numpy as np
+import pytest
+
+from annotation_synth import annotation
+from ar_tracking.core.annotations.store import (SqliteAnnotationStore, StoreError, distance_m,
+                                                open_store)
+
+LAT, LON = 47.0458, 15.4251
+
+
+def offset(lat: float, lon: float, north_m: float, east_m: float) -> tuple[float, float]:
+    return (lat + math.degrees(north_m / 6_371_008.8),
+            lon + math.degrees(east_m / (6_371_008.8 * math.cos(math.radians(lat)))))
+
+
+def rec(seed: int = 0, side: int = 16, **kw):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=3)
+    return annotation(rng.integers(0, 256, (side, side), dtype=np.uint8), d / np.linalg.norm(d), **kw)
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = SqliteAnnotationStore(tmp_path / 'a.db', create=True)
+    yield s
+    s.close()
+
+
+def test_round_trip_keeps_every_field(store):
+    q = np.array([0.0, 0.0, math.sin(0.2), math.cos(0.2)])
+    a = rec(1, side=32, text='Door', q=q)
+    report = store.add([a])
+    assert report.ids == [1] and not report.skipped
+    (b,) = store.all()
+    assert b.id == 1 and b.text == 'Door' and b.author == 'peter' and b.panorama_id == 'p1'
+    assert np.array_equal(b.patch, a.patch) and b.patch.shape == (32, 32)
+    assert np.allclose(b.direction, a.direction) and b.created_ns == a.created_ns
+    assert np.allclose(b.panorama_in_world_quat_xyzw, q) and b.has_world_orientation()
+    assert (b.latitude_deg, b.longitude_deg, b.altitude_m) == (a.latitude_deg, a.longitude_deg, a.altitude_m)
+    assert len(a.patch.tobytes()) + len(a.text) < 2100  # about 2 kB a record (sec. 4.3)
+
+
+def test_radius_query_is_an_rtree_index_query(store):
+    recs = []
+    for k, dist in enumerate([10.0, 45.0, 55.0, 500.0, 49.0]):
+        lat, lon = offset(LAT, LON, dist * math.cos(k), dist * math.sin(k))
+        recs.append(rec(k, text=f'at {dist:g} m', lat=lat, lon=lon))
+    store.add(recs)
+    found = sorted(a.text for a in store.near(LAT, LON, 50.0))
+    assert found == ['at 10 m', 'at 45 m', 'at 49 m']
+    for a in store.near(LAT, LON, 50.0):
+        assert distance_m(LAT, LON, a.latitude_deg, a.longitude_deg) <= 50.0
+    plan = ' '.join(str(r) for r in store._db.execute(
+        'EXPLAIN QUERY PLAN SELECT id FROM annotations_rtree WHERE max_lat >= 1 AND min_lat <= 2 '
+        'AND max_lon >= 1 AND min_lon <= 2').fetchall())
+    assert 'VIRTUAL TABLE INDEX' in plan
+
+
+def test_bad_records_are_skipped_and_reported(store):
+    good = rec(0)
+    wrong_size = annotation(np.zeros((15, 15), np.uint8), good.direction)
+    nan_dir = annotation(good.patch, np.array([np.nan, 0.0, 1.0]))
+    zero_dir = annotation(good.patch, np.zeros(3))
+    bad_pos = annotation(good.patch, good.direction, lat=float('nan'))
+    report = store.add([wrong_size, good, nan_dir, zero_dir, bad_pos])
+    assert len(report.ids) == 1
+    assert [i for i, _ in report.skipped] == [0, 2, 3, 4]
+    assert 'patch' in report.skipped[0][1] and 'finite' in report.skipped[1][1]
+    assert store.count() == 1
+
+
+def test_corrupt_record_in_file_is_skipped_on_read(store):
+    store.add([rec(0), rec(1)])
+    store._db.execute('UPDATE annotations SET patch = ? WHERE id = 2', (b'short',))
+    assert [a.id for a in store.all()] == [1]
+    assert len(store.skipped) == 1 and 'record 2' in store.skipped[0]
+
+
+def test_missing_file_is_an_error_and_not_created(tmp_path):
+    path = tmp_path / 'nope.db'
+    with pytest.raises(StoreError, match='no such annotation store'):
+        SqliteAnnotationStore(path)
+    assert not path.exists()
+
+
+@pytest.mark.parametrize('content', [b'garbage' * 100, b''])
+def test_corrupt_file_is_an_error_and_left_untouched(tmp_path, content):
+    path = tmp_path / 'bad.db'
+    path.write_bytes(content)
+    for create in (False, True):
+        with pytest.raises(StoreError, match='corrupt'):
+            SqliteAnnotationStore(path, create=create)
+    assert path.read_bytes() == content
+
+
+def test_foreign_sqlite_file_is_refused_untouched(tmp_path):
+    path = tmp_path / 'other.db'
+    db = sqlite3.connect(path)
+    db.execute('CREATE TABLE x (y)')
+    db.commit()
+    db.close()
+    before = path.read_bytes()
+    with pytest.raises(StoreError, match='not an annotation store|corrupt'):
+        SqliteAnnotationStore(path, create=True)
+    assert path.read_bytes() == before
+
+
+def test_truncated_store_is_reported(tmp_path):
+    path = tmp_path / 't.db'
+    with SqliteAnnotationStore(path, create=True) as s:
+        s.add([rec(k) for k in range(50)])
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) // 3])
+    with pytest.raises(StoreError):
+        with SqliteAnnotationStore(path) as s:
+            s.all()
+
+
+def test_locked_store_gives_one_line_error(tmp_path):
+    path = tmp_path / 'l.db'
+    SqliteAnnotationStore(path, create=True).close()
+    other = sqlite3.connect(path, isolation_level=None)
+    other.execute('BEGIN EXCLUSIVE')
+    try:
+        with SqliteAnnotationStore(path, timeout_s=0.1) as s:
+            with pytest.raises(StoreError, match='locked') as info:
+                s.add([rec(0)])
+            assert '\n' not in str(info.value)
+    finally:
+        other.execute('ROLLBACK')
+        other.close()
+    with SqliteAnnotationStore(path) as s:
+        assert s.add([rec(0)]).ids == [1]
+
+
+def test_concurrent_readers_and_writer_do_not_corrupt(tmp_path):
+    path = tmp_path / 'c.db'
+    SqliteAnnotationStore(path, create=True).close()
+    batches, size = 30, 5
+    seen: list[list[int]] = [[], []]
+    errors: list[BaseException] = []
+    done = threading.Event()
+
+    def writer():
+        try:
+            with SqliteAnnotationStore(path, timeout_s=10) as s:
+                for b in range(batches):
+                    s.add([rec(b * size + k) for k in range(size)])
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+        finally:
+            done.set()
+
+    def reader(k):
+        try:
+            with SqliteAnnotationStore(path, timeout_s=10, read_only=True) as s:
+                while not done.is_set():
+                    seen[k].append(len(s.near(47.0, 15.0, 50.0)))
+                seen[k].append(len(s.near(47.0, 15.0, 50.0)))
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer)] + [threading.Thread(target=reader, args=(k,)) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors, errors
+    for counts in seen:
+        assert counts and all(c % size == 0 for c in counts)  # whole transactions only
+        assert counts == sorted(counts) and counts[-1] == batches * size
+    with SqliteAnnotationStore(path) as s:
+        assert s.count() == batches * size and s.integrity_ok()
+
+
+def test_open_store_urls(tmp_path):
+    with open_store(f'sqlite:///{tmp_path / "u.db"}', create=True) as s:
+        assert s.count() == 0
+    with pytest.raises(StoreError, match='PostgreSQL'):
+        open_store('postgresql://host/db')
+
+
+def test_invalid_query_position_is_an_error(store):
+    with pytest.raises(StoreError):
+        store.near(float('nan'), 15.0)

@@ -1,0 +1,161 @@
+"""annotation_matcher in-process: a store, a synthetic map and tiles in, markers out; bad input."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+rclpy = pytest.importorskip('rclpy')
+
+from geometry_msgs.msg import TransformStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Image, NavSatFix, NavSatStatus  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
+
+from annotation_synth import GEO, annotation, make_case, tiles_of  # noqa: E402
+from ar_tracking.core.annotations.store import SqliteAnnotationStore  # noqa: E402
+from ar_tracking.nodes.annotation_matcher import AnnotationMatcherNode  # noqa: E402
+from ar_tracking.ros.conversions import array_to_image, rotation_from_quaternion, to_stamp  # noqa: E402
+from ar_tracking.ros.node_base import LATCHED_QOS  # noqa: E402
+from conftest import spin_until  # noqa: E402
+
+T0 = 1_700_000_000_000_000_000
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'annotation_matcher.yaml'
+LAT, LON = 47.0458, 15.4251
+
+
+def make_store(path: Path, case) -> Path:
+    with SqliteAnnotationStore(path, create=True) as s:
+        s.add([annotation(p, d, text=f'label {i}', lat=LAT, lon=LON) for i, (p, d) in enumerate(zip(case.patches, case.dirs))])
+    return path
+
+
+class Harness:
+    def __init__(self, context, params):
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        self.node = AnnotationMatcherNode(context=context, parameter_overrides=overrides)
+        self.src = rclpy.create_node('test_source', context=context)
+        self.markers: list[MarkerArray] = []
+        self.alignments: list[TransformStamped] = []
+        self.src.create_subscription(MarkerArray, 'annotations/markers', self.markers.append, LATCHED_QOS)
+        self.src.create_subscription(TransformStamped, 'annotations/alignment', self.alignments.append, 10)
+        self.pub_map = self.src.create_publisher(Image, 'panorama/image', LATCHED_QOS)
+        self.pub_tiles = self.src.create_publisher(Image, 'panorama/tiles', LATCHED_QOS)
+        self.pub_fix = self.src.create_publisher(NavSatFix, 'gps/fix', 10)
+        self.ex = SingleThreadedExecutor(context=context)
+        self.ex.add_node(self.node)
+        self.ex.add_node(self.src)
+        assert spin_until(self.ex, lambda: all(p.get_subscription_count() > 0 for p in (self.pub_map, self.pub_tiles, self.pub_fix)))
+
+    def fix(self, t, lat=LAT, lon=LON, status=NavSatStatus.STATUS_FIX, sigma=3.0):
+        msg = NavSatFix()
+        msg.header.stamp = to_stamp(t)
+        msg.status.status = status
+        msg.latitude, msg.longitude, msg.altitude = lat, lon, 350.0
+        msg.position_covariance = [sigma ** 2, 0.0, 0.0, 0.0, sigma ** 2, 0.0, 0.0, 0.0, sigma ** 2]
+        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN
+        self.pub_fix.publish(msg)
+        spin_until(self.ex, lambda: False, 0.05)
+
+    def map(self, t, gray, mapped, encoding='mono16'):
+        arr = np.where(mapped, np.clip(gray * 257.0, 1, 65535), 0).astype(np.uint16) if encoding == 'mono16' else gray
+        img = array_to_image(arr, encoding)
+        img.header.stamp = to_stamp(t)
+        img.header.frame_id = 'panorama'
+        tiles = array_to_image(tiles_of(mapped), 'mono8')
+        tiles.header.stamp = to_stamp(t)
+        self.pub_map.publish(img)
+        self.pub_tiles.publish(tiles)
+
+
+def test_matches_store_annotations_in_the_map(ros_context, tmp_path):
+    case = make_case(seed=11)
+    store = make_store(tmp_path / 'a.db', case)
+    h = Harness(ros_context, {'store_path': str(store), 'budget_ms': 1000.0})
+    h.fix(T0)
+    assert h.node.detector is not None and h.node.detector.n == 6
+    h.map(T0 + 1, case.target, case.mapped)
+    assert spin_until(h.ex, lambda: h.node.detector.tiles_done == int((tiles_of(case.mapped) > 0).sum()) and h.markers, 10.0)
+    spin_until(h.ex, lambda: False, 0.2)
+    last = h.markers[-1]
+    texts = {m.text: m for m in last.markers if m.action == 0}
+    assert len(texts) == 6
+    for i, (u, v) in enumerate(case.truth_uv):
+        m = texts[f'label {i}']
+        d = np.array([m.pose.position.x, m.pose.position.y, m.pose.position.z])
+        truth = GEO.unproject(np.array(u), np.array(v))
+        assert np.degrees(math.acos(np.clip(d / np.linalg.norm(d) @ truth, -1, 1))) < 0.3
+        assert m.ns in ('matched', 'inferred') and m.header.frame_id == 'panorama'
+    assert h.alignments
+    R = rotation_from_quaternion(h.alignments[-1].transform.rotation)
+    assert np.degrees(np.arccos(np.clip((np.trace(R.T @ case.R_target_source) - 1) / 2, -1, 1))) < 0.2
+
+
+def test_budget_spreads_the_work_over_frames(ros_context, tmp_path):
+    case = make_case(seed=12)
+    store = make_store(tmp_path / 'a.db', case)
+    h = Harness(ros_context, {'store_path': str(store), 'budget_ms': 1.0, 'op_cost_ms': 0.5})
+    h.fix(T0)
+    h.map(T0 + 1, case.target, case.mapped)
+    assert spin_until(h.ex, lambda: h.node.detector.tiles_done >= 1, 5.0)
+    spin_until(h.ex, lambda: False, 0.2)
+    assert h.node.detector.tiles_done == 1  # 2 ops of 6 annotations: one tile per frame
+    assert len(h.node.detector.queue) > 0
+
+
+def test_bad_input_is_logged_and_the_node_keeps_running(ros_context, tmp_path):
+    case = make_case(seed=13)
+    store = make_store(tmp_path / 'a.db', case)
+    h = Harness(ros_context, {'store_path': str(store), 'budget_ms': 1000.0})
+    h.fix(T0, status=NavSatStatus.STATUS_NO_FIX)
+    h.fix(T0 + 1, lat=float('nan'))
+    assert h.node.detector is None
+    h.fix(T0 + 2, lat=LAT + 1.0)  # 111 km away: no annotations nearby
+    assert h.node.detector is None
+    h.map(T0 + 3, case.target.astype(np.float32), case.mapped, encoding='32FC1')  # wrong encoding
+    bad_tiles = array_to_image(np.zeros((3, 5), np.uint8), 'mono8')
+    bad_tiles.header.stamp = to_stamp(T0 + 4)
+    h.pub_tiles.publish(bad_tiles)
+    small = array_to_image(np.zeros((10, 10), np.uint16), 'mono16')
+    small.header.stamp = to_stamp(T0 + 5)
+    h.pub_map.publish(small)
+    spin_until(h.ex, lambda: False, 0.2)
+    assert h.node.gray is None and not h.markers
+    assert all(s.failures == 0 for s in h.node.callback_stats.values())
+    # A good fix and map still work afterwards (after the reload period).
+    h.fix(T0 + 20_000_000_000)
+    assert h.node.detector is not None
+    h.map(T0 + 20_000_000_001, case.target, case.mapped)
+    assert spin_until(h.ex, lambda: bool(h.markers), 10.0)
+
+
+def test_missing_store_file_keeps_running(ros_context, tmp_path):
+    h = Harness(ros_context, {'store_path': str(tmp_path / 'missing.db')})
+    h.fix(T0)
+    assert h.node.detector is None
+    assert all(s.failures == 0 for s in h.node.callback_stats.values())
+    assert not (tmp_path / 'missing.db').exists()
+
+
+def test_poor_gps_loads_every_annotation(ros_context, tmp_path):
+    case = make_case(seed=14)
+    store = make_store(tmp_path / 'a.db', case)
+    h = Harness(ros_context, {'store_path': str(store)})
+    h.fix(T0, lat=LAT + 0.01, sigma=200.0)  # 1.1 km off, but GPS is poor
+    assert h.node.detector is not None and h.node.detector.n == 6
+
+
+def test_config_file_equals_declared_defaults(ros_context):
+    params = yaml.safe_load(CONFIG.read_text())['annotation_matcher']['ros__parameters']
+    node = AnnotationMatcherNode(context=ros_context)
+    try:
+        declared = {name for name in node._parameters if name not in ('use_sim_time', 'start_type_description_service')}
+        assert set(params) == declared
+        for key, value in params.items():
+            assert node.get_parameter(key).value == value, key
+    finally:
+        node.destroy_node()
