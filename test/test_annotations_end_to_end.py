@@ -70,3 +70,6 @@ def test_redetection_in_the_browsing_bag(authored, tmp_path):
     from ar_tracking.eval.annotation_figures import annotation_figure
     png = annotation_figure(out, tmp_path / 'fig4.png')
     assert png is not None and png.stat().st_size > 10_000
+    from ar_tracking.eval.report import write_report
+    html = write_report(out, tmp_path / 'report.html').read_text()
+    assert 'Annotations placed in the panorama' in html and 'Panorama map built' in html

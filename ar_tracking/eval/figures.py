@@ -57,4 +57,13 @@ def extra_figures(bag_path: str | Path) -> list[tuple[str, bytes]]:
     pano = panorama_png(bag_path)
     if pano is not None:
         figures.append(('Panorama map built during the run (panorama/image, last message)', pano))
+    import tempfile
+
+    from .annotation_figures import annotation_figure
+
+    with tempfile.TemporaryDirectory() as tmp:
+        written = annotation_figure(bag_path, Path(tmp) / 'annotations.png')
+        if written is not None:
+            figures.append(('Annotations placed in the panorama (matched green, inferred by alignment '
+                            'another colour) and AR overlay frames', written.read_bytes()))
     return figures
