@@ -135,3 +135,15 @@ def interpolate_rotations(times: Array, R: Array, query_times: Array) -> tuple[A
         return np.repeat(R[:1], int(inside.sum()), axis=0), inside
     slerp = Slerp(times, Rotation.from_matrix(R))
     return slerp(query_times[inside]).as_matrix(), inside
+
+
+def align_directions(src: Array, dst: Array, weights: Array | None = None) -> Array:
+    """The rotation R minimising sum w_i |dst_i - R src_i|^2 for (n, 3) direction sets, n >= 2
+    (Wahba's problem / Kabsch, Horn's absolute orientation, solved by SVD). Plain numpy: it
+    runs several times per frame in the panorama tracker, where scipy's align_vectors costs
+    more than the SVD itself."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    H = (dst if weights is None else dst * np.asarray(weights, float)[:, None]).T @ src
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt

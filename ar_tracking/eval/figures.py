@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from ..io.bags import BagError, BagReader
+from ..ros.conversions import ConversionError, image_to_array
 
 logger = logging.getLogger(__name__)
 
@@ -32,22 +33,20 @@ def panorama_png(bag_path: str | Path) -> bytes | None:
         except BagError as exc:
             logger.warning('panorama image not shown: %s', exc)
             return None
-    dtype = np.uint16 if msg.encoding in ('mono16', 'rgb16', '16UC1', '16UC3') else np.uint8
-    channels = 3 if msg.encoding in ('rgb16', 'rgb8', 'bgr8', '16UC3') else 1
-    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
-    rows = data[: msg.step * msg.height].reshape(msg.height, msg.step)
-    itemsize = np.dtype(dtype).itemsize
-    pixels = rows[:, : msg.width * channels * itemsize].copy().view(
-        np.dtype(dtype).newbyteorder('>' if msg.is_bigendian else '<'))
-    img = pixels.reshape(msg.height, msg.width, channels).astype(np.float64)
+    try:
+        arr = image_to_array(msg)  # honours step, encoding and byte order
+    except ConversionError as exc:
+        logger.warning('panorama image not shown: %s', exc)
+        return None
+    img = arr.astype(np.float64)
     mapped = img > 0
     if mapped.any():  # linear tone-mapping of the mapped range to 8 bits
         lo, hi = np.percentile(img[mapped], [0.5, 99.5])
         img = np.clip((img - lo) / max(hi - lo, 1e-9) * 255.0, 0, 255)
     out = img.astype(np.uint8)
-    if channels == 3 and msg.encoding.startswith('rgb'):
+    if out.ndim == 3 and msg.encoding.startswith('rgb'):
         out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR)
-    ok, png = cv2.imencode('.png', out if channels == 3 else out[:, :, 0])
+    ok, png = cv2.imencode('.png', out)
     return png.tobytes() if ok else None
 
 

@@ -12,6 +12,7 @@ A node subclasses :class:`TrackingNode` and uses
 """
 from __future__ import annotations
 
+import sys
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -88,6 +89,7 @@ class TrackingNode(Node):
         self.lockstep_hooks: LockstepHooks | None = None
         self.callback_stats: dict[str, CallbackStats] = defaultdict(CallbackStats)
         self._validators: dict[str, Callable[[Any], str | None]] = {}
+        self._warned_at: dict[tuple[Any, int], float] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
     # -- parameters ------------------------------------------------------------------------
@@ -194,14 +196,24 @@ class TrackingNode(Node):
     # -- logging ---------------------------------------------------------------------------
 
     def warn_throttled(self, text: str, period_s: float = 5.0) -> None:
-        """One warning line, at most once per period for the same call site."""
-        self.get_logger().warning(text, throttle_duration_sec=period_s)
+        """One warning line, at most once per period for the same call site.
+
+        rclpy's own throttling keys on the line that calls the logger, which would be this
+        method for every warning of the node (one kind of bad input would silence all others);
+        so the throttle here keys on the caller of warn_throttled.
+        """
+        caller = sys._getframe(1)
+        key = (caller.f_code, caller.f_lineno)
+        now = time.monotonic()
+        last = self._warned_at.get(key)
+        if last is not None and now - last < period_s:
+            return
+        self._warned_at[key] = now
+        self.get_logger().warning(text)
 
 
 def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
     """main() body of every node executable (CONVENTIONS habit 12)."""
-    import sys
-
     import rclpy
     from rclpy.executors import ExternalShutdownException
 

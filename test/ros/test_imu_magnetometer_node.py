@@ -188,3 +188,16 @@ def test_rejects_bad_parameter_values(ros_context):
         assert node.get_parameter('world_frame').value == 'enu'
     finally:
         node.destroy_node()
+
+
+def test_throttling_is_per_warning_not_per_node(ros_context, capfd):
+    """Two kinds of bad input in a row: both are reported; a repeat of one is throttled."""
+    node = ImuMagnetometerNode(context=ros_context)
+    try:
+        for _ in range(3):
+            node.warn_throttled('first kind of problem')
+            node.warn_throttled('second kind of problem')
+        err = capfd.readouterr().err
+        assert err.count('first kind of problem') == 1 and err.count('second kind of problem') == 1
+    finally:
+        node.destroy_node()

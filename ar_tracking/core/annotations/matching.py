@@ -49,6 +49,7 @@ import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
+from ..rotations import align_directions
 from ..panorama.cylinder import CylinderGeometry
 
 logger = logging.getLogger(__name__)
@@ -334,13 +335,8 @@ class TileMatcher:
 
 def absolute_orientation(a: Array, b: Array, weights: Array | None = None) -> Array:
     """The rotation R minimising sum w |R a_i - b_i|^2 for unit vectors (n >= 2, 3)
-    (the absolute orientation of two sets of directions, Horn 1987, via SVD)."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    w = np.ones(len(a)) if weights is None else np.asarray(weights, float)
-    M = (b * w[:, None]).T @ a
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
+    (the absolute orientation of two sets of directions, Horn 1987; core.rotations)."""
+    return align_directions(a, b, weights)
 
 
 @dataclass

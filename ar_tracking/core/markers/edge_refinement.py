@@ -81,58 +81,36 @@ def edge_points_along_side(gx: Array, gy: Array, mag: Array, a: Array, b: Array,
     length = float(np.hypot(*d))
     if length < 2 * margin_px + 2:
         return np.zeros((0, 2))
-    n = np.array([-d[1], d[0]]) / length
+    if abs(d[1]) >= abs(d[0]):  # the edge is closer to vertical: scan along x, row by row
+        return _scan_rows(mag, a, b, length, margin_px, search_px)
+    # Closer to horizontal: the same scan on the transposed image, column by column.
+    return _scan_rows(mag.T, a[::-1], b[::-1], length, margin_px, search_px)[:, ::-1]
+
+
+def _scan_rows(mag: Array, a: Array, b: Array, length: float, margin_px: float, search_px: int) -> Array:
+    """Edge points (x, y) of the side a->b, one per image row it crosses (see above)."""
     h, w = mag.shape
-    horizontal = abs(n[0]) >= abs(n[1])  # scan along x when the edge is closer to vertical
-    if horizontal:
-        lo, hi = sorted((a[1], b[1]))
-        span = hi - lo
-        cut = margin_px * span / length
-        rows = np.arange(math.ceil(lo + cut), math.floor(hi - cut) + 1)
-        if len(rows) == 0:
-            return np.zeros((0, 2))
-        x_line = a[0] + (rows - a[1]) * d[0] / d[1]
-        centre = np.rint(x_line).astype(int)
-        offs = np.arange(-search_px, search_px + 1)
-        xs = centre[:, None] + offs[None, :]
-        ok = (xs.min(1) >= 1) & (xs.max(1) <= w - 2) & (rows >= 0) & (rows < h)
-        rows, xs, centre = rows[ok], xs[ok], centre[ok]
-        vals = mag[rows[:, None], xs]
-        k = np.argmax(vals, axis=1)
-        x0 = xs[np.arange(len(xs)), k]
-        m0 = mag[rows, x0]
-        mm, mp = mag[rows, x0 - 1], mag[rows, x0 + 1]
-        peak = (m0 >= mm) & (m0 >= mp) & (mm > 0) & (mp > 0)
-        off = log_parabola_offset(np.maximum(mm, 1e-6), np.maximum(m0, 1e-6), np.maximum(mp, 1e-6))
-        pts = np.stack([x0 + off, rows.astype(float)], -1)[peak]
-        m_used = m0[peak]
-    else:
-        lo, hi = sorted((a[0], b[0]))
-        span = hi - lo
-        cut = margin_px * span / length
-        cols = np.arange(math.ceil(lo + cut), math.floor(hi - cut) + 1)
-        if len(cols) == 0:
-            return np.zeros((0, 2))
-        y_line = a[1] + (cols - a[0]) * d[1] / d[0]
-        centre = np.rint(y_line).astype(int)
-        offs = np.arange(-search_px, search_px + 1)
-        ys = centre[:, None] + offs[None, :]
-        ok = (ys.min(1) >= 1) & (ys.max(1) <= h - 2) & (cols >= 0) & (cols < w)
-        cols, ys = cols[ok], ys[ok]
-        vals = mag[ys, cols[:, None]]
-        k = np.argmax(vals, axis=1)
-        y0 = ys[np.arange(len(ys)), k]
-        m0 = mag[y0, cols]
-        mm, mp = mag[y0 - 1, cols], mag[y0 + 1, cols]
-        peak = (m0 >= mm) & (m0 >= mp) & (mm > 0) & (mp > 0)
-        off = log_parabola_offset(np.maximum(mm, 1e-6), np.maximum(m0, 1e-6), np.maximum(mp, 1e-6))
-        pts = np.stack([cols.astype(float), y0 + off], -1)[peak]
-        m_used = m0[peak]
+    d = b - a
+    lo, hi = sorted((a[1], b[1]))
+    cut = margin_px * (hi - lo) / length
+    rows = np.arange(math.ceil(lo + cut), math.floor(hi - cut) + 1)
+    if len(rows) == 0:
+        return np.zeros((0, 2))
+    centre = np.rint(a[0] + (rows - a[1]) * d[0] / d[1]).astype(int)
+    xs = centre[:, None] + np.arange(-search_px, search_px + 1)[None, :]
+    ok = (xs.min(1) >= 1) & (xs.max(1) <= w - 2) & (rows >= 0) & (rows < h)
+    rows, xs = rows[ok], xs[ok]
+    x0 = xs[np.arange(len(xs)), np.argmax(mag[rows[:, None], xs], axis=1)]
+    m0 = mag[rows, x0]
+    mm, mp = mag[rows, x0 - 1], mag[rows, x0 + 1]
+    peak = (m0 >= mm) & (m0 >= mp) & (mm > 0) & (mp > 0)
+    off = log_parabola_offset(np.maximum(mm, 1e-6), np.maximum(m0, 1e-6), np.maximum(mp, 1e-6))
+    pts = np.stack([x0 + off, rows.astype(float)], -1)[peak]
+    m_used = m0[peak]
     if len(pts) == 0:
         return pts
     # Weak maxima are noise or another edge: keep points with at least half the median strength.
-    strong = m_used >= 0.5 * np.median(m_used)
-    return pts[strong]
+    return pts[m_used >= 0.5 * np.median(m_used)]
 
 
 def fit_line(points: Array) -> tuple[Array, Array, Array]:

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..rotations import rot_y
+
 Array = NDArray[np.float64]
 
 
@@ -61,8 +63,7 @@ class CylinderGeometry:
 def rotation_about_axis_y(angle_rad: float) -> Array:
     """Rotation about the panorama's y axis (the cylinder axis): a pure shift of the map by
     ``angle_rad * f`` columns; used by relocalisation, whose map search finds such a shift."""
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return rot_y(angle_rad)
 
 
 def camera_rays(K: Array, x: Array, y: Array) -> Array:

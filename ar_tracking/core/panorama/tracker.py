@@ -23,6 +23,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from ..rotations import align_directions
 from .cylinder import camera_rays, project_to_image
 from .map import PanoramaMap
 
@@ -82,11 +83,8 @@ class TrackResult:
 
 
 def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
-    """Rotation R minimising sum w |d_i - R b_i|^2 (Kabsch / Wahba via SVD)."""
-    H = (d * (w[:, None] if w is not None else 1.0)).T @ b
-    U, _, Vt = np.linalg.svd(H)
-    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ S @ Vt
+    """Rotation R minimising sum w |d_i - R b_i|^2 (see core.rotations.align_directions)."""
+    return align_directions(b, d, w)
 
 
 def _kabsch_batch(b: Array, d: Array) -> Array:
