@@ -188,6 +188,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return replay_main(['bag_replay'] + ros_args)
 
 
+def cmd_convert_euroc(args: argparse.Namespace) -> int:
+    """An EuRoC MAV folder (mav0/cam0, imu0, ground truth) as a bag the graph can run on."""
+    from .io.euroc import euroc_to_bag
+
+    print(euroc_to_bag(args.folder, args.out, args.groundtruth, args.invert_gt_quaternion,
+                       gt_frame=args.gt_frame, storage=args.storage, overwrite=args.overwrite))
+    return 0
+
+
 # --- parser --------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
@@ -264,6 +273,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--topics', nargs='+', help='only these bag topics')
     p.add_argument('--remap', nargs='+', help='from:=to remappings of bag topics')
     p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser('convert-euroc', help='convert an EuRoC MAV folder (mav0/...) into a bag')
+    p.add_argument('folder')
+    p.add_argument('--out', '-o', required=True)
+    p.add_argument('--groundtruth', help='CSV: timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z')
+    p.add_argument('--invert-gt-quaternion', action='store_true',
+                   help='the CSV stores R_cam_world (e.g. the ORB-SLAM V101_GT.txt files)')
+    p.add_argument('--gt-frame', choices=['camera', 'body'])
+    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
+    p.add_argument('--overwrite', action='store_true')
+    p.set_defaults(func=cmd_convert_euroc)
     return parser
 
 
@@ -289,6 +309,12 @@ def _user_errors() -> tuple[type[BaseException], ...]:
         from .core.annotations.store import StoreError
 
         errors.append(StoreError)
+    except ImportError:
+        pass
+    try:
+        from .io.euroc import EurocError
+
+        errors.append(EurocError)
     except ImportError:
         pass
     try:
