@@ -20,6 +20,7 @@ NODES = [
     'ar_view',
     'marker_tracker',
     'visual_inertial_filter',
+    'keyframe_slam_mapper',
 ]
 
 setup(

@@ -43,6 +43,7 @@ GRAPH_NODES: dict[str, str] = {
     'ar_view': 'ar_tracking.nodes.ar_view:ArViewNode',
     'marker_tracker': 'ar_tracking.nodes.marker_tracker:MarkerTrackerNode',
     'visual_inertial_filter': 'ar_tracking.nodes.visual_inertial_filter:VisualInertialFilterNode',
+    'keyframe_slam_mapper': 'ar_tracking.nodes.keyframe_slam_mapper:KeyframeSlamMapperNode',
 }
 
 #: Name of the MCAP metadata record in which an output bag says where it came from.

@@ -47,7 +47,7 @@ from .world import (FrameRenderer, Lighting, Panorama, PinholeCamera, World, bui
 
 logger = logging.getLogger(__name__)
 
-SCENARIOS: tuple[str, ...] = ('rotation_sweep', 'robot_arcs')
+SCENARIOS: tuple[str, ...] = ('rotation_sweep', 'robot_arcs', 'handheld_desk')
 SESSIONS: tuple[str, ...] = rs.SESSIONS
 STORAGES: tuple[str, ...] = ('mcap', 'sqlite3')
 IMAGE_FORMATS: tuple[str, ...] = ('raw', 'compressed')
@@ -88,15 +88,20 @@ class SimError(Exception):
 
 def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float = 60.0,
              session: str = 'authoring', storage: str = 'mcap', image_format: str = 'raw',
-             overwrite: bool = False, progress: Callable[[float], None] | None = None) -> Path:
+             overwrite: bool = False, progress: Callable[[float], None] | None = None,
+             lighting: str | None = None) -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
     rosbag2 directory. ``progress`` is called now and then with the fraction done (0..1).
-    Raises :class:`SimError` for bad arguments (including an existing output without
-    ``overwrite``).
+    ``lighting`` (rotation_sweep only): the session whose sun and sky light the spot, default
+    ``session``; e.g. a browsing walk under the authoring sun (the 'same lighting' column of
+    Langlotz 2011 Fig. 7). Raises :class:`SimError` for bad arguments (including an existing
+    output without ``overwrite``).
     """
     _check_args(scenario, seed, duration_s, session, storage, image_format)
+    if lighting is not None and lighting not in SESSIONS:
+        raise SimError(f'unknown lighting {lighting!r} (use {" or ".join(SESSIONS)})')
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:
@@ -113,8 +118,19 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
             raise SimError(str(exc)) from exc
         robot_arcs.write_sidecars(sidecar, bag_path, seed)
         return bag_path
+    if scenario == 'handheld_desk':  # Klein & Murray 2009: a hand-held phone over a desk (session is ignored)
+        from . import handheld_desk
+
+        try:
+            with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
+                handheld_desk.write_handheld_desk_bag(bag, seed, duration_s, image_format, progress)
+        except BagError as exc:
+            raise SimError(str(exc)) from exc
+        handheld_desk.write_sidecars(sidecar, bag_path, seed)
+        logger.info('wrote %s (handheld_desk, seed %d, %.1f s) and %s', bag_path, seed, duration_s, sidecar.name)
+        return bag_path
     scn = rs.make_scenario(seed, session, duration_s)
-    world, light, pano = session_view(seed, session)
+    world, light, pano = session_view(seed, session, lighting)
     plan = _Plan.make(scn, pano)
     try:
         with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
@@ -158,10 +174,13 @@ def _bag_path(out: Path, storage: str) -> Path:
 
 
 @functools.lru_cache(maxsize=2)
-def session_view(seed: int, session: str) -> tuple[World, Lighting, Panorama]:
-    """World, lighting and the panorama from the session's standing spot (cached: ~3 s each)."""
+def session_view(seed: int, session: str, lighting: str | None = None
+                 ) -> tuple[World, Lighting, Panorama]:
+    """World, lighting and the panorama from the session's standing spot (cached: ~3 s each).
+
+    ``lighting``: the session whose sun lights the spot (default ``session``)."""
     world = _world(seed)
-    light = make_lighting(seed, session, world)
+    light = make_lighting(seed, lighting or session, world)
     pano = render_panorama(world, light, rs.session_offset(seed, session))
     return world, light, pano
 

@@ -22,6 +22,7 @@ def node_classes():
     from ar_tracking.nodes.bag_replay import BagReplayNode
     from ar_tracking.nodes.camera_replay import CameraReplayNode
     from ar_tracking.nodes.imu_magnetometer import ImuMagnetometerNode
+    from ar_tracking.nodes.keyframe_slam_mapper import KeyframeSlamMapperNode
     from ar_tracking.nodes.hybrid_orientation_filter import HybridOrientationFilterNode
     from ar_tracking.nodes.marker_tracker import MarkerTrackerNode
     from ar_tracking.nodes.panorama_mapper import PanoramaMapperNode
@@ -31,7 +32,8 @@ def node_classes():
             'panorama_mapper': PanoramaMapperNode, 'marker_tracker': MarkerTrackerNode,
             'visual_inertial_filter': VisualInertialFilterNode,
             'hybrid_orientation_filter': HybridOrientationFilterNode,
-            'annotation_matcher': AnnotationMatcherNode, 'ar_view': ArViewNode}
+            'annotation_matcher': AnnotationMatcherNode, 'ar_view': ArViewNode,
+            'keyframe_slam_mapper': KeyframeSlamMapperNode}
 
 
 def test_every_node_has_a_config_file_and_it_is_packaged():

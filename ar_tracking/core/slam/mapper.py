@@ -1,0 +1,672 @@
+"""The map maker: PTAM's background mapping thread (Klein & Murray 2009 sec. 3, 5.2, 6).
+
+The tracker hands over keyframes through :meth:`MapMaker.add_keyframe`, which only queues them
+(the tracking thread must never wait on mapping). The mapping thread, for each queued keyframe:
+
+1. inserts it into the :class:`SlamMap` (its measurements of map points become observations)
+   and removes the points the tracker flagged ``bad``;
+2. promotes every partially initialised point it measured (sec. 5.2): re-triangulated against
+   the point's source keyframe and inserted as a Cartesian :class:`MapPoint` with both
+   measurements; the inverse-depth filter state is discarded. The map point keeps the partial
+   point's id (both come from :meth:`SlamMap.new_point_id`, so ids never clash) and the tracker
+   can keep its associations. A pair with too little parallax stays partial until a later
+   keyframe promotes it (dropped after a few failures);
+3. applies the rolling-shutter correction (sec. 6) to the keyframe's measurements, and every few
+   keyframes re-corrects all keyframes ("occasionally re-corrected");
+4. detects multi-scale corners (sec. 3.1, :func:`.pyramid.multiscale_corners`) and adds up to 25
+   far from existing features as new partial points with ``q_hat`` the scene's mean inverse depth
+   seen from the keyframe and ``info = 0`` (sec. 5.2);
+5. runs local bundle adjustment (the new keyframe and its neighbours sharing the most points
+   free, every other keyframe measuring those points fixed), removes Tukey outliers (weight 0);
+6. culls measurements beyond each point's 8 most useful (sec. 3.2) and, with more than 35 active
+   keyframes, the least useful keyframe (sec. 3.3; erased keyframes stay in memory).
+
+When the queue is empty and the map changed, it runs global bundle adjustment over all active
+keyframes (the first, ``fixed``, anchors the gauge), aborted as soon as a new keyframe arrives
+(or :meth:`MapMaker.initialise_map` or :meth:`MapMaker.stop` is called).
+
+Locking: bundle adjustment never runs under ``SlamMap.lock``. Each step copies what it needs
+under the lock, computes without it and writes back in one short locked step
+(:meth:`SlamMap.apply_update`), skipping keyframes erased and points deleted in the meantime.
+Note that gtsam's optimiser holds the Python GIL for one LM iteration (~10 ms for 35 keyframes /
+300 points here), so the tracking thread can be delayed by at most about that much.
+"""
+from __future__ import annotations
+
+import copy
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, replace
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .bundle_adjustment import BAResult, bundle_adjust, project_world
+from .camera import Camera
+from .culling import KEYFRAME_UTILITY_THRESHOLD, keyframes_to_cull, measurements_to_cull
+from .point_filter import mean_inverse_depth, predict_partial_uv, triangulate_two_view
+from .rolling_shutter import correct_keyframe
+from .slam_map import Keyframe, MapPoint, Measurement, PartialPoint, SlamMap
+
+logger = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class MapperConfig:
+    """Mapping-thread parameters (paper values where the paper gives one)."""
+
+    #: Sec. 5.2: new partial points per keyframe.
+    max_new_points_per_kf: int = 25
+    #: Corner candidates asked of the detector before the 25 are picked.
+    corner_candidates: int = 100
+    #: New corners must be this far (level-0 px) from existing features.
+    corner_exclude_radius_px: float = 10.0
+    #: Oldest partial points are dropped beyond this many (bounds the tracker's work).
+    max_partial_points: int = 200
+    #: A partial point that failed promotion this many times is dropped.
+    max_promotion_failures: int = 3
+    #: Promotion: minimum ray angle and maximum reprojection error (in sigmas of the level).
+    min_parallax_deg: float = 1.0
+    promote_max_error_sigma: float = 3.0
+    #: Sec. 3.2.
+    max_measurements_per_point: int = 8
+    #: Sec. 3.3.
+    max_keyframes: int = 35
+    keyframe_utility_threshold: float = KEYFRAME_UTILITY_THRESHOLD
+    max_keyframes_erased_per_round: int = 1
+    #: Local BA: the new keyframe plus this many neighbours (most shared points) are free.
+    local_ba_neighbours: int = 4
+    local_ba_iterations: int = 10
+    global_ba_iterations: int = 20
+    init_ba_iterations: int = 15
+    global_ba: bool = True
+    #: Robust kernel of bundle adjustment: 'tukey' (paper) or 'huber'.
+    robust: str = 'tukey'
+    #: Remove measurements the Tukey kernel rejected (weight 0) after each BA.
+    remove_outliers: bool = True
+    #: Sec. 6.
+    rolling_shutter: bool = True
+    rs_recorrect_every: int = 5
+    #: Inverse depth for new partial points when the keyframe measures no map point.
+    default_inverse_depth: float = 1.0
+    #: How long the idle thread waits for a keyframe before considering global BA.
+    idle_poll_s: float = 0.02
+
+
+def _snapshot_kf(kf: Keyframe, point_ids: set[int] | None = None,
+                 copy_measurements: bool = False) -> Keyframe:
+    """A pose/measurement copy of a keyframe for work outside the lock (no pixels).
+
+    The measurement dict is copied (optionally restricted to ``point_ids``); the Measurement
+    objects themselves are shared unless ``copy_measurements`` (needed when the copy's
+    ``uv_corrected`` will be rewritten). Sharing is safe because measurement arrays are never
+    modified in place, only replaced, and only by this thread: it keeps the locked copy short.
+    """
+    items = kf.measurements.items() if point_ids is None else \
+        ((pid, m) for pid, m in kf.measurements.items() if pid in point_ids)
+    meas = {pid: copy.copy(m) for pid, m in items} if copy_measurements else dict(items)
+    return Keyframe(id=kf.id, stamp_ns=kf.stamp_ns, R_c_w=np.array(kf.R_c_w, float),
+                    t_c_w=np.array(kf.t_c_w, float), pyramid=[], sbi=None, measurements=meas,
+                    image_velocities=dict(kf.image_velocities) if copy_measurements else {},
+                    fixed=kf.fixed, erased=kf.erased)
+
+
+class MapMaker:
+    """PTAM's mapping thread over a shared :class:`SlamMap` (see module docstring).
+
+    Public API: :meth:`start`, :meth:`stop`, :meth:`initialise_map` (synchronous),
+    :meth:`add_keyframe` (non-blocking), :meth:`queue_length`, :attr:`busy`, :attr:`stats`,
+    plus :meth:`wait_idle` and :meth:`process_queue` (synchronous, thread not running) for
+    offline use and tests.
+    """
+
+    def __init__(self, slam_map: SlamMap, camera: Camera, config: MapperConfig | None = None) -> None:
+        self.map = slam_map
+        self.camera = camera
+        self.config = config or MapperConfig()
+        self._queue: queue.Queue[tuple[Keyframe, dict[int, Measurement]]] = queue.Queue()
+        self._stop = threading.Event()
+        #: Set while a caller (initialise_map) waits for the work lock: global BA yields to it.
+        self._preempt = threading.Event()
+        self._thread: threading.Thread | None = None
+        #: Serialises the map maker's own work (the thread vs initialise_map / process_queue).
+        self._work = threading.Lock()
+        self._state = threading.Condition()
+        self._pending = 0
+        self._in_ba = False
+        self._global_dirty = False
+        self._kf_since_rs = 0
+        #: Latest M-estimator weight per (kf id, point id), for the culling metric (sec. 3.2).
+        self._weights: dict[tuple[int, int], float] = {}
+        self._promotion_failures: dict[int, int] = {}
+        self.stats: dict[str, Any] = {
+            'keyframes_added': 0, 'ba_runs': 0, 'local_ba_runs': 0, 'global_ba_runs': 0,
+            'global_ba_aborted': 0, 'last_ba_ms': 0.0, 'last_ba_iterations': 0,
+            'last_ba_objective_before': 0.0, 'last_ba_objective_after': 0.0,
+            'keyframes_culled': 0, 'measurements_culled': 0, 'outliers_removed': 0,
+            'points_removed': 0, 'points_promoted': 0, 'promotions_failed': 0,
+            'partials_added': 0, 'partials_dropped': 0, 'points': 0, 'keyframes_active': 0,
+            'rs_corrections': 0, 'errors': 0,
+        }
+
+    # ---- thread control ------------------------------------------------------------------------
+    def start(self) -> None:
+        """Starts the daemon mapping thread (no-op if running)."""
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name='slam-mapper', daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Asks the thread to finish (aborting a global BA between iterations) and joins it."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                logger.warning('mapping thread did not stop within %.1f s', timeout_s)
+            else:
+                self._thread = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def queue_length(self) -> int:
+        """Keyframes queued and not yet taken up by the thread."""
+        return self._queue.qsize()
+
+    @property
+    def busy(self) -> bool:
+        """True while keyframes are queued or being processed, or bundle adjustment runs."""
+        with self._state:
+            return self._pending > 0 or self._in_ba
+
+    def wait_idle(self, timeout_s: float = 10.0, include_global_ba: bool = False) -> bool:
+        """Blocks until every queued keyframe is processed (and, optionally, global BA is done)."""
+        deadline = time.monotonic() + timeout_s
+        with self._state:
+            while True:
+                idle = self._pending == 0 and not (include_global_ba and (
+                    self._in_ba or (self._global_dirty and self.config.global_ba)))
+                if idle:
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._state.wait(min(left, 0.05))
+
+    # ---- public work ---------------------------------------------------------------------------
+    def add_keyframe(self, kf: Keyframe, partial_measurements: Mapping[int, Measurement]) -> None:
+        """Queues a keyframe (non-blocking). ``kf.measurements``: map point id -> Measurement;
+        ``partial_measurements``: partial point id -> its Measurement in this keyframe."""
+        with self._state:
+            self._pending += 1
+        self._queue.put((kf, dict(partial_measurements)))
+
+    def initialise_map(self, kf0: Keyframe, kf1: Keyframe, xyz_w: Array, uv0: Array, uv1: Array,
+                       levels: Iterable[int]) -> None:
+        """Builds the initial two-keyframe map (sec. 5.1 end) synchronously.
+
+        Adds both keyframes (``kf0.fixed = True``), one MapPoint per row of ``xyz_w`` (source
+        kf0 at ``uv0``/level) measured in both keyframes, runs a short bundle adjustment with kf0
+        fixed, restores the initial scale (mean depth in kf0, the plane at depth 1 of sec. 5.1,
+        since one fixed keyframe leaves monocular scale free), removes Tukey outliers and seeds
+        partial points in both keyframes.
+        """
+        xyz_w = np.asarray(xyz_w, float).reshape(-1, 3)
+        uv0 = np.asarray(uv0, float).reshape(-1, 2)
+        uv1 = np.asarray(uv1, float).reshape(-1, 2)
+        levels = [int(v) for v in levels]
+        self._preempt.set()
+        with self._work:
+            self._preempt.clear()
+            with self.map.lock:
+                kf0.fixed = True
+                self.map.add_keyframe(kf0)
+                self.map.add_keyframe(kf1)
+                for X, a, b, lv in zip(xyz_w, uv0, uv1, levels):
+                    pid = self.map.new_point_id()
+                    self.map.add_point(MapPoint(id=pid, xyz=X.copy(), source_kf=kf0.id,
+                                                source_level=lv, source_uv=a.copy()))
+                    self.map.add_measurement(Measurement(kf0.id, pid, a, lv))
+                    self.map.add_measurement(Measurement(kf1.id, pid, b, lv))
+                snap = [_snapshot_kf(kf0), _snapshot_kf(kf1)]
+                pts = {pid: p.xyz.copy() for pid, p in self.map.points.items()}
+            self._set_in_ba(True)
+            try:
+                res = bundle_adjust(snap, pts, self.camera, {kf0.id},
+                                    self.config.init_ba_iterations, robust=self.config.robust)
+            finally:
+                self._set_in_ba(False)
+            self._restore_scale(res, snap[0], pts)
+            self._write_back(res, fixed={kf0.id})
+            self._record_ba(res, 'init')
+            for kf in (kf0, kf1):
+                self._add_partial_points(kf)
+            self._global_dirty = True
+            self.stats['keyframes_added'] += 2
+            self._update_counts()
+        logger.info('map initialised: %d points, BA %.1f -> %.1f', len(xyz_w),
+                    res.objective_before, res.objective_after)
+
+    def process_queue(self, global_ba: bool = True) -> int:
+        """Processes all queued keyframes in the caller's thread (thread not running); returns
+        how many. With ``global_ba`` (and ``config.global_ba``) a global bundle adjustment follows
+        when the map changed, as the idle thread would do."""
+        n = 0
+        while True:
+            try:
+                kf, partial = self._queue.get_nowait()
+            except queue.Empty:
+                if n and global_ba and self.config.global_ba and self._global_dirty:
+                    with self._work:
+                        self._global_ba(False)
+                return n
+            try:
+                with self._work:
+                    self._process_keyframe(kf, partial)
+            finally:
+                with self._state:
+                    self._pending -= 1
+                    self._state.notify_all()
+            n += 1
+
+    def global_bundle_adjust(self, abort_on_keyframe: bool = True) -> BAResult | None:
+        """Global BA over all active keyframes now (synchronous; the thread does this when idle)."""
+        with self._work:
+            return self._global_ba(abort_on_keyframe)
+
+    # ---- thread --------------------------------------------------------------------------------
+    def _run(self) -> None:
+        logger.debug('mapping thread started')
+        while not self._stop.is_set():
+            try:
+                item = self._queue.get(timeout=self.config.idle_poll_s)
+            except queue.Empty:
+                item = None
+            try:
+                if item is not None:
+                    with self._work:
+                        self._process_keyframe(*item)
+                elif self._global_dirty and self.config.global_ba:
+                    with self._work:
+                        self._global_ba(True)
+            except Exception:       # keep mapping alive; the error is logged and counted
+                self.stats['errors'] += 1
+                logger.exception('mapping step failed')
+                if item is None:
+                    self._global_dirty = False
+            finally:
+                if item is not None:
+                    with self._state:
+                        self._pending -= 1
+                        self._state.notify_all()
+        logger.debug('mapping thread stopped')
+
+    def _set_in_ba(self, v: bool) -> None:
+        with self._state:
+            self._in_ba = v
+            self._state.notify_all()
+
+    # ---- one keyframe ----------------------------------------------------------------------------
+    def _process_keyframe(self, kf: Keyframe, partial: dict[int, Measurement]) -> None:
+        t0 = time.perf_counter()
+        with self.map.lock:
+            # Points the tracker flagged bad (outlier tracks) leave the map.
+            bad = [pid for pid, p in self.map.points.items() if p.bad]
+            for pid in bad:
+                self.map.remove_point(pid)
+            self.stats['points_removed'] += len(bad)
+            # Measurements of points deleted since the tracker made them are dropped.
+            for pid in [p for p in kf.measurements if p not in self.map.points]:
+                del kf.measurements[pid]
+            for pid, m in kf.measurements.items():
+                m.kf_id, m.point_id = kf.id, pid
+            self.map.add_keyframe(kf)
+        self.stats['keyframes_added'] += 1
+        self._promote(kf, partial)
+        if self.config.rolling_shutter:
+            self._kf_since_rs += 1
+            if self._kf_since_rs >= self.config.rs_recorrect_every:
+                self._kf_since_rs = 0
+                self._rolling_shutter(None)
+            else:
+                self._rolling_shutter([kf.id])
+        self._add_partial_points(kf)
+        self._local_ba(kf.id)
+        self._cull_measurements()
+        self._cull_keyframes(kf.id)
+        self._global_dirty = True
+        self._update_counts()
+        logger.debug('keyframe %d mapped in %.1f ms', kf.id, (time.perf_counter() - t0) * 1e3)
+
+    def _promote(self, kf: Keyframe, partial: dict[int, Measurement]) -> None:
+        """Sec. 5.2: re-triangulate measured partial points against their source keyframe."""
+        if not partial:
+            return
+        cfg = self.config
+        jobs = []
+        with self.map.lock:
+            R1, t1 = np.array(kf.R_c_w, float), np.array(kf.t_c_w, float)
+            for ppid, m in partial.items():
+                pp = self.map.partial_points.get(ppid)
+                if pp is None:
+                    continue
+                src = self.map.keyframes.get(pp.source_kf)
+                if src is None or src.erased or src.id == kf.id:
+                    self.map.partial_points.pop(ppid, None)
+                    self.stats['partials_dropped'] += 1
+                    continue
+                jobs.append((ppid, np.array(pp.source_uv, float), int(pp.source_level),
+                             np.array(src.R_c_w, float), np.array(src.t_c_w, float), src.id, m))
+        if not jobs:
+            return
+        results = []
+        for ppid, suv, slev, R0, t0, sid, m in jobs:
+            max_err = cfg.promote_max_error_sigma * max(2.0 ** slev, m.sigma_px)
+            xyz, good = triangulate_two_view(R0, t0, suv, R1, t1, m.uv, self.camera,
+                                             cfg.min_parallax_deg, max(max_err, 2.0))
+            results.append((ppid, suv, slev, R0, t0, sid, m, xyz[0], bool(good[0])))
+        with self.map.lock:
+            for ppid, suv, slev, R0, t0, sid, m, xyz, good in results:
+                pp = self.map.partial_points.get(ppid)
+                src = self.map.keyframes.get(sid)
+                if pp is None or src is None or src.erased or ppid in self.map.points:
+                    continue
+                if good:
+                    self.map.add_point(MapPoint(id=ppid, xyz=xyz, source_kf=sid,
+                                                source_level=slev, source_uv=suv))
+                    self.map.add_measurement(Measurement(sid, ppid, suv, slev))
+                    self.map.add_measurement(Measurement(kf.id, ppid, m.uv, m.level))
+                    del self.map.partial_points[ppid]
+                    self._promotion_failures.pop(ppid, None)
+                    self.stats['points_promoted'] += 1
+                else:
+                    n = self._promotion_failures.get(ppid, 0) + 1
+                    self._promotion_failures[ppid] = n
+                    self.stats['promotions_failed'] += 1
+                    # Too little parallax (or an inconsistent match): stays partial, so a later
+                    # keyframe can promote it; the tracker already fed this frame to its filter.
+                    if n >= cfg.max_promotion_failures:
+                        del self.map.partial_points[ppid]
+                        self._promotion_failures.pop(ppid, None)
+                        self.stats['partials_dropped'] += 1
+
+    def _rolling_shutter(self, kf_ids: list[int] | None) -> None:
+        """Sec. 6 on the given (default: all active) keyframes; writes only ``uv_corrected``."""
+        if self.camera.readout_s == 0.0:
+            return
+        with self.map.lock:
+            kfs = [self.map.keyframes[k] for k in kf_ids] if kf_ids is not None else \
+                [kf for kf in self.map.keyframes.values() if not kf.erased]
+            snaps = [_snapshot_kf(kf, copy_measurements=True) for kf in kfs if not kf.erased]
+            needed = {pid for s in snaps for pid in s.measurements}
+            pts = {pid: self.map.points[pid].xyz.copy() for pid in needed if pid in self.map.points}
+        done = []
+        for s in snaps:
+            xi = correct_keyframe(s, pts, self.camera)
+            if xi is not None:
+                done.append(s)
+        if not done:
+            return
+        with self.map.lock:
+            for s in done:
+                kf = self.map.keyframes.get(s.id)
+                if kf is None or kf.erased:
+                    continue
+                for pid, sm in s.measurements.items():
+                    m = kf.measurements.get(pid)
+                    if m is not None:
+                        m.uv_corrected = sm.uv_corrected
+        self.stats['rs_corrections'] += len(done)
+
+    def _add_partial_points(self, kf: Keyframe) -> None:
+        """Sec. 5.2: up to 25 new corners far from existing features become partial points."""
+        cfg = self.config
+        if not kf.pyramid or cfg.max_new_points_per_kf <= 0:
+            return
+        with self.map.lock:
+            R, t = np.array(kf.R_c_w, float), np.array(kf.t_c_w, float)
+            meas_uv = [m.uv.copy() for m in kf.measurements.values()]
+            meas_xyz = [self.map.points[p].xyz.copy() for p in kf.measurements
+                        if p in self.map.points]
+            _, all_xyz = self.map.point_arrays()
+            partial = []
+            srcs: dict[int, Keyframe] = {}
+            for pp in self.map.partial_points.values():
+                src = self.map.keyframes.get(pp.source_kf)
+                if src is None:
+                    continue
+                if src.id not in srcs:
+                    srcs[src.id] = _snapshot_kf(src, set())
+                partial.append((replace(pp, ray=np.array(pp.ray, float)), srcs[src.id]))
+        partial_uv = []
+        for pp, src in partial:
+            if src.id == kf.id:
+                partial_uv.append(np.asarray(pp.source_uv, float))
+                continue
+            uv, _ = predict_partial_uv(pp, src, R, t, self.camera)
+            if np.all(np.isfinite(uv)):
+                partial_uv.append(uv)
+        excl = list(meas_uv) + partial_uv
+        if len(all_xyz):
+            uvp, z = project_world(self.camera, R, t, all_xyz)
+            excl.extend(uvp[(z > 1e-6) & self.camera.in_image(uvp)])
+        excl_arr = np.array(excl, float).reshape(-1, 2)
+        try:
+            from .pyramid import multiscale_corners
+            uv_new, _ = multiscale_corners(kf.pyramid, max_corners=cfg.corner_candidates,
+                                           exclude_uv=excl_arr,
+                                           exclude_radius_px=cfg.corner_exclude_radius_px)[:2]
+        except Exception:
+            logger.exception('corner detection failed on keyframe %d', kf.id)
+            return
+        uv_new = np.asarray(uv_new, float).reshape(-1, 2)[: cfg.max_new_points_per_kf]
+        if len(uv_new) == 0:
+            return
+        ref = np.array(meas_xyz) if meas_xyz else all_xyz
+        q0 = mean_inverse_depth(R, t, ref, cfg.default_inverse_depth)
+        rays = self.camera.unproject(uv_new)
+        with self.map.lock:
+            if kf.id not in self.map.keyframes:
+                return
+            for uv, ray in zip(uv_new, rays):
+                pid = self.map.new_point_id()
+                self.map.partial_points[pid] = PartialPoint(
+                    id=pid, source_kf=kf.id, source_level=0, source_uv=uv.copy(), ray=ray,
+                    q_hat=q0, info=0.0)
+            self.stats['partials_added'] += len(uv_new)
+            excess = len(self.map.partial_points) - cfg.max_partial_points
+            if excess > 0:
+                for pid in sorted(self.map.partial_points)[:excess]:
+                    del self.map.partial_points[pid]
+                    self._promotion_failures.pop(pid, None)
+                self.stats['partials_dropped'] += excess
+
+    # ---- bundle adjustment ------------------------------------------------------------------------
+    def _local_ba(self, kf_id: int) -> None:
+        """Local BA: the new keyframe + neighbours sharing most points free, the rest fixed."""
+        cfg = self.config
+        with self.map.lock:
+            kf = self.map.keyframes[kf_id]
+            shared: dict[int, int] = {}
+            for pid in kf.measurements:
+                p = self.map.points.get(pid)
+                if p is None:
+                    continue
+                for o in p.observers:
+                    if o != kf_id:
+                        shared[o] = shared.get(o, 0) + 1
+            neigh = sorted((k for k in shared if not self.map.keyframes[k].erased),
+                           key=lambda k: -shared[k])[: cfg.local_ba_neighbours]
+            free = {kf_id, *neigh}
+            point_ids = {pid for k in free for pid in self.map.keyframes[k].measurements
+                         if pid in self.map.points}
+            involved = {o for pid in point_ids for o in self.map.points[pid].observers
+                        if o in self.map.keyframes and not self.map.keyframes[o].erased}
+            involved |= free
+            fixed = {k for k in involved if k not in free or self.map.keyframes[k].fixed}
+            snaps = [_snapshot_kf(self.map.keyframes[k], point_ids) for k in sorted(involved)]
+            pts = {pid: self.map.points[pid].xyz.copy() for pid in point_ids}
+        if not pts or len(involved) < 2:
+            return
+        if not fixed:       # a gauge anchor is needed: hold the oldest keyframe
+            fixed = {min(involved)}
+        self._set_in_ba(True)
+        try:
+            res = bundle_adjust(snaps, pts, self.camera, fixed, cfg.local_ba_iterations,
+                                robust=cfg.robust, abort=self._stop.is_set)
+        finally:
+            self._set_in_ba(False)
+        self._write_back(res, fixed)
+        self._record_ba(res, 'local')
+
+    def _global_ba(self, abort_on_keyframe: bool) -> BAResult | None:
+        cfg = self.config
+        with self.map.lock:
+            active = [kf for kf in self.map.keyframes.values() if not kf.erased]
+            point_ids = set(self.map.points)
+            snaps = [_snapshot_kf(kf, point_ids) for kf in active]
+            pts = {pid: p.xyz.copy() for pid, p in self.map.points.items()}
+            fixed = {kf.id for kf in active if kf.fixed}
+        if len(snaps) < 2 or not pts:
+            self._global_dirty = False
+            return None
+        if not fixed:
+            fixed = {min(s.id for s in snaps)}
+
+        def abort() -> bool:
+            return (self._stop.is_set() or self._preempt.is_set()
+                    or (abort_on_keyframe and not self._queue.empty()))
+
+        self._set_in_ba(True)
+        try:
+            res = bundle_adjust(snaps, pts, self.camera, fixed, cfg.global_ba_iterations,
+                                robust=cfg.robust, abort=abort)
+        finally:
+            self._set_in_ba(False)
+        if res.objective_after <= res.objective_before or not res.aborted:
+            self._write_back(res, fixed)
+        self._record_ba(res, 'global')
+        if res.aborted:
+            self.stats['global_ba_aborted'] += 1
+        else:
+            self._global_dirty = False
+        self._update_counts()
+        return res
+
+    def _restore_scale(self, res: BAResult, kf0: Keyframe, pts_before: dict[int, Array]) -> None:
+        """Rescales a BA result about kf0's centre so kf0's mean scene depth is as before."""
+        if not res.points or kf0.id not in res.poses:
+            return
+        R0, t0 = kf0.R_c_w, kf0.t_c_w
+        ids = list(res.points)
+        zb = np.array([pts_before[i] for i in ids]) @ R0[2] + t0[2]
+        za = np.array([res.points[i] for i in ids]) @ R0[2] + t0[2]
+        if np.mean(za) <= 1e-9:
+            return
+        s = float(np.mean(zb) / np.mean(za))
+        c0 = -R0.T @ t0
+        for i in ids:
+            res.points[i] = c0 + s * (res.points[i] - c0)
+        for k, (R, t) in list(res.poses.items()):
+            res.poses[k] = (R, s * t - (1.0 - s) * (R @ c0))
+
+    def _write_back(self, res: BAResult, fixed: set[int]) -> None:
+        """One locked step: poses of free, still-active keyframes, surviving points, outliers."""
+        cfg = self.config
+        self._weights.update(res.weights)
+        with self.map.lock:
+            poses = {k: v for k, v in res.poses.items() if k not in fixed
+                     and k in self.map.keyframes and not self.map.keyframes[k].erased}
+            points = {p: x for p, x in res.points.items() if p in self.map.points}
+            self.map.apply_update(poses, points)
+            if cfg.remove_outliers and cfg.robust == 'tukey':
+                removed = 0
+                touched = set()
+                for (k, p), w in res.weights.items():
+                    if w <= 0.0 and p in self.map.points:
+                        kf = self.map.keyframes.get(k)
+                        if kf is not None and p in kf.measurements:
+                            self.map.remove_measurement(k, p)
+                            self._weights.pop((k, p), None)
+                            touched.add(p)
+                            removed += 1
+                dead = [p for p in touched if len(self.map.points[p].observers) < 2]
+                for p in dead:
+                    self.map.remove_point(p)
+                self.stats['outliers_removed'] += removed
+                self.stats['points_removed'] += len(dead)
+
+    def _record_ba(self, res: BAResult, kind: str) -> None:
+        s = self.stats
+        s['ba_runs'] += 1
+        s[f'{kind}_ba_runs'] = s.get(f'{kind}_ba_runs', 0) + 1
+        s['last_ba_ms'] = res.time_ms
+        s['last_ba_iterations'] = res.iterations
+        s['last_ba_objective_before'] = res.objective_before
+        s['last_ba_objective_after'] = res.objective_after
+        s['last_ba_kind'] = kind
+
+    # ---- culling ----------------------------------------------------------------------------------
+    def _cull_measurements(self) -> None:
+        """Sec. 3.2: keep each point's 8 most useful measurements."""
+        with self.map.lock:
+            if not any(len(p.observers) > self.config.max_measurements_per_point
+                       for p in self.map.points.values()):
+                return
+            snaps = [_snapshot_kf(kf) for kf in self.map.keyframes.values() if not kf.erased]
+            pts = {pid: p.xyz.copy() for pid, p in self.map.points.items()
+                   if len(p.observers) > self.config.max_measurements_per_point}
+        cull = measurements_to_cull(snaps, pts, self.camera, self._weights,
+                                    self.config.max_measurements_per_point)
+        if not cull:
+            return
+        with self.map.lock:
+            for k, p in cull:
+                self.map.remove_measurement(k, p)
+                self._weights.pop((k, p), None)
+            self.map.version += 1
+        self.stats['measurements_culled'] += len(cull)
+
+    def _cull_keyframes(self, newest: int) -> None:
+        """Sec. 3.3: with more than 35 active keyframes erase the least useful (not the first,
+        not the newest)."""
+        cfg = self.config
+        with self.map.lock:
+            active = [kf for kf in self.map.keyframes.values() if not kf.erased]
+            if len(active) <= cfg.max_keyframes:
+                return
+            snaps = [_snapshot_kf(kf) for kf in active]
+            pts = {pid: p.xyz.copy() for pid, p in self.map.points.items()}
+        erase = keyframes_to_cull(snaps, pts, self.camera, self._weights, cfg.max_keyframes,
+                                  cfg.keyframe_utility_threshold,
+                                  cfg.max_keyframes_erased_per_round, protected={newest})
+        if not erase:
+            return
+        with self.map.lock:
+            for k in erase:
+                if k in self.map.keyframes and not self.map.keyframes[k].erased:
+                    self.map.erase_keyframe(k)
+                    self._weights = {key: w for key, w in self._weights.items() if key[0] != k}
+            orphans = [pid for pid, p in self.map.points.items() if not p.observers]
+            for pid in orphans:
+                self.map.remove_point(pid)
+        self.stats['keyframes_culled'] += len(erase)
+        self.stats['points_removed'] += len(orphans)
+        logger.info('culled keyframe(s) %s', erase)
+
+    def _update_counts(self) -> None:
+        with self.map.lock:
+            self.stats['points'] = len(self.map.points)
+            self.stats['partial_points'] = len(self.map.partial_points)
+            self.stats['keyframes_active'] = sum(not kf.erased for kf in self.map.keyframes.values())
+
+
+__all__ = ['MapperConfig', 'MapMaker']

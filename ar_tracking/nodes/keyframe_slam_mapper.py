@@ -1,0 +1,249 @@
+"""keyframe_slam_mapper: PTAM-style monocular keyframe SLAM on a camera phone (Klein & Murray 2009).
+
+Subscribes ``camera/image_raw`` (or ``camera/image_raw/compressed``) paired by stamp with
+``camera/camera_info``. Publishes, for every tracked frame, ``slam/pose`` (PoseStamped: the
+camera_optical frame in the map frame ``slam_map``, the image's stamp) and, at ``map_rate_hz``
+(by image stamps) and whenever a keyframe was added, ``slam/keyframes`` (PoseArray of the
+active keyframes), ``slam/map_points`` (PointCloud2 x, y, z float32) and ``slam/path``
+(nav_msgs/Path of the tracked poses). The map frame is the first keyframe's camera frame; its
+scale is set at initialisation (the initial plane at depth 1, sec. 5.1).
+
+The algorithm is :mod:`ar_tracking.core.slam`; tracking runs in the callback, bundle adjustment
+in the core's background thread. In a lockstep graph run the node waits for the mapping thread
+to go idle *after* it has published the frame's outputs, so runs are reproducible; tracking
+itself never waits on mapping.
+
+Bad input (DESIGN sec. 7): an image with no camera_info, of another size than camera_info says,
+with an unknown encoding, a zero or backward stamp is dropped with a throttled warning; a
+camera_info that changes once the map exists is ignored (the map stays consistent with the
+intrinsics it was built with); textureless frames and pure rotation at start are reported by the
+tracker (lost / waiting) and never touch the map. A distorted camera (non-zero ``d``) is
+undistorted before tracking.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+from geometry_msgs.msg import Pose, PoseArray, PoseStamped
+from nav_msgs.msg import Path
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
+
+from ..core.slam.camera import Camera
+from ..core.slam.system import SlamConfig, SlamSystem
+from ..core.stamp_pairing import NearestStampPairer
+from ..ros.conversions import ConversionError, compressed_to_array, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
+from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.stamp_guard import StampGuard, StampVerdict
+
+Info = tuple[np.ndarray, np.ndarray, tuple[int, int]]  # K, D, (height, width)
+
+
+def point_cloud(points_xyz: np.ndarray, frame_id: str, stamp: Any) -> PointCloud2:
+    """PointCloud2 with float32 x, y, z fields (unordered, height 1) from an (N, 3) array."""
+    pts = np.ascontiguousarray(np.asarray(points_xyz, dtype=np.float32).reshape(-1, 3))
+    msg = PointCloud2()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = 1, len(pts)
+    msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                  for i, n in enumerate('xyz')]
+    msg.is_bigendian = False
+    msg.point_step, msg.row_step = 12, 12 * len(pts)
+    msg.is_dense = True
+    msg.data = pts.tobytes()
+    return msg
+
+
+def _pose(R_w_c: np.ndarray, p_w_c: np.ndarray, target: Pose | None = None) -> Pose:
+    pose = Pose() if target is None else target
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in p_w_c)
+    set_quaternion(pose.orientation, R_w_c)
+    return pose
+
+
+class KeyframeSlamMapperNode(TrackingNode):
+    INPUTS = {
+        'camera/image_raw': 'sensor_msgs/msg/Image',
+        'camera/image_raw/compressed': 'sensor_msgs/msg/CompressedImage',
+        'camera/camera_info': 'sensor_msgs/msg/CameraInfo',
+    }
+    OUTPUTS = {
+        'slam/pose': 'geometry_msgs/msg/PoseStamped',
+        'slam/map_points': 'sensor_msgs/msg/PointCloud2',
+        'slam/keyframes': 'geometry_msgs/msg/PoseArray',
+        'slam/path': 'nav_msgs/msg/Path',
+    }
+    REQUIRED_INPUTS = [('camera/image_raw', 'camera/image_raw/compressed'), 'camera/camera_info']
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('keyframe_slam_mapper', **kwargs)
+        p = self.param
+        self.readout_s = p('readout_s', 0.0, 'Rolling-shutter readout time, top to bottom row, s (0: global shutter; sec. 6)', min_value=0.0, max_value=0.2, read_only=True)
+        self.frame_id: str = p('map_frame_id', 'slam_map', 'frame_id of the outputs (the map frame: the first keyframe, scale set at initialisation)')
+        self.map_period_ns = int(1e9 / p('map_rate_hz', 1.0, 'Rate of slam/map_points, slam/keyframes and slam/path, by image stamps (also published at each new keyframe), Hz', min_value=0.01, max_value=100.0, read_only=True))
+        self.max_info_gap_ns = int(1e9 * p('camera_info_max_gap_s', 0.005, 'Largest stamp difference between an image and the camera_info paired with it, s', min_value=0.0, max_value=1.0, read_only=True))
+        reset_s = p('reset_after_s', 1.0, 'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a new map', min_value=0.0, max_value=3600.0)
+        self.config = SlamConfig(readout_s=self.readout_s)
+
+        self.guard = StampGuard(reset_s)
+        self.pairer: NearestStampPairer[np.ndarray, Info] = NearestStampPairer(self.max_info_gap_ns)
+        self.system: SlamSystem | None = None
+        self.info: Info | None = None
+        self.undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
+        self.last_map_pub_ns: int | None = None
+        self.path = Path()
+        self.path.header.frame_id = self.frame_id
+        self.last_state = ''
+        self.tracked = 0
+        self.frames = 0
+
+        self.pub_pose = self.advertise(PoseStamped, 'slam/pose', RELIABLE_QOS)
+        self.pub_points = self.advertise(PointCloud2, 'slam/map_points', LATCHED_QOS)
+        self.pub_keyframes = self.advertise(PoseArray, 'slam/keyframes', LATCHED_QOS)
+        self.pub_path = self.advertise(Path, 'slam/path', LATCHED_QOS)
+        self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS)
+        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
+        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, SENSOR_QOS)
+        self.get_logger().info(f'keyframe_slam_mapper: map frame {self.frame_id}, rolling-shutter readout {self.readout_s * 1e3:.1f} ms')
+
+    # -- inputs ----------------------------------------------------------------------------
+
+    def on_image(self, msg: Image) -> None:
+        try:
+            gray = image_to_gray_u8(msg)
+        except ConversionError as exc:
+            self.warn_throttled(f'camera/image_raw: {exc}; frame dropped')
+            return
+        self._on_frame(stamp_ns(msg.header), gray)
+
+    def on_compressed(self, msg: CompressedImage) -> None:
+        try:
+            arr = compressed_to_array(msg)
+        except ConversionError as exc:
+            self.warn_throttled(f'camera/image_raw/compressed: {exc}; frame dropped')
+            return
+        if arr.ndim == 3:
+            arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2GRAY if arr.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        if arr.dtype != np.uint8:
+            arr = (arr >> 8).astype(np.uint8)
+        self._on_frame(stamp_ns(msg.header), arr)
+
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        K = np.asarray(msg.k, float).reshape(3, 3)
+        D = np.asarray(msg.d, float)
+        if (not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)) or K[0, 0] <= 0 or K[1, 1] <= 0
+                or K[2, 2] != 1.0 or msg.width <= 0 or msg.height <= 0 or len(D) not in (0, 4, 5, 8, 12, 14)):
+            self.warn_throttled('camera/camera_info: invalid K, distortion or size; ignored')
+            return
+        for t, gray, info in self.pairer.add_secondary(stamp_ns(msg.header), (K, D, (int(msg.height), int(msg.width)))):
+            self._handle(t, gray, info)
+
+    def _on_frame(self, t: int, gray: np.ndarray) -> None:
+        verdict = self.guard.check(t)
+        if verdict is StampVerdict.RESET:
+            self.get_logger().warning('camera: clock jumped back (bag loop?), starting a new map')
+            self._reset()
+        elif verdict is not StampVerdict.OK:
+            self.warn_throttled(f'camera: {verdict.value}; frame dropped')
+            return
+        for t_, gray_, info in self.pairer.add_primary(t, gray):
+            self._handle(t_, gray_, info)
+
+    # -- processing ------------------------------------------------------------------------
+
+    def _reset(self) -> None:
+        if self.system is not None:
+            self.system.close()
+        self.system = None
+        self.info = None
+        self.undistort_maps = None
+        self.pairer.reset()
+        self.last_map_pub_ns = None
+        self.path = Path()
+        self.path.header.frame_id = self.frame_id
+
+    def _camera_for(self, info: Info) -> bool:
+        """Builds the SLAM system on the first camera_info; afterwards checks it is unchanged."""
+        K, D, (h, w) = info
+        if self.info is not None:
+            K0, D0, size0 = self.info
+            same = size0 == (h, w) and np.allclose(K0, K, rtol=1e-6, atol=1e-6) and np.allclose(
+                np.pad(D0, (0, max(0, len(D) - len(D0)))), np.pad(D, (0, max(0, len(D0) - len(D)))), atol=1e-9)
+            if not same:
+                self.warn_throttled('camera/camera_info changed while the map exists; the new intrinsics are ignored')
+            return True
+        Kn = K
+        if np.any(D != 0):
+            Kn, _ = cv2.getOptimalNewCameraMatrix(K, D, (w, h), 0.0)
+            self.undistort_maps = cv2.initUndistortRectifyMap(K, D, None, Kn, (w, h), cv2.CV_16SC2)
+        camera = Camera(float(Kn[0, 0]), float(Kn[1, 1]), float(Kn[0, 2]), float(Kn[1, 2]), w, h, self.readout_s)
+        self.system = SlamSystem(camera, self.config)
+        self.info = info
+        return True
+
+    def _handle(self, t: int, gray: np.ndarray, info: Info | None) -> None:
+        self.frames += 1
+        if info is None:
+            self.warn_throttled('camera: no camera_info with the image stamp; frame skipped (tracking reports lost)')
+            return
+        K, D, (h, w) = info
+        if gray.shape != (h, w):
+            self.warn_throttled(f'camera: frame is {gray.shape[1]}x{gray.shape[0]} but camera_info says {w}x{h}; frame skipped')
+            return
+        self._camera_for(info)
+        assert self.system is not None
+        if gray.shape != (self.system.camera.height, self.system.camera.width):
+            self.warn_throttled('camera: frame size differs from the map camera; frame skipped')
+            return
+        if self.undistort_maps is not None:
+            gray = cv2.remap(gray, self.undistort_maps[0], self.undistort_maps[1], cv2.INTER_LINEAR)
+        res = self.system.process(gray, t)
+        if res.state != self.last_state:
+            self.get_logger().info(f'slam: {res.state}{": " + res.message if res.message else ""}')
+            self.last_state = res.state
+        stamp = to_stamp(t)
+        if res.R_c_w is not None and res.t_c_w is not None:
+            R_w_c = np.asarray(res.R_c_w).T
+            p_w_c = -R_w_c @ np.asarray(res.t_c_w)
+            out = PoseStamped()
+            out.header.stamp = stamp
+            out.header.frame_id = self.frame_id
+            _pose(R_w_c, p_w_c, out.pose)
+            self.pub_pose.publish(out)
+            self.path.poses.append(out)
+            self.tracked += 1
+        elif res.message:
+            self.warn_throttled(f'slam {res.state}: {res.message}')
+        if res.keyframe_added or self.last_map_pub_ns is None or t - self.last_map_pub_ns >= self.map_period_ns:
+            self._publish_map(t)
+        if self.lockstep_hooks is not None:
+            self.system.wait_for_mapping()  # reproducible lockstep runs; after the outputs
+
+    def _publish_map(self, t: int) -> None:
+        assert self.system is not None
+        self.last_map_pub_ns = t
+        stamp = to_stamp(t)
+        kfs = PoseArray()
+        kfs.header.stamp = stamp
+        kfs.header.frame_id = self.frame_id
+        kfs.poses = [_pose(R_w_c, p_w_c) for _, R_w_c, p_w_c in self.system.keyframe_poses()]
+        self.pub_keyframes.publish(kfs)
+        self.pub_points.publish(point_cloud(self.system.map_points(), self.frame_id, stamp))
+        self.path.header.stamp = stamp
+        self.pub_path.publish(self.path)
+
+    def destroy_node(self) -> None:
+        if self.system is not None:
+            self.system.close()
+            self.system = None
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(KeyframeSlamMapperNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
