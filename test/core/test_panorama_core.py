@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMap, PanoramaMapper, seam_error
+from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMap, PanoramaMapper
 from ar_tracking.core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
 from ar_tracking.core.panorama.tracker import kabsch
 from panorama_synth import H, K, W, CylinderWorld, angle_deg, rot, sweep, two_plane_frame
@@ -102,20 +102,6 @@ def test_edr_map_stores_offsets_without_clipping(world):
     assert tm.dtype == np.uint16 and tm[m].min() == 0 and tm[m].max() == 65535 and (tm[~m] == 0).all()
 
 
-def test_seam_error_sees_steps_not_texture():
-    rng = np.random.default_rng(3)
-    vals = rng.normal(100, 10, (64, 128))
-    contrib = np.where(np.arange(128)[None, :] < 64, 1, 50).repeat(64, 0)
-    clean = seam_error(vals, contrib)
-    stepped = vals.copy()
-    stepped[:, 64:] += 12.0
-    dirty = seam_error(stepped, contrib)
-    assert clean['step'] < 1.5
-    assert dirty['step'] == pytest.approx(12.0, abs=2.0)
-    assert dirty['mean_step'] == pytest.approx(12.0, abs=2.0) and clean['mean_step'] < 1.5
-    assert seam_error(stepped, contrib, min_gap=100)['pairs'] == 0
-
-
 # -- tracking --------------------------------------------------------------------------------
 
 def run(mapper, world, Rs, gains=None, offsets=None):
@@ -182,7 +168,7 @@ def test_edr_corrects_exposure_steps(world):
         mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr)))
         res = run(mapper, world, Rs, gains=gains)
         assert all(r.R_pano_cam is not None for r in res)
-        results[edr] = mapper.seam_error(min_gap=30)['step']
+        results[edr] = mapper.seam_error(min_gap=30, flat_max=np.inf)['step']
         if edr:
             offs = [r.intensity_offset for r in res]
             assert abs(np.mean(offs[10:90])) < 2.0 and np.mean(offs[120:]) < -20
@@ -211,7 +197,9 @@ def test_exposure_filter_smooths_noise_and_follows_jumps():
 
 def test_gain_model_corrects_multiplicative_exposure_better_than_offset(world):
     # A gain of 1.35 (an exposure change) half-way round the turn: the log-domain estimate
-    # recovers 1 / 1.35; a single offset fits only the keypoints' mean brightness.
+    # recovers 1 / 1.35; a single offset fits only the keypoints' mean brightness. Compared by
+    # the pixel-wise difference at the revisit boundaries (same texture in both maps): the step
+    # measure has only ~14 short segments there on this busy texture, too noisy to rank them.
     Rs = sweep(200, 2.0, seed=5)
     gains = [1.0 if k < 100 else 1.35 for k in range(200)]
     seams = {}
@@ -219,7 +207,7 @@ def test_gain_model_corrects_multiplicative_exposure_better_than_offset(world):
         mapper = PanoramaMapper(MapperConfig(edr_correction=model))
         res = run(mapper, world, Rs, gains=gains)
         assert all(r.R_pano_cam is not None for r in res)
-        seams[model] = mapper.seam_error(min_gap=30)['step']
+        seams[model] = mapper.seam_error(min_gap=30)['pixelwise']
         if model == 'gain':
             g = np.array([r.intensity_gain for r in res])
             assert np.all(np.abs(g[5:95] - 1.0) < 0.01)

@@ -53,3 +53,8 @@ def test_seam_errors_on_the_sample_bag_prefer_edr():
 
     s = seam_errors(BAG, max_frames=400)
     assert s['edr_revisit'] < 0.5 * s['8bit_revisit']
+    for name in ('edr', '8bit', 'edr_paper'):  # the step, its mean |step| and the naive figure
+        assert {name, f'mean_abs_{name}', f'pixelwise_{name}', f'{name}_revisit'} <= s.keys()
+    assert s['ratio'] == pytest.approx(s['edr'] / s['8bit'], abs=1e-3)
+    assert s['edr'] < s['edr_paper']  # smoothed offsets add fewer steps than per-frame ones
+    assert s['pixelwise_8bit'] > 5 * s['8bit']  # texture dominates the naive figure

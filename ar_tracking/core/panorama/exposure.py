@@ -21,6 +21,14 @@ constant (jumps, within ~0.1 s) with a slow drift, which this 1-D filter models 
   ``c`` restarts from it.
 
 The first frame is the baseline: ``c = 0`` with no uncertainty.
+
+The same filter smooths the additive correction of the default ``edr_correction='offset'``
+(the paper's "average difference", 8-bit units; :data:`OFFSET_EXPOSURE`). Unsmoothed, each
+frame's offset carries its own estimation noise (about 0.3 levels between consecutive frames
+on the 60 s rotation_sweep bags while the exposure did not change), and since every frame
+contributes a sliver of the map, that noise becomes a step at almost every contribution
+boundary - seams that EDR itself adds and the 8-bit map does not have. ``smooth=False`` gives
+the paper's literal per-frame correction.
 """
 from __future__ import annotations
 
@@ -40,8 +48,14 @@ class ExposureConfig:
     smooth: bool = True
 
 
+#: The filter for the additive offset (8-bit units): the log-gain defaults scaled by a mid-grey
+#: level of 128 (an offset x at mid-grey is the log gain x / 128).
+OFFSET_LEVEL = 128.0
+OFFSET_EXPOSURE = ExposureConfig(drift_per_s=0.01 * OFFSET_LEVEL, floor=0.002 * OFFSET_LEVEL)
+
+
 class ExposureFilter:
-    """Log-gain correction state (see the module docstring). Deterministic, one caller."""
+    """Correction state, log gain or offset (see the module docstring). Deterministic, one caller."""
 
     def __init__(self, config: ExposureConfig | None = None) -> None:
         self.config = config or ExposureConfig()
@@ -53,8 +67,9 @@ class ExposureFilter:
         self.jumps = 0
 
     def update(self, z: float, se: float, dt_s: float) -> float:
-        """Fold in one frame's estimate ``z`` (log map - log frame) with standard error ``se``
-        taken ``dt_s`` after the previous frame; returns the frame's log correction."""
+        """Fold in one frame's estimate ``z`` (log map - log frame, or map - frame for the
+        offset) with standard error ``se`` taken ``dt_s`` after the previous frame; returns the
+        frame's correction."""
         cfg = self.config
         var_pred = self.var + cfg.drift_per_s ** 2 * max(dt_s, 0.0)
         if not math.isfinite(se) or not math.isfinite(z):

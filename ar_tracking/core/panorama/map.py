@@ -17,11 +17,14 @@ shown through a linear tone-mapping (:meth:`PanoramaMap.tone_mapped`). With ``ed
 map is a plain 8-bit map and no offset is applied (the comparison of the benchmark).
 
 Besides the pixels the map keeps which frame contributed each pixel, for the seam measure of
-sec. 4.1 (:func:`seam_error`).
+sec. 4.1 (:func:`seam_error`: the level step between two contributions, per boundary segment,
+measured on flat surroundings and freed of the estimation noise; plus the naive pixel-wise
+mean absolute difference across boundaries, ``pixelwise``).
 """
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -305,65 +308,126 @@ class PanoramaMap:
         self._kp_cache = None
 
 
+#: Default of :func:`seam_error`'s ``flat_max``: about twice the noise of the difference of
+#: two neighbouring map pixels (sensor noise ~2 DN, slightly smoothed by the bilinear mapping).
+SEAM_FLAT_MAX = 4.0
+
+
+def _seam_windows(v: NDArray[np.float64], c: NDArray[np.integer], axis: int
+                  ) -> tuple[list[NDArray], list[NDArray], list[NDArray]]:
+    """Four pixels a', a, b, b' in a row along ``axis`` (1: across the map, which wraps; 0: down)
+    for every start pixel, their contributions, and the gradients along the boundary at a, b."""
+    if axis == 1:
+        sh = [np.roll(v, -k, axis=1) for k in range(4)]
+        sc = [np.roll(c, -k, axis=1) for k in range(4)]
+        along = [0.5 * np.abs(np.roll(x, -1, axis=0) - np.roll(x, 1, axis=0)) for x in sh[1:3]]
+        for g in along:  # the map does not wrap vertically
+            g[0] = np.nan
+            g[-1] = np.nan
+    else:
+        n = v.shape[0] - 3
+        sh = [v[k:k + n] for k in range(4)]
+        sc = [c[k:k + n] for k in range(4)]
+        along = [0.5 * np.abs(np.roll(x, -1, axis=1) - np.roll(x, 1, axis=1)) for x in sh[1:3]]
+    return sh, sc, along
+
+
 def seam_error(values: NDArray[np.floating], contribution: NDArray[np.integer], min_pairs: int = 8,
-               min_gap: int = 1) -> dict[str, float]:
-    """Intensity steps across frame-contribution boundaries of a map (sec. 4.1, Fig. 3).
+               min_gap: int = 1, flat_max: float = SEAM_FLAT_MAX, block_px: int = 16) -> dict[str, float]:
+    """Intensity steps between frame contributions of a map (sec. 4.1, Fig. 3).
 
-    ``values`` (H, W) grey map in 8-bit units (NaN or contribution -1: unmapped). Along each
-    axis (the map wraps in u), for four pixels a', a | b, b' in a row where a', a come from one
-    frame and b, b' from another, the step across the boundary is the jump that the local
-    gradient does not explain: (I_b - I_a) - ((I_a - I_a') + (I_b' - I_b)) / 2, signed from
-    the earlier frame to the later one. Texture makes these steps random in sign; an exposure
-    change makes them agree along the boundary. So they are averaged per boundary (pair of
-    frames) and the noise of that average (variance / n, from the boundary's own spread) is
-    removed, leaving the systematic step - what an exposure change leaves, what EDR removes:
+    ``values`` (H, W) grey map in 8-bit units (NaN or contribution -1: unmapped). A seam is a
+    *level* difference between two contributions A | B that persists along their common
+    boundary; texture, blur and sub-pixel misregistration also make pixels differ across a
+    boundary, but with a sign that changes along it. So the step is measured per boundary
+    *segment* (the adjacent pixel pairs owned by one pair of contributions, both axes; the map
+    wraps in u):
 
-    * ``step``: sqrt of the length-weighted mean of max(mean^2 - var/n, 0) over the boundaries
-      of at least ``min_pairs`` samples (RMS systematic step, 8-bit units) - the seam error;
-    * ``mean_step``: the length-weighted mean of sqrt(max(mean^2 - var/n, 0)) over the same
-      boundaries (mean absolute systematic step; weights small steps more than ``step``);
-    * ``abs``: the mean absolute step across boundaries (texture included);
-    * ``pairs``: the number of samples on boundaries; ``boundaries``: how many were used.
+    * at each pair, with a', a from A and b, b' from B in a row across the boundary, the jump
+      that the local gradient does not explain: (b - a) - ((a - a') + (b' - b)) / 2, signed
+      from the earlier frame to the later one (contribution ids are frame indices);
+    * only pairs in flat surroundings count (|a - a'|, |b' - b| and the gradients along the
+      boundary at a and b all <= ``flat_max``): a step is what the eye sees as a seam on a
+      smooth surface, while on edges the differences are structure (blur, misregistration),
+      which no exposure correction can or should change;
+    * segment step = mean of its pairs; its noise variance = kappa * var / n, with kappa >= 1
+      the inflation of the variance of a mean by the correlation of neighbouring pairs, from
+      the batch means of ``block_px`` blocks (the mean over segments of batch-means variance /
+      naive variance).
+
+    Limits: an edge of the scene lying exactly on a boundary (between a and b) along the
+    segment looks like a step and counts as one; pairs are not trimmed, because a true exposure
+    step varies along a boundary with the brightness (a gain) and trimming would cut it.
+
+    Returned (8-bit units; weights = segment lengths in pairs, segments of >= ``min_pairs``):
+
+    * ``step``: the root of the length-weighted mean of (step^2 - noise variance) - the RMS step
+      over the boundary length, unbiased in the square (a mean of |step| cannot be made
+      unbiased: noise alone gives |mean| > 0), and it weights the large, visible steps most.
+      This is the seam error;
+    * ``mean_step``: length-weighted mean of sqrt(max(step^2 - noise variance, 0)) (mean absolute
+      step; the per-segment clipping leaves a small positive floor from noise);
+    * ``pixelwise``: the plain mean |I_b - I_a| over all adjacent pixel pairs of different
+      contributions (no gradient compensation, texture included; the naive seam figure);
+    * ``pairs``, ``boundaries``: flat pairs and segments used; ``kappa``.
 
     ``min_gap`` > 1 keeps only boundaries between frames at least that many frames apart
-    (contribution ids are frame indices): consecutive frames almost always share the
-    exposure, so exposure seams live where the map is continued after a revisit (the closing
-    of the 360-degree turn, back-and-forth pans, pitch changes).
+    (exposure seams between revisited parts: the closing of the 360-degree turn, pitch passes).
     """
     v = np.asarray(values, np.float64)
     c = np.asarray(contribution)
-    steps, lo_ids, hi_ids = [], [], []
+    d_all, lo_all, hi_all, pos_all, pix = [], [], [], [], []
+    H, W = v.shape
+    rows, cols = np.mgrid[0:H, 0:W]
     for axis in (0, 1):
-        if axis == 1:
-            sh = [np.roll(v, -k, axis=1) for k in range(4)]
-            sc = [np.roll(c, -k, axis=1) for k in range(4)]
-        else:
-            n = v.shape[0] - 3
-            sh = [v[k:k + n] for k in range(4)]
-            sc = [c[k:k + n] for k in range(4)]
+        sh, sc, along = _seam_windows(v, c, axis)
         a2, a, b, b2 = sh
         ca2, ca, cb, cb2 = sc
-        sel = (ca >= 0) & (cb >= 0) & (np.abs(ca - cb) >= min_gap) & (ca2 == ca) & (cb2 == cb) \
-            & np.isfinite(a2) & np.isfinite(a) & np.isfinite(b) & np.isfinite(b2)
-        a2, a, b, b2, ca, cb = a2[sel], a[sel], b[sel], b2[sel], ca[sel], cb[sel]
-        step = (b - a) - 0.5 * ((a - a2) + (b2 - b))
-        steps.append(np.where(cb > ca, step, -step))
-        lo_ids.append(np.minimum(ca, cb).astype(np.int64))
-        hi_ids.append(np.maximum(ca, cb).astype(np.int64))
-    diff = np.concatenate(steps)
-    if diff.size == 0:
-        return {'step': float('nan'), 'abs': float('nan'), 'pairs': 0, 'boundaries': 0}
-    lo, hi = np.concatenate(lo_ids), np.concatenate(hi_ids)
-    key = lo * (int(hi.max()) + 1) + hi
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
-    means = np.bincount(inv, weights=diff) / counts
-    sq = np.bincount(inv, weights=diff * diff) / counts
-    var = np.maximum(sq - means ** 2, 0.0) * counts / np.maximum(counts - 1, 1)
-    use = counts >= min_pairs
-    out = {'abs': float(np.mean(np.abs(diff))), 'pairs': int(diff.size),
-           'boundaries': int(np.count_nonzero(use))}
+        edge = (ca >= 0) & (cb >= 0) & (np.abs(ca - cb) >= min_gap) & np.isfinite(a) & np.isfinite(b)
+        pix.append(np.abs(b - a)[edge])
+        with np.errstate(invalid='ignore'):
+            flat = (np.abs(a - a2) <= flat_max) & (np.abs(b2 - b) <= flat_max) \
+                & (along[0] <= flat_max) & (along[1] <= flat_max)
+        sel = edge & (ca2 == ca) & (cb2 == cb) & flat
+        jump = ((b - a) - 0.5 * ((a - a2) + (b2 - b)))[sel]
+        ca_s, cb_s = ca[sel], cb[sel]
+        d_all.append(np.where(cb_s > ca_s, jump, -jump))
+        lo_all.append(np.minimum(ca_s, cb_s).astype(np.int64))
+        hi_all.append(np.maximum(ca_s, cb_s).astype(np.int64))
+        r, q = (rows[:H - 3], cols[:H - 3]) if axis == 0 else (rows, cols)
+        pos_all.append((r[sel] // block_px) * (W // block_px + 1) + q[sel] // block_px)
+    pixels = np.concatenate(pix)
+    out: dict[str, float] = {'step': float('nan'), 'mean_step': float('nan'),
+                             'pixelwise': float(pixels.mean()) if pixels.size else float('nan'),
+                             'pairs': 0, 'boundaries': 0, 'kappa': float('nan')}
+    d = np.concatenate(d_all)
+    if d.size == 0:
+        return out
+    lo, hi, pos = np.concatenate(lo_all), np.concatenate(hi_all), np.concatenate(pos_all)
+    _, seg, n = np.unique(lo * (int(hi.max()) + 1) + hi, return_inverse=True, return_counts=True)
+    seg = seg.reshape(-1)
+    mean = np.bincount(seg, weights=d) / n
+    var = np.maximum(np.bincount(seg, weights=d * d) / n - mean ** 2, 0.0) * n / np.maximum(n - 1, 1)
+    use = n >= min_pairs
     if not use.any():
-        return {'step': float('nan'), **out}
-    sys2 = np.maximum(means[use] ** 2 - var[use] / counts[use], 0.0)
-    out['mean_step'] = float(np.sum(counts[use] * np.sqrt(sys2)) / counts[use].sum())
-    return {'step': float(np.sqrt(np.sum(counts[use] * sys2) / counts[use].sum())), **out}
+        return out
+    # Correlation along the boundary: batch means over blocks of each segment.
+    _, blk, bn = np.unique(seg.astype(np.int64) * (int(pos.max()) + 1) + pos, return_inverse=True,
+                           return_counts=True)
+    blk = blk.reshape(-1)
+    bseg = np.zeros(bn.size, np.int64)
+    bseg[blk] = seg
+    bmean = np.bincount(blk, weights=d) / bn
+    nb = np.bincount(bseg, minlength=n.size)
+    bvar = np.bincount(bseg, weights=bn ** 2 * (bmean - mean[bseg]) ** 2, minlength=n.size) / n ** 2 \
+        * nb / np.maximum(nb - 1, 1)
+    ok = use & (nb >= 3) & (var > 0)
+    # The mean of the segments' ratios: every segment counts once, whatever its texture.
+    kappa = max(float(np.mean(bvar[ok] / (var[ok] / n[ok]))), 1.0) if ok.any() else 1.0
+    noise = kappa * var / n
+    w = n[use].astype(np.float64)
+    ms = float(np.sum(w * (mean[use] ** 2 - noise[use])) / w.sum())
+    out.update(step=math.sqrt(max(ms, 0.0)),
+               mean_step=float(np.sum(w * np.sqrt(np.maximum(mean[use] ** 2 - noise[use], 0.0))) / w.sum()),
+               pairs=int(n[use].sum()), boundaries=int(np.count_nonzero(use)), kappa=kappa)
+    return out

@@ -7,8 +7,10 @@
    stamp ratio), active-search tracking against the map keypoints; if that fails, a wider
    search, then re-localisation against the finished tiles;
 3. a tracked frame is mapped (only its not-yet-mapped pixels), corrected by the EDR intensity
-   offset of its matches (or, with ``edr_correction='gain'``, by the filtered log-domain gain,
-   exposure.py); a frame that is not tracked is neither mapped nor reported (lost).
+   offset of its matches, filtered over frames (``offset_exposure``; unfiltered with
+   ``offset_exposure.smooth=False``, the paper's literal version), or, with
+   ``edr_correction='gain'``, by the filtered log-domain gain (exposure.py); a frame that is not
+   tracked is neither mapped nor reported (lost).
 
 The keypoints of newly finished tiles are computed by :meth:`PanoramaMapper.background`, which
 the caller runs after it has used the frame's result (off the critical path, deterministic).
@@ -23,7 +25,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .exposure import ExposureConfig, ExposureFilter
+from .exposure import OFFSET_EXPOSURE, ExposureConfig, ExposureFilter
 from .map import MapConfig, PanoramaMap, seam_error
 from .relocalise import Relocaliser, RelocaliserConfig
 from .tracker import ActiveSearchTracker, TrackerConfig, TrackResult
@@ -59,7 +61,12 @@ class MapperConfig:
     #: left larger seams between revisited parts than 'offset' (the simulator's view-dependent
     #: additive glare is an offset), so 'offset' stays the default.
     edr_correction: str = 'offset'
+    #: Filter of the log gain ('gain' mode).
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
+    #: Filter of the offset ('offset' mode, 8-bit units). ``smooth=False``: each frame's own
+    #: offset, as sec. 4.1 literally says; the default smooths the per-frame noise, which
+    #: otherwise becomes a small step at nearly every contribution boundary (exposure.py).
+    offset_exposure: ExposureConfig = field(default_factory=lambda: OFFSET_EXPOSURE)
 
     def __post_init__(self) -> None:
         if self.edr_correction not in ('gain', 'offset'):
@@ -103,6 +110,7 @@ class PanoramaMapper:
         self.tracker = ActiveSearchTracker(cfg.tracker)
         self.relocaliser = Relocaliser(cfg.relocaliser)
         self.exposure = ExposureFilter(cfg.exposure)
+        self.offset_filter = ExposureFilter(cfg.offset_exposure)
         self.frame_index = 0
         self.lost_frames = 0
         self.frame_size: tuple[int, int] | None = None
@@ -195,9 +203,9 @@ class PanoramaMapper:
         cfg = self.config
         if not cfg.map.edr:
             return 0.0, 1.0
-        if cfg.edr_correction == 'offset':
-            return res.intensity_offset, 1.0
         dt = (stamp_ns - self._last_stamp) * 1e-9 if stamp_ns is not None and self._last_stamp is not None else 0.0
+        if cfg.edr_correction == 'offset':
+            return self.offset_filter.update(res.intensity_offset, res.intensity_offset_se, dt), 1.0
         return 0.0, float(np.exp(self.exposure.update(res.log_gain, res.log_gain_se, dt)))
 
     def background(self) -> int:
@@ -220,8 +228,8 @@ class PanoramaMapper:
         self._velocity = None
         return FrameResult(None, 'lost', res, reason=reason)
 
-    def seam_error(self, min_gap: int = 1) -> dict[str, float]:
-        """Seam measure of the current map (see :func:`map.seam_error`)."""
+    def seam_error(self, min_gap: int = 1, **kwargs: float) -> dict[str, float]:
+        """Seam measure of the current grey map (see :func:`map.seam_error`; ``kwargs`` go there)."""
         vals = self.map.gray.astype(np.float64)
         vals[~self.map.mapped] = np.nan
-        return seam_error(vals, self.map.contribution, min_gap=min_gap)
+        return seam_error(vals, self.map.contribution, min_gap=min_gap, **kwargs)

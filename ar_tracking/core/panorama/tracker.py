@@ -10,8 +10,8 @@ in the panorama frame, and the rotation R_pano_cam with d_i ~ R b_i is estimated
 RANSAC over two-point Kabsch (SVD) hypotheses, then a Kabsch fit on the inliers.
 
 The same matches give the EDR exposure correction of sec. 4.1: the mean intensity difference
-between the map's patches (baseline units) and the frame's matched patches (``intensity_offset``)
-and the same mean of log intensities (``log_gain``, with its standard error; patches touching
+between the map's patches (baseline units) and the frame's matched patches (``intensity_offset``,
+with its standard error) and the same mean of log intensities (``log_gain``, with its standard error; patches touching
 0 or 255 or darker than ``min_photometric_level`` do not vote), see exposure.py.
 """
 from __future__ import annotations
@@ -80,6 +80,8 @@ class TrackResult:
     log_gain_se: float = float('inf')
     #: Pairs used for ``log_gain`` (inliers neither dark nor touching the 8-bit limits).
     photometric_pairs: int = 0
+    #: Standard error of ``intensity_offset`` (spread of the kept pairs / sqrt(n)), 8-bit units.
+    intensity_offset_se: float = float('inf')
 
 
 def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
@@ -96,15 +98,9 @@ def _kabsch_batch(b: Array, d: Array) -> Array:
     return U @ Vt
 
 
-def _trimmed_mean(x: Array, trim: float = 0.2) -> float:
-    """Mean of the central 1 - 2 * trim of the values (a mean robust to a few bad pairs)."""
-    x = np.sort(x)
-    k = int(trim * x.size)
-    return float(np.mean(x[k:x.size - k])) if x.size > 2 * k else float(np.mean(x))
-
-
 def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
-    """Trimmed mean and its standard error (spread of the kept values / sqrt(kept))."""
+    """Mean of the central 1 - 2 * trim of the values (robust to a few bad pairs) and its
+    standard error (spread of the kept values / sqrt(kept))."""
     x = np.sort(x)
     k = int(trim * x.size)
     c = x[k:x.size - k] if x.size > 2 * k else x
@@ -231,7 +227,10 @@ class ActiveSearchTracker:
         ax, ay = np.abs(sx), np.abs(sy)
         f_mean = ((1 - ax) * (1 - ay) * box[k, byk, bxk] + ax * (1 - ay) * box[k, byk, bxk + ox]
                   + (1 - ax) * ay * box[k, byk + oy, bxk] + ax * ay * box[k, byk + oy, bxk + ox]) / (P * P)
-        offset = _trimmed_mean((t_mean[k] - f_mean)[inl]) if n_in else 0.0
+        if n_in:
+            offset, offset_se = _trimmed_mean_se((t_mean[k] - f_mean)[inl])
+        else:
+            offset, offset_se = 0.0, float('inf')
         # The exposure is a gain on the encoded values: its estimate is the same mean, of log
         # intensities. Pairs whose frame patch touches 0 or 255 (clipped: the gain is not seen
         # there) or that are dark (log noise) do not vote.
@@ -245,7 +244,7 @@ class ActiveSearchTracker:
         ok = n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * n
         reason = '' if ok else f'{n_in} inliers of {n} searched keypoints'
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
-                           log_gain, log_se, int(np.count_nonzero(use)))
+                           log_gain, log_se, int(np.count_nonzero(use)), offset_se)
 
     def _spread(self, idx: NDArray[np.int64], x: Array, y: Array, score: Array, w: int, h: int
                 ) -> NDArray[np.int64]:
