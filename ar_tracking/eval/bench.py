@@ -17,7 +17,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-AREAS = ('graph', 'orientation', 'panorama', 'markers_vi', 'annotations')
+AREAS = ('graph', 'orientation', 'panorama', 'markers_vi', 'annotations', 'slam')
 
 
 def percentiles_ms(values: list[float]) -> dict[str, float]:
@@ -117,4 +117,8 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
         from .bench_annotations import bench_annotations
 
         results['annotations'] = bench_annotations()  # incl. the Fig. 7 table over 10+ spots (minutes)
+    if 'slam' in chosen:
+        from .bench_slam import bench_slam
+
+        results['slam'] = bench_slam()
     return results

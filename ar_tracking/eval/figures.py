@@ -65,4 +65,21 @@ def extra_figures(bag_path: str | Path) -> list[tuple[str, bytes]]:
         if written is not None:
             figures.append(('Annotations placed in the panorama (matched green, inferred by alignment '
                             'another colour) and AR overlay frames', written.read_bytes()))
+        if _has_topic(bag_path, '/slam/pose'):
+            from .slam_figures import slam_figure
+
+            written = slam_figure(bag_path, Path(tmp) / 'slam.png')
+            if written is not None:
+                figures.append(('Keyframe SLAM (slam/pose) against the ground truth after a Sim(3) '
+                                'alignment: top view and position error over time', written.read_bytes()))
     return figures
+
+
+def _has_topic(bag_path: str | Path, topic: str) -> bool:
+    from ..io.bags import BagError, BagReader
+
+    try:
+        with BagReader(bag_path) as reader:
+            return topic in reader.topics
+    except BagError:
+        return False

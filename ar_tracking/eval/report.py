@@ -57,17 +57,32 @@ def write_report(bag: str | Path, out: str | Path, metrics: dict | None = None) 
     kind = out.suffix.lower()
     if kind not in ('.png', '.html', '.htm'):
         raise EvaluationError(f'{out}: a report ends in .png or .html')
-    data = load_orientations(bag)
-    if metrics is None:
-        metrics = evaluate_orientations(data)
-    png = render_figure_png(data, metrics)
+    from .figures import extra_figures
+
+    try:
+        data = load_orientations(bag)
+    except EvaluationError:
+        data = None  # no orientation ground truth (a SLAM or marker bag): the other areas only
+    if data is not None:
+        if metrics is None:
+            metrics = evaluate_orientations(data)
+        png: bytes | None = render_figure_png(data, metrics)
+        extras = extra_figures(bag) if kind != '.png' else []
+    else:
+        if metrics is None:
+            from .evaluate import evaluate_all
+
+            metrics = evaluate_all(bag)
+        extras = extra_figures(bag)
+        if not extras and kind == '.png':
+            raise EvaluationError(f'{bag}: nothing to draw (no orientation ground truth and no other figure)')
+        png = extras[0][1] if kind == '.png' else None
     out.parent.mkdir(parents=True, exist_ok=True)
     if kind == '.png':
+        assert png is not None
         out.write_bytes(png)
     else:
-        from .figures import extra_figures
-
-        out.write_text(render_html(data.path, metrics, png, extra_figures(bag)), encoding='utf-8')
+        out.write_text(render_html(Path(bag), metrics, png, extras), encoding='utf-8')
     logger.info('report written to %s', out)
     return out
 
@@ -253,7 +268,7 @@ def _table_rows(metrics: dict) -> list[str]:
     return rows
 
 
-def render_html(bag: Path, metrics: dict, png: bytes, extras: list[tuple[str, bytes]] | None = None) -> str:
+def render_html(bag: Path, metrics: dict, png: bytes | None, extras: list[tuple[str, bytes]] | None = None) -> str:
     """A self-contained page: title, bag summary, metrics table, the embedded figure, and
     extra figures (caption, PNG) such as the panorama map; other areas' metrics as JSON."""
     name = html.escape(bag.name)
@@ -262,22 +277,28 @@ def render_html(bag: Path, metrics: dict, png: bytes, extras: list[tuple[str, by
     rows = _table_rows(metrics) or [
         f'<tr><td colspan="{len(_COLUMNS) + 1}">no orientation estimates</td></tr>'
     ]
-    image = base64.b64encode(png).decode('ascii')
+    if png is None:  # no orientation ground truth: the other areas and their figures
+        orientation_part = ['<p>No orientation ground truth in this bag: the other areas follow.</p>']
+    else:
+        image = base64.b64encode(png).decode('ascii')
+        orientation_part = [
+            '<p>Errors are of the camera orientation against the ground truth, interpolated at each '
+            'estimate\'s header stamp; heading is about the world\'s up axis, tilt the rest.</p>',
+            '<table>',
+            f'<tr><th>topic</th>{header}</tr>',
+            *rows,
+            '</table>',
+            f'<img alt="orientation over time for {name}" src="data:image/png;base64,{image}">',
+        ]
     return '\n'.join([
         '<!DOCTYPE html>',
         '<html lang="en"><head><meta charset="utf-8">',
         f'<title>ar_tracking evaluation: {name}</title>',
         f'<style>{_STYLE}</style></head><body>',
-        f'<h1>Orientation evaluation: {name}</h1>',
+        f'<h1>Evaluation: {name}</h1>',
         f'<p>Bag {html.escape(str(info.get("path", bag)))}, '
-        f'{_fmt(info.get("duration_s"), 1)} s, {info.get("topics", "?")} topics. '
-        'Errors are of the camera orientation against the ground truth, interpolated at each '
-        'estimate\'s header stamp; heading is about the world\'s up axis, tilt the rest.</p>',
-        '<table>',
-        f'<tr><th>topic</th>{header}</tr>',
-        *rows,
-        '</table>',
-        f'<img alt="orientation over time for {name}" src="data:image/png;base64,{image}">',
+        f'{_fmt(info.get("duration_s"), 1)} s, {info.get("topics", "?")} topics.</p>',
+        *orientation_part,
         *_extra_sections(metrics, extras or []),
         '</body></html>',
         '',
