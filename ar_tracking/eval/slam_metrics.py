@@ -265,8 +265,10 @@ def slam_metrics_with_alignment(bag_path: str | Path, max_diff_s: float = MAX_DI
 
 
 def evaluate_slam(bag_path: str | Path) -> dict[str, Any] | None:
-    """The ``slam`` area of ``ar-tracking evaluate``: None when the bag has no /slam/pose topic."""
+    """The ``slam`` area of ``ar-tracking evaluate``: None when the bag has no /slam/ topic (no
+    SLAM ran). A SLAM that ran but never tracked (e.g. a camera that did not move sideways) gives
+    tracked_ratio 0 and no ATE."""
     with BagReader(bag_path) as bag:
-        if TOPIC_POSE not in bag.topics:
+        if not any(t.startswith('/slam/') for t in bag.topics):
             return None
     return slam_metrics(bag_path)
