@@ -7,8 +7,9 @@
   target <= 2 ms);
 * ``fig7.<row>.<column>``: redetection rate over ``spots`` simulated spots (4-6 annotations
   each), rows baseline, +sensor, +RANSAC, +sensor+RANSAC, +EDR, all; columns ``same_lighting``
-  (browsing walk under the authoring sun) and ``changed_lighting`` (browsing session: midday
-  sun, other shadows, flare, other exposure). Also ``fig7.<row>.<column>_wrong``.
+  (browsing walk under the authoring sun: ``make_bag(..., session='browsing',
+  lighting='authoring')``) and ``changed_lighting`` (browsing session: midday sun, other
+  shadows, flare, other exposure). Also ``fig7.<row>.<column>_wrong``.
 
 The Fig. 7 pipeline runs the cores without ROS and without bags (frames rendered by the
 simulator straight into :class:`PanoramaMapper`): authoring map -> patches at the anchors ->
@@ -105,14 +106,13 @@ def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) 
     """Run the mapper (EDR and 8-bit) over one simulated session; the truth and the sensor prior."""
     from ..core.imu_orientation import FieldModel, GravityFieldOrientation, ImuCalibration
     from ..sim import rotation_sweep as rs
-    from ..sim.bagmaker import EXPOSURE_COMPENSATION, EXPOSURE_TARGET, _world
-    from ..sim.world import FrameRenderer, PinholeCamera, make_lighting, render_panorama, rng_stream
+    from ..sim.bagmaker import EXPOSURE_COMPENSATION, EXPOSURE_TARGET, session_view
+    from ..sim.world import FrameRenderer, PinholeCamera, rng_stream
 
     scn = rs.make_scenario(seed, trajectory, duration_s)
-    world = _world(seed)
-    light = make_lighting(seed, lighting, world)
+    # The public view of make_bag(..., session=trajectory, lighting=lighting).
+    world, light, pano = session_view(seed, trajectory, lighting)
     spot = rs.session_offset(seed, trajectory)
-    pano = render_panorama(world, light, spot)
     cam = PinholeCamera()
     renderer = FrameRenderer(pano, light, cam, rng_stream(seed, 'pixel-noise', trajectory))
     n_cam = int(math.ceil(duration_s * rs.CAMERA_RATE_HZ))

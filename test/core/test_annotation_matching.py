@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from annotation_synth import GEO, make_case, tiles_of
 from ar_tracking.core.annotations.matching import (Candidate, CandidateList, MatchConfig, ReDetector,
                                                    TileMatcher, _walsh_basis, absolute_orientation,
-                                                   ransac_alignment)
+                                                   place_annotations, ransac_alignment)
 
 
 def tile_of(u: float, v: float, side: int = 16, T: int = 64) -> int:
@@ -204,3 +204,84 @@ def test_guided_search_matches_an_annotation_its_tiles_missed():
         statuses[guided] = p.status
         assert math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v) < 1.0
     assert statuses == {False: 'inferred', True: 'matched'}
+
+
+# -- extensions for the parallax between the two standing points (sec. 4.3, 6.1) ----------------
+
+def _shifted_facade_case():
+    """Five annotations: #0 a near anchor whose only candidate lies 13 px off the rotated
+    position (parallax), #1-#3 with their true candidate (0.5 px off) and a look-alike one
+    facade repetition (14 px) further along, #4 without candidates. A rotation turned by 14 px
+    lines #0 and the look-alikes up with a lower normalised error than the true one."""
+    case = make_case(seed=21, n=5)
+    rng = np.random.default_rng(5)
+    cands = []
+    for i, (u, v) in enumerate(case.truth_uv):
+        if i == 0:
+            cands.append([Candidate(float(u + 13.0), float(v), 0.78, 0.78)])
+        elif i < 4:
+            du, dv = rng.normal(0, 0.5, 2)
+            cands.append([Candidate(float(u + du), float(v + dv), 0.9, 0.9),
+                          Candidate(float(u + 14.0), float(v), 0.83, 0.83)])
+        else:
+            cands.append([])
+    return case, cands
+
+
+def test_consensus_score_prefers_the_true_rotation_over_shifted_look_alikes():
+    case, cands = _shifted_facade_case()
+    paper = ransac_alignment(case.dirs, cands, MatchConfig(consensus_score=False, placement_penalty=0.0))
+    ours = ransac_alignment(case.dirs, cands, MatchConfig())
+    ang = lambda al: np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+    assert ang(paper) > 1.5  # the lowest normalised error picks the shifted rotation
+    assert ang(ours) < 1.0  # the least squares over all matches shares #0's parallax
+    for p in ours.placements:
+        u, v = case.truth_uv[p.index]
+        off = math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v)
+        assert off < {0: 13.5, 4: 5.0}.get(p.index, 2.0), (p.index, off)  # #4 inferred: 14 px when shifted
+    assert {p.index: p.status for p in ours.placements}[4] == 'inferred'
+
+
+def test_placement_penalty_prefers_the_candidate_near_the_aligned_position():
+    case = make_case(seed=22, n=3)
+    u, v = case.truth_uv[0]
+    near = Candidate(float(u + 2.0), float(v), 0.80, 0.80)
+    look_alike = Candidate(float(u + 16.0), float(v), 0.88, 0.88)
+    cands = [[look_alike, near], [], []]
+    placed = {pen: place_annotations(case.R_target_source, case.dirs, cands, MatchConfig(placement_penalty=pen))[0]
+              for pen in (0.0, 0.2)}
+    assert placed[0.0].u == look_alike.u and placed[0.2].u == near.u
+    assert placed[0.2].status == 'matched' and placed[0.2].score == pytest.approx(0.80)
+    # Beyond the gate nothing is matched: the annotation is inferred at the rotated position.
+    far = place_annotations(case.R_target_source, case.dirs, [[Candidate(float(u + 40), float(v), 0.99, 0.99)], [], []],
+                            MatchConfig())[0]
+    assert far.status == 'inferred' and math.hypot(far.u - u, far.v - v) < 1e-6
+
+
+def test_refinement_on_all_matches_beats_the_minimal_pair():
+    case = make_case(seed=23, n=10)
+    rng = np.random.default_rng(7)
+    cands = [[Candidate(float(u + du), float(v + dv), 0.9, 0.9)]
+             for (u, v), (du, dv) in zip(case.truth_uv, rng.normal(0, 2.0, (10, 2)))]
+    err = {}
+    for iters in (0, 3):
+        al = ransac_alignment(case.dirs, cands, MatchConfig(refine_iterations=iters))
+        err[iters] = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+    assert err[3] < 0.6 * err[0] and err[3] < 0.25
+
+
+def test_guided_all_replaces_a_look_alike_candidate():
+    case = make_case(seed=24)
+    u, v = case.truth_uv[1]
+    placed = {}
+    for guided_all in (False, True):
+        det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(sensor_prior=False, guided_all=guided_all))
+        det.add_finished_tiles(tiles_of(case.mapped))
+        det.step(case.target, case.mapped)
+        # Only a (fake) look-alike 12 px off survived for annotation 1.
+        det.candidates[1].items = [Candidate(float(u + 12.0), float(v), 0.75, 0.75)]
+        det.dirty = True
+        _, al = det.result()
+        p = next(p for p in al.placements if p.index == 1)
+        placed[guided_all] = math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v)
+    assert placed[False] == pytest.approx(12.0, abs=0.01) and placed[True] < 1.0

@@ -16,17 +16,27 @@
   their candidates; each hypothesis is the rotation that best aligns the two pairs of unit
   vectors (absolute orientation, :func:`absolute_orientation`); annotations whose mapped
   position is within ``inlier_px`` (10 map pixels) of one of their candidates are inliers; a
-  hypothesis needs more than 50 % inliers and the lowest normalised error (error / inliers)
-  wins; it is refined on all its inliers. The winning rotation places every annotation: at its
-  best-scoring candidate within ``placement_px`` of where the rotation puts it (matched) or,
-  with none, at that position (inferred).
-* Two extensions of ours, because the two standing points differ by up to 2 m (sec. 6.1) and
-  a pure rotation then leaves parallax residuals of a few pixels for near anchors: the
-  placement gate ``placement_px`` (25 px) is looser than the inlier gate, and an inferred
-  annotation is searched once more with NCC in a +-``placement_px`` window around its aligned
-  position (``guided_search``), which recovers true matches that were not among the three
-  best candidates. Both are switched off by ``placement_px = inlier_px`` and
-  ``guided_search = False``.
+  hypothesis needs more than 50 % inliers and (paper) the lowest normalised error (error /
+  inliers) wins; it is refined on all its inliers. The winning rotation places every
+  annotation (:func:`place_annotations`): at a candidate within ``placement_px`` of where the
+  rotation puts it (matched) or, with none, at that position (inferred).
+* Extensions of ours, because the two standing points differ by up to 2 m (sec. 6.1): anchors
+  30-40 m away then move by up to 2-3 deg (12-17 px) of parallax that no rotation absorbs,
+  while the doors and windows of the facades repeat every 15-20 px. Each is switchable:
+
+  - placement gate and score: ``placement_px`` (25 px) is looser than the inlier gate, and
+    the candidate placed is the one with the best NCC minus ``placement_penalty`` (0.2) x
+    distance / ``placement_px`` (a look-alike one repetition further off needs an NCC ~0.12
+    higher); ``placement_px = inlier_px``, ``placement_penalty = 0`` switch them off;
+  - ``consensus_score``: among the valid hypotheses, the one with the highest placement score
+    (the sum of those penalised NCCs, :meth:`_CandidateArrays.placement_score`) wins instead
+    of the lowest normalised error, which prefers a rotation that lines up look-alikes one
+    repetition away with near anchors' parallax over the true one; the winner is refined by
+    least squares on all its placed matches (``refine_iterations``) while its score grows;
+  - ``guided_search``: an inferred annotation is searched once more with NCC in a
+    +-``placement_px`` window around its aligned position, which recovers true matches that
+    were not among the three best candidates; with ``guided_all`` every matched annotation
+    too, the window's best penalised NCC replacing its candidate when it scores better.
 * :class:`ReDetector` ties them together with the work queue of sec. 3.2 (finished tiles are
   queued and processed under a budget per frame) and the choice between several source
   panoramas near one GPS fix (sec. 6.1: the one whose annotations score best).
@@ -84,12 +94,17 @@ class MatchConfig:
     #: Global alignment (sec. 4.3) on/off and its thresholds.
     ransac: bool = True
     inlier_px: float = 10.0
-    #: Annotations are placed at their best-scoring candidate within this distance of where
-    #: the rotation puts them (parallax between the two standing points shifts them by a few
-    #: pixels); with no candidate there, at the rotated position (inferred).
+    #: Annotations are placed at a candidate within this distance of where the rotation puts
+    #: them (parallax between the two standing points shifts them by up to ~17 pixels); with
+    #: no candidate there, at the rotated position (inferred).
     placement_px: float = 25.0
-    #: Score penalty of a candidate at the edge of the placement gate.
-    placement_penalty: float = 0.0
+    #: NCC penalty of a candidate at the edge of the placement gate (0.2: a look-alike one
+    #: facade repetition, ~15 px, further from the aligned position needs an NCC ~0.12 higher).
+    placement_penalty: float = 0.2
+    #: Choose among the valid hypotheses by the placement score instead of the lowest normalised
+    #: error (paper), and refine the winner on all its placed matches (extension of sec. 4.3).
+    consensus_score: bool = True
+    refine_iterations: int = 3
     min_inlier_ratio: float = 0.5
     min_inliers: int = 3
     max_hypotheses: int = 4000
@@ -98,6 +113,9 @@ class MatchConfig:
     guided_search: bool = True
     guided_min_ncc: float = 0.7
     guided_penalty: float = 0.2
+    #: Guided re-match of the matched annotations too (after the alignment): a position in the
+    #: window that scores better than their candidate replaces it.
+    guided_all: bool = True
     seed: int = 0
 
 
@@ -388,7 +406,10 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     ``source_dirs`` (n, 3): unit vectors of the annotations in the source panorama;
     ``candidates[i]``: candidates of annotation i in the target map (best first). All pairs of
     annotations and candidates are tried when there are at most ``max_hypotheses`` of them,
-    else that many random ones (seeded)."""
+    else that many random ones (seeded). A hypothesis is valid with more than
+    ``min_inlier_ratio`` inliers; among the valid ones the lowest normalised error wins (the
+    paper) or, with ``consensus_score``, the highest placement score (:func:`placement_score`).
+    The winner is refined by least squares on all its matches (:func:`absolute_orientation`)."""
     cfg = config or MatchConfig()
     geo = geometry or CylinderGeometry()
     src = np.asarray(source_dirs, float).reshape(-1, 3)
@@ -423,60 +444,144 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     # and the normal of (a1, a2) onto those of (b1, b2).
     Rs = _frames(b1, b2) @ np.swapaxes(_frames(a1, a2), 1, 2)
     # Every hypothesis against every annotation's candidates at once.
-    pu, pv = geo.project(np.einsum('hij,nj->hni', Rs, src[with_c]))
-    W = geo.width
-    k_max = max(len(cu[i]) for i in with_c)
-    CU = np.full((len(with_c), k_max), np.nan)
-    CV = np.full((len(with_c), k_max), np.nan)
-    for r, i in enumerate(with_c):
-        CU[r, :len(cu[i])] = cu[i]
-        CV[r, :len(cv_[i])] = cv_[i]
-    du = np.abs((pu[:, :, None] - CU[None] + W / 2) % W - W / 2)
-    dist = np.nanmin(np.hypot(du, pv[:, :, None] - CV[None]), axis=2)  # (H, n)
+    cs = _CandidateArrays(candidates, with_c, cu, cv_)
+    dd = cs.distances(Rs, src, geo)  # (H, n_c, k)
+    dist = np.nanmin(dd, axis=2)  # (H, n)
     inl = dist < cfg.inlier_px
     n_inl = inl.sum(axis=1)
     valid = n_inl >= need
     if not valid.any():
         return result
     nerr = np.where(valid, np.where(inl, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
-    # Lowest normalised error wins; among equal errors, more inliers.
-    h = int(np.lexsort((-n_inl, np.round(nerr, 9)))[0])
+    if cfg.consensus_score:
+        # Highest placement score wins; among equal scores, the lower normalised error.
+        gain = np.where(valid, cs.placement_score(dd, cfg), -np.inf)
+        h = int(np.lexsort((np.round(nerr, 9), -np.round(gain, 9)))[0])
+    else:
+        # Lowest normalised error wins; among equal errors, more inliers.
+        h = int(np.lexsort((-n_inl, np.round(nerr, 9)))[0])
     best = (float(nerr[h]), Rs[h], [with_c[r] for r in np.flatnonzero(inl[h])])
-    # Refine on all inliers (their nearest candidates), then score once more.
     R = best[1]
-    for _ in range(2):
-        a_in, b_in = [], []
-        for i in _score(R, src, with_c, cu, cv_, geo, cfg.inlier_px)[0]:
-            k = _consistent(R, src[i], candidates[i], cu[i], cv_[i], geo, cfg.inlier_px)
-            a_in.append(src[i])
-            b_in.append(cd[i][k])
-        if len(a_in) >= 2:
-            R_new = absolute_orientation(np.array(a_in), np.array(b_in))
-            if len(_score(R_new, src, with_c, cu, cv_, geo, cfg.inlier_px)[0]) >= len(a_in):
-                R = R_new
+    if cfg.consensus_score:
+        R = _refine_on_placements(R, src, cs, cd, geo, cfg, need)
+    else:
+        # Refine on all inliers (their nearest candidates), then score once more.
+        for _ in range(2):
+            a_in, b_in = [], []
+            for i in _score(R, src, with_c, cu, cv_, geo, cfg.inlier_px)[0]:
+                k = _consistent(R, src[i], candidates[i], cu[i], cv_[i], geo, cfg.inlier_px)
+                a_in.append(src[i])
+                b_in.append(cd[i][k])
+            if len(a_in) >= 2:
+                R_new = absolute_orientation(np.array(a_in), np.array(b_in))
+                if len(_score(R_new, src, with_c, cu, cv_, geo, cfg.inlier_px)[0]) >= len(a_in):
+                    R = R_new
     inl, err = _score(R, src, with_c, cu, cv_, geo, cfg.inlier_px)
     if len(inl) < need:
         R, inl, err = best[1], best[2], best[0] * len(best[2])
     result.R_target_source = R
     result.inliers = inl
     result.normalised_error_px = err / len(inl)
-    for i in range(n):
+    result.placements = place_annotations(R, src, candidates, cfg, geo)
+    return result
+
+
+def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
+                      config: MatchConfig | None = None, geometry: CylinderGeometry | None = None
+                      ) -> list[Placement]:
+    """Every annotation placed by the rotation R (sec. 4.3): at its candidate within
+    ``placement_px`` of where R puts it with the best NCC minus ``placement_penalty`` x
+    distance / ``placement_px`` (matched; the NCC, not the prior-penalised score: the rotation
+    supersedes the compass), or, with none there, at that position (inferred)."""
+    cfg = config or MatchConfig()
+    geo = geometry or CylinderGeometry()
+    src = np.asarray(source_dirs, float).reshape(-1, 3)
+    out = []
+    for i in range(len(src)):
         d = R @ src[i]
         pu, pv = geo.project(d)
-        if i in inl:
-            k = _consistent(R, src[i], candidates[i], cu[i], cv_[i], geo, max(cfg.inlier_px, cfg.placement_px),
-                            cfg.placement_penalty)
+        k = -1
+        if candidates[i]:
+            dist = _map_dist(geo, np.array([c.u for c in candidates[i]]), np.array([c.v for c in candidates[i]]), pu, pv)
+            value = np.array([c.ncc for c in candidates[i]]) - cfg.placement_penalty * dist / cfg.placement_px
+            value[dist >= max(cfg.placement_px, cfg.inlier_px)] = -np.inf
+            if np.isfinite(value).any():
+                k = int(np.argmax(value))
+        if k >= 0:
             c = candidates[i][k]
-            result.placements.append(Placement(i, c.u, c.v, cd[i][k], 'matched', c.score))
-        elif candidates[i] and float(np.min(_map_dist(geo, cu[i], cv_[i], pu, pv))) < cfg.placement_px:
-            # Not an inlier, but a candidate lies within the looser placement gate: the
-            # rotation confirms it (parallax moved it beyond inlier_px).
-            k = _consistent(R, src[i], candidates[i], cu[i], cv_[i], geo, cfg.placement_px, cfg.placement_penalty)
-            c = candidates[i][k]
-            result.placements.append(Placement(i, c.u, c.v, cd[i][k], 'matched', c.score))
+            out.append(Placement(i, c.u, c.v, geo.unproject(np.array(c.u), np.array(c.v)), 'matched', c.ncc))
         else:
-            result.placements.append(Placement(i, float(pu), float(pv), d, 'inferred', float('nan')))
-    return result
+            out.append(Placement(i, float(pu), float(pv), d, 'inferred', float('nan')))
+    return out
+
+
+class _CandidateArrays:
+    """The candidates of the annotations ``with_c`` as padded (n_c, k) arrays (NaN: none)."""
+
+    def __init__(self, candidates: Sequence[Sequence[Candidate]], with_c: list[int],
+                 cu: list[Array], cv_: list[Array]) -> None:
+        self.with_c = with_c
+        k_max = max(len(cu[i]) for i in with_c)
+        self.U = np.full((len(with_c), k_max), np.nan)
+        self.V = np.full((len(with_c), k_max), np.nan)
+        self.NCC = np.full((len(with_c), k_max), np.nan)
+        for r, i in enumerate(with_c):
+            m = len(cu[i])
+            self.U[r, :m], self.V[r, :m] = cu[i], cv_[i]
+            self.NCC[r, :m] = [c.ncc for c in candidates[i]]
+
+    def distances(self, Rs: Array, src: Array, geo: CylinderGeometry) -> Array:
+        """(H, n_c, k) map distances between where each rotation puts each annotation and its
+        candidates (NaN for missing candidates)."""
+        pu, pv = geo.project(np.einsum('hij,nj->hni', Rs.reshape(-1, 3, 3), src[self.with_c]))
+        W = geo.width
+        du = np.abs((pu[:, :, None] - self.U[None] + W / 2) % W - W / 2)
+        return np.hypot(du, pv[:, :, None] - self.V[None])
+
+    def placement_score(self, dd: Array, cfg: MatchConfig) -> Array:
+        """(H,) placement score of each rotation: the sum over the annotations of the best NCC
+        minus ``placement_penalty`` x distance / ``placement_px`` among the candidates within
+        ``placement_px`` (0 without one). It counts the annotations the rotation explains,
+        like the inliers, weighted by how well they match; the normalised error alone prefers
+        a rotation that lines up look-alikes one repetition away (repeated facades) over the
+        true one, whose near anchors are shifted by parallax."""
+        gate = max(cfg.placement_px, cfg.inlier_px)
+        with np.errstate(invalid='ignore'):
+            v = np.where(dd < gate, self.NCC[None] - cfg.placement_penalty * dd / cfg.placement_px, 0.0)
+        return np.maximum(np.nan_to_num(v, nan=0.0).max(axis=2), 0.0).sum(axis=1)
+
+
+def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[Array],
+                          geo: CylinderGeometry, cfg: MatchConfig, need: int) -> Array:
+    """Least-squares rotation (absolute orientation) on all matched annotations, each one's
+    candidate chosen as in :func:`place_annotations`, repeated (at most ``refine_iterations``
+    times) while the choice stays the same or the placement score grows. The minimal pair of
+    the hypothesis carries the parallax and localisation error of two annotations only; the
+    least squares over all matches averages them (the score, a sum of distances, may then drop
+    a little: the choice of candidates decides)."""
+    def choice(dd: Array) -> tuple[list[int], list[int], float]:
+        with np.errstate(invalid='ignore'):
+            value = np.where(dd < gate, cs.NCC - cfg.placement_penalty * dd / cfg.placement_px, -np.inf)
+        value = np.nan_to_num(value, nan=-np.inf)
+        rows = [int(r) for r in np.flatnonzero(np.isfinite(value).any(axis=1))]
+        return rows, [int(np.argmax(value[r])) for r in rows], float(cs.placement_score(dd[None], cfg)[0])
+
+    gate = max(cfg.placement_px, cfg.inlier_px)
+    rows, ks, score = choice(cs.distances(R[None], src, geo)[0])
+    for _ in range(cfg.refine_iterations):
+        if len(rows) < max(2, need):
+            break
+        a = src[[cs.with_c[r] for r in rows]]
+        b = np.array([cd[cs.with_c[r]][k] for r, k in zip(rows, ks)])
+        R_new = absolute_orientation(a, b)
+        rows_new, ks_new, score_new = choice(cs.distances(R_new[None], src, geo)[0])
+        same = rows_new == rows and ks_new == ks
+        if not (same or score_new > score):
+            break
+        R, rows, ks, score = R_new, rows_new, ks_new, score_new
+        if same:
+            break
+    return R
 
 
 def _consistent(R: Array, a: Array, cands: Sequence[Candidate], cu: Array, cv_: Array,
@@ -601,10 +706,12 @@ class ReDetector:
             self._cache = None if self.dirty else self._cache
         return done
 
-    def _guided(self, p: Placement) -> None:
-        """Guided re-detection of an inferred annotation: NCC in a small window around where the
-        alignment puts it (+-``placement_px``), scores penalised by the distance from there;
-        a good enough match turns the placement into a match."""
+    def _guided(self, p: Placement, predicted: tuple[float, float] | None = None) -> None:
+        """Guided re-detection around where the alignment puts an annotation (``predicted``,
+        default the placement itself, i.e. an inferred one): NCC in a +-``placement_px``
+        window, minus ``guided_penalty`` x distance / ``placement_px``; the best position with
+        an NCC of at least ``guided_min_ncc`` becomes the placement when its penalised score
+        beats that of the current match (an inferred placement has none)."""
         if self._map is None:
             return
         gray, mapped = self._map
@@ -615,10 +722,11 @@ class ReDetector:
                 patch = matcher.patches[ids.index(p.index)]
         if patch is None:
             return
+        cu, cv_ = predicted if predicted is not None else (p.u, p.v)
         P = patch.shape[0]
         r = int(math.ceil(cfg.placement_px))
-        x0 = int(round(p.u - (P - 1) / 2)) - r
-        y0 = int(round(p.v - (P - 1) / 2)) - r
+        x0 = int(round(cu - (P - 1) / 2)) - r
+        y0 = int(round(cv_ - (P - 1) / 2)) - r
         n = P + 2 * r
         if y0 < 0 or y0 + n > gray.shape[0]:
             return
@@ -631,12 +739,19 @@ class ReDetector:
             full = np.ones((2 * r + 1, 2 * r + 1), np.float32)
         res = cv2.matchTemplate(reg, patch.astype(np.float32), cv2.TM_CCOEFF_NORMED)
         res[(full < 0.999) | ~np.isfinite(res)] = -1.0
-        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-        score = res - cfg.guided_penalty * np.hypot(xx, yy) / max(r, 1)
+        # Offsets from the predicted position (sub-pixel: x0, y0 were rounded).
+        c = (P - 1) / 2.0
+        xs = x0 + c + np.arange(2 * r + 1) - cu
+        ys = y0 + c + np.arange(2 * r + 1) - cv_
+        dist = np.hypot(xs[None, :], ys[:, None])
+        score = np.where(dist <= cfg.placement_px, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
         y, x = np.unravel_index(int(np.argmax(score)), score.shape)
         if res[y, x] < cfg.guided_min_ncc:
             return
-        c = (P - 1) / 2.0
+        if p.status == 'matched':
+            d_now = float(_map_dist(geo, np.array(p.u), np.array(p.v), cu, cv_))
+            if score[y, x] <= p.score - cfg.guided_penalty * d_now / cfg.placement_px + 1e-6:
+                return
         p.u = float((x0 + x + c) % geo.width)
         p.v = float(y0 + y + c)
         p.direction = geo.unproject(np.array(p.u), np.array(p.v))
@@ -661,10 +776,17 @@ class ReDetector:
                     al.placements = best_candidate_placements(cands, self.geometry)
             else:
                 al = Alignment(None, best_candidate_placements(cands, self.geometry))
+            R = al.R_target_source
             for p in al.placements:
+                src_dir = self.source_dirs[ids[p.index]]
                 p.index = ids[p.index]
-                if p.status == 'inferred' and self.config.guided_search:
+                if not self.config.guided_search:
+                    continue
+                if p.status == 'inferred':
                     self._guided(p)
+                elif self.config.guided_all and R is not None:
+                    u, v = self.geometry.project(R @ src_dir)
+                    self._guided(p, (float(u), float(v)))
             best = (score, g, al)
         self._cache = (best[1], best[2])
         return self._cache
