@@ -33,7 +33,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, Poi
 from ..core.slam.camera import Camera
 from ..core.slam.system import SlamConfig, SlamSystem
 from ..core.stamp_pairing import NearestStampPairer
-from ..ros.conversions import ConversionError, compressed_to_array, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
+from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 
@@ -120,14 +120,10 @@ class KeyframeSlamMapperNode(TrackingNode):
 
     def on_compressed(self, msg: CompressedImage) -> None:
         try:
-            arr = compressed_to_array(msg)
+            arr = compressed_to_gray_u8(msg)
         except ConversionError as exc:
             self.warn_throttled(f'camera/image_raw/compressed: {exc}; frame dropped')
             return
-        if arr.ndim == 3:
-            arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2GRAY if arr.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-        if arr.dtype != np.uint8:
-            arr = (arr >> 8).astype(np.uint8)
         self._on_frame(stamp_ns(msg.header), arr)
 
     def on_camera_info(self, msg: CameraInfo) -> None:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import cv2
 import numpy as np
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -26,7 +25,7 @@ from ..core.markers import MarkerError
 from ..core.markers.detection import REFINEMENTS, MarkerDetector
 from ..core.markers.lens_model import LENS_KINDS, LensModel
 from ..core.markers.pose import MarkerMap, estimate_camera_pose
-from ..ros.conversions import ConversionError, compressed_to_array, image_to_gray_u8, set_quaternion, stamp_ns
+from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 
@@ -123,14 +122,10 @@ class MarkerTrackerNode(TrackingNode):
 
     def on_compressed(self, msg: CompressedImage) -> None:
         try:
-            arr = compressed_to_array(msg)
+            arr = compressed_to_gray_u8(msg)
         except ConversionError as exc:
             self.warn_throttled(f'camera/image_raw/compressed: {exc}; dropped')
             return
-        if arr.ndim == 3:
-            arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2GRAY if arr.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-        if arr.dtype != np.uint8:
-            arr = (arr >> 8).astype(np.uint8)
         self._process(arr, msg.header)
 
     def _process(self, gray: np.ndarray, header: Any) -> None:

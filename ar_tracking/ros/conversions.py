@@ -202,6 +202,18 @@ def compressed_to_array(msg: Any) -> NDArray[np.uint8]:
     return img
 
 
+def compressed_to_gray_u8(msg: Any) -> NDArray[np.uint8]:
+    """sensor_msgs/CompressedImage (jpeg/png, grey, BGR or BGRA, 8 or 16 bit) -> 8-bit grey."""
+    import cv2
+
+    arr = compressed_to_array(msg)
+    if arr.ndim == 3:
+        arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2GRAY if arr.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if arr.dtype != np.uint8:
+        arr = (arr >> 8).astype(np.uint8)
+    return arr
+
+
 # --- message classes -----------------------------------------------------------------------
 
 def message_class(msgtype: str) -> Any:

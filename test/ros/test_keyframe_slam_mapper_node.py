@@ -70,7 +70,8 @@ class Harness:
         self.n_info += 1
 
     def image(self, img, t_ns: int, encoding='mono8'):
-        m = array_to_image(img, encoding)
+        m = array_to_image(img, 'mono8')
+        m.encoding = encoding
         m.header.stamp = to_stamp(t_ns)
         m.header.frame_id = 'camera_optical'
         self.pub_img.publish(m)
@@ -125,7 +126,8 @@ def test_bad_input_is_dropped_and_the_map_survives(ros_context, desk_frames):
         h.image(f0.image, _stamp(f0))                      # no camera_info with this stamp
         h.frame(np.zeros((H // 2, W // 2), np.uint8), _stamp(f0) + 1000)  # size differs from camera_info
         h.info(_stamp(f0) + 2000)
-        h.image(np.zeros((H, W), np.float32), _stamp(f0) + 2000, encoding='32FC1')  # unsupported encoding
+        h.image(f0.image, _stamp(f0) + 2000, encoding='yuv_unknown')  # unsupported encoding
+        assert h.node.frames == 2  # the two frames that had a camera_info; the last was dropped before
         assert h.node.system is None or len(h.node.system.map.keyframes) == 0
         for f in desk_frames:
             h.frame(f.image, _stamp(f))
