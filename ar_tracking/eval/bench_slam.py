@@ -60,7 +60,8 @@ def bench_tracking(width: int, height: int, duration_s: float = 20.0, seed: int 
             res = system.process(f.image, int(f.stamp_ns) + 1)
             (tracked_ms if res.state in ('tracking', 'relocalised') else init_ms).append(res.time_ms)
         stats = system.stats()
-        gate = dict(system.mapper.gate.stats)
+        gate_obj = getattr(system.mapper, 'gate', None)
+        gate = dict(gate_obj.stats) if gate_obj is not None else {'steps_in_frame': 0, 'checkpoints': 0}
         est = list(system.path)
     waits = int(stats.get('waited_on_mapper', 0))
     out: dict[str, Any] = {

@@ -7,7 +7,9 @@ Modules (one idea each):
 * front end (tracking thread): pyramid/corners (sec. 3.1), rotation prior (sec. 4), patch search
   (sec. 4), pose update, initialiser (sec. 5.1), relocaliser, tracker.
 * back end (mapping thread): partially initialised points (sec. 5.2), bundle adjustment with gtsam,
-  measurement and keyframe culling (sec. 3.2, 3.3), rolling-shutter correction (sec. 6), map maker.
+  measurement and keyframe culling (sec. 3.2, 3.3), rolling-shutter correction (sec. 6), map maker;
+  the frame gate lets the mapping thread's steps run only while the tracker waits for a frame
+  (sec. 3).
 
 Pose convention (as everywhere in ar_tracking, ``R_a_b`` maps b coordinates into a): a keyframe or
 frame pose is ``R_c_w, t_c_w`` with ``x_c = R_c_w @ x_w + t_c_w``; the camera in the map frame is

@@ -22,8 +22,9 @@ neighbours and holds every other keyframe that measures the same points fixed; *
 adjustment frees all keyframes but the first (``Keyframe.fixed``); see :mod:`.mapper`.
 
 Cost: in gtsam's Python wrapper the C++ optimiser holds the GIL, so :func:`bundle_adjust` runs
-one Levenberg-Marquardt iteration per Python call; between iterations the tracking thread gets
-the interpreter and the ``abort`` callback is polled (PTAM aborts global BA for a new keyframe).
+one Levenberg-Marquardt iteration per Python call; before each iteration the ``checkpoint``
+callback lets the mapping thread wait for the tracker to be between frames (:mod:`.frame_gate`)
+and the ``abort`` callback is polled (PTAM aborts global BA for a new keyframe).
 The paper's phone needed ~750 ms per iteration for 35 keyframes / 300 points (sec. 7);
 :func:`benchmark_one_iteration` measures ours on :func:`make_synthetic_ba_problem`.
 """
@@ -284,7 +285,8 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
                   robust: str = 'tukey', tukey_c: float = TUKEY_C, huber_k: float = HUBER_K,
                   scale: float | None = None, max_stages: int = 3,
                   relative_tolerance: float = 1e-5,
-                  abort: Callable[[], bool] | None = None) -> BAResult:
+                  abort: Callable[[], bool] | None = None,
+                  checkpoint: Callable[[str], object] | None = None) -> BAResult:
     """Levenberg-Marquardt bundle adjustment of ``keyframes`` and ``points`` (sec. 3, 7).
 
     ``keyframes`` supply poses and measurements (``Measurement.uv_corrected``, sigma
@@ -295,7 +297,11 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
     with ``scale=None``, times a robust estimate of the whitened residual spread (at least 1),
     re-estimated up to ``max_stages`` times. ``iterations`` bounds the total number of LM
     iterations; ``abort()`` is polled between iterations (returns the best state so far).
+    ``checkpoint(step)`` is called before each step that holds the interpreter for a while
+    (``'build'`` a stage's graph, ``'iterate'`` one LM iteration, ``'read'`` the values back,
+    ``'result'``): the mapping thread waits there for the tracker (:mod:`.frame_gate`).
     """
+    step = checkpoint if checkpoint is not None else (lambda _s: None)
     t_start = time.perf_counter()
     pts = _points_mapping(points)
     fixed = set(int(k) for k in fixed_kf_ids)
@@ -338,6 +344,7 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
     converged = aborted = False
     R, t, P, d = R0, t0, P0, d0
     for stage in range(max(1, max_stages)):
+        step('build')
         graph = _build_graph(prob, camera, K, robust, c, values)
         params = gtsam.LevenbergMarquardtParams()
         params.setOrdering(ordering)
@@ -347,6 +354,7 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
         stage_converged = False
         prev = opt.error()
         while its < iterations:
+            step('iterate')  # may wait for the tracker: poll abort after it
             if abort is not None and abort():
                 aborted = True
                 break
@@ -357,6 +365,7 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
                 stage_converged = True
                 break
             prev = err
+        step('read')
         values = opt.values()
         R, t, P = _values_to_arrays(values, prob)
         d = _whitened_residuals(prob, camera, R, t, P)
@@ -371,6 +380,7 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
         c = new_c
     else:
         converged = stage_converged
+    step('result')
     res = result(R, t, P, d, c, its, converged, aborted)
     logger.debug('BA %d kf / %d pts / %d meas: %d it, %.1f -> %.1f in %.1f ms', len(prob.kf_ids),
                  len(prob.point_ids), len(d), its, res.objective_before, res.objective_after,

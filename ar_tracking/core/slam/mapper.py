@@ -29,7 +29,11 @@ Locking: bundle adjustment never runs under ``SlamMap.lock``. Each step copies w
 under the lock, computes without it and writes back in one short locked step
 (:meth:`SlamMap.apply_update`), skipping keyframes erased and points deleted in the meantime.
 Note that gtsam's optimiser holds the Python GIL for one LM iteration (~10 ms for 35 keyframes /
-300 points here), so the tracking thread can be delayed by at most about that much.
+300 points here), and Python work of the two threads time-slices on the GIL. So, as in the paper
+(sec. 3: "bundle adjustment only runs while the tracking thread is waiting for a new frame"), the
+thread's work is cut into steps (one BA iteration, one keyframe-insertion step) and each step
+waits at :attr:`MapMaker.gate` (:class:`.frame_gate.FrameGate`) until the tracker is between
+frames with time for the step before the next frame is due.
 """
 from __future__ import annotations
 
@@ -46,6 +50,7 @@ from numpy.typing import NDArray
 
 from .bundle_adjustment import BAResult, bundle_adjust, project_world
 from .camera import Camera
+from .frame_gate import FrameGate
 from .culling import KEYFRAME_UTILITY_THRESHOLD, keyframes_to_cull, measurements_to_cull
 from .point_filter import mean_inverse_depth, predict_partial_uv, triangulate_two_view
 from .rolling_shutter import correct_keyframe
@@ -144,6 +149,8 @@ class MapMaker:
         #: Latest M-estimator weight per (kf id, point id), for the culling metric (sec. 3.2).
         self._weights: dict[tuple[int, int], float] = {}
         self._promotion_failures: dict[int, int] = {}
+        #: The tracker reports frame starts/ends here; the thread's steps wait for idle time.
+        self.gate = FrameGate()
         self.stats: dict[str, Any] = {
             'keyframes_added': 0, 'ba_runs': 0, 'local_ba_runs': 0, 'global_ba_runs': 0,
             'global_ba_aborted': 0, 'last_ba_ms': 0.0, 'last_ba_iterations': 0,
@@ -166,6 +173,7 @@ class MapMaker:
     def stop(self, timeout_s: float = 10.0) -> None:
         """Asks the thread to finish (aborting a global BA between iterations) and joins it."""
         self._stop.set()
+        self.gate.release()
         if self._thread is not None:
             self._thread.join(timeout_s)
             if self._thread.is_alive():
@@ -190,7 +198,7 @@ class MapMaker:
     def wait_idle(self, timeout_s: float = 10.0, include_global_ba: bool = False) -> bool:
         """Blocks until every queued keyframe is processed (and, optionally, global BA is done)."""
         deadline = time.monotonic() + timeout_s
-        with self._state:
+        with self.gate.opened(), self._state:  # the caller waits for us: no frame to give way to
             while True:
                 idle = self._pending == 0 and not (include_global_ba and (
                     self._in_ba or (self._global_dirty and self.config.global_ba)))
@@ -224,7 +232,7 @@ class MapMaker:
         uv1 = np.asarray(uv1, float).reshape(-1, 2)
         levels = [int(v) for v in levels]
         self._preempt.set()
-        with self._work:
+        with self.gate.opened(), self._work:
             self._preempt.clear()
             with self.map.lock:
                 kf0.fixed = True
@@ -279,12 +287,13 @@ class MapMaker:
 
     def global_bundle_adjust(self, abort_on_keyframe: bool = True) -> BAResult | None:
         """Global BA over all active keyframes now (synchronous; the thread does this when idle)."""
-        with self._work:
+        with self.gate.opened(), self._work:
             return self._global_ba(abort_on_keyframe)
 
     # ---- thread --------------------------------------------------------------------------------
     def _run(self) -> None:
         logger.debug('mapping thread started')
+        self.gate.bind()
         while not self._stop.is_set():
             try:
                 item = self._queue.get(timeout=self.config.idle_poll_s)
@@ -297,6 +306,7 @@ class MapMaker:
                 elif self._global_dirty and self.config.global_ba:
                     with self._work:
                         self._global_ba(True)
+                self.gate.idle()
             except Exception:       # keep mapping alive; the error is logged and counted
                 self.stats['errors'] += 1
                 logger.exception('mapping step failed')
@@ -315,8 +325,13 @@ class MapMaker:
             self._state.notify_all()
 
     # ---- one keyframe ----------------------------------------------------------------------------
+    def _checkpoint(self, label: str) -> None:
+        """Before each step of the thread's work: wait for the tracker to be between frames."""
+        self.gate.checkpoint(label)
+
     def _process_keyframe(self, kf: Keyframe, partial: dict[int, Measurement]) -> None:
         t0 = time.perf_counter()
+        self._checkpoint('insert')
         with self.map.lock:
             # Points the tracker flagged bad (outlier tracks) leave the map.
             bad = [pid for pid, p in self.map.points.items() if p.bad]
@@ -330,19 +345,26 @@ class MapMaker:
                 m.kf_id, m.point_id = kf.id, pid
             self.map.add_keyframe(kf)
         self.stats['keyframes_added'] += 1
+        self._checkpoint('promote')
         self._promote(kf, partial)
         if self.config.rolling_shutter:
+            self._checkpoint('rolling_shutter')
             self._kf_since_rs += 1
             if self._kf_since_rs >= self.config.rs_recorrect_every:
                 self._kf_since_rs = 0
                 self._rolling_shutter(None)
             else:
                 self._rolling_shutter([kf.id])
+        self._checkpoint('partial_points')
         self._add_partial_points(kf)
+        self._checkpoint('local_ba')
         self._local_ba(kf.id)
+        self._checkpoint('cull_measurements')
         self._cull_measurements()
+        self._checkpoint('cull_keyframes')
         self._cull_keyframes(kf.id)
         self._global_dirty = True
+        self._checkpoint('counts')
         self._update_counts()
         logger.debug('keyframe %d mapped in %.1f ms', kf.id, (time.perf_counter() - t0) * 1e3)
 
@@ -521,14 +543,17 @@ class MapMaker:
         self._set_in_ba(True)
         try:
             res = bundle_adjust(snaps, pts, self.camera, fixed, cfg.local_ba_iterations,
-                                robust=cfg.robust, abort=self._stop.is_set)
+                                robust=cfg.robust, abort=self._stop.is_set,
+                                checkpoint=lambda s: self._checkpoint('local_' + s))
         finally:
             self._set_in_ba(False)
+        self._checkpoint('write_back')
         self._write_back(res, fixed)
         self._record_ba(res, 'local')
 
     def _global_ba(self, abort_on_keyframe: bool) -> BAResult | None:
         cfg = self.config
+        self._checkpoint('global_snapshot')
         with self.map.lock:
             active = [kf for kf in self.map.keyframes.values() if not kf.erased]
             point_ids = set(self.map.points)
@@ -548,16 +573,19 @@ class MapMaker:
         self._set_in_ba(True)
         try:
             res = bundle_adjust(snaps, pts, self.camera, fixed, cfg.global_ba_iterations,
-                                robust=cfg.robust, abort=abort)
+                                robust=cfg.robust, abort=abort,
+                                checkpoint=lambda s: self._checkpoint('global_' + s))
         finally:
             self._set_in_ba(False)
         if res.objective_after <= res.objective_before or not res.aborted:
+            self._checkpoint('write_back')
             self._write_back(res, fixed)
         self._record_ba(res, 'global')
         if res.aborted:
             self.stats['global_ba_aborted'] += 1
         else:
             self._global_dirty = False
+        self._checkpoint('counts')
         self._update_counts()
         return res
 

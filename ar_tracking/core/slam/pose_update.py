@@ -118,6 +118,47 @@ def project_with_jacobian(X_w: Array, camera: Camera, R_c_w: Array, t_c_w: Array
     return uv, J, front
 
 
+def _normalised_residuals(X_w: Array, uv_meas: Array, inv_sig: Array, camera: Camera, R: Array, t: Array,
+                          vel: Array | None, dt: Array | None, with_jacobian: bool = True
+                          ) -> tuple[Array, Array, Array | None, NDArray[np.bool_]]:
+    """Sigma-normalised residuals ``e`` (N, 2) = (projection - measurement) / sigma, their
+    Jacobian (2N, 6) (the u rows then the v rows, as :func:`project_with_jacobian`, divided by
+    sigma) and the in-front mask: the inner loop of :func:`refine_pose`, without temporaries."""
+    Xc = X_w @ R.T + t
+    if vel is not None and dt is not None:
+        v, w = vel[:3], vel[3:]
+        X, Y, Z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+        Xc = Xc + dt[:, None] * np.column_stack([v[0] + w[1] * Z - w[2] * Y, v[1] + w[2] * X - w[0] * Z,
+                                                  v[2] + w[0] * Y - w[1] * X])
+    z = Xc[:, 2]
+    front = z > 1e-6
+    iz = 1.0 / np.where(front, z, 1.0)
+    x, y = Xc[:, 0] * iz, Xc[:, 1] * iz
+    e = np.empty((len(X_w), 2))
+    e[:, 0] = (camera.fx * x + camera.cx - uv_meas[:, 0]) * inv_sig
+    e[:, 1] = (camera.fy * y + camera.cy - uv_meas[:, 1]) * inv_sig
+    if not with_jacobian:
+        return e, e, None, front
+    n = len(X_w)
+    J = np.empty((2 * n, 6))
+    fxs, fys = camera.fx * inv_sig, camera.fy * inv_sig
+    xy = x * y
+    Ju, Jv = J[:n], J[n:]
+    Ju[:, 0] = fxs * iz
+    Ju[:, 1] = 0.0
+    Ju[:, 2] = -fxs * x * iz
+    Ju[:, 3] = -fxs * xy
+    Ju[:, 4] = fxs * (1 + x * x)
+    Ju[:, 5] = -fxs * y
+    Jv[:, 0] = 0.0
+    Jv[:, 1] = fys * iz
+    Jv[:, 2] = -fys * y * iz
+    Jv[:, 3] = -fys * (1 + y * y)
+    Jv[:, 4] = fys * xy
+    Jv[:, 5] = fys * x
+    return e, e.T.reshape(-1), J, front
+
+
 def refine_pose(X_w: Array, uv_meas: Array, levels: NDArray[np.int64] | Array, camera: Camera,
                 R_c_w: Array, t_c_w: Array, iterations: int = 8, velocity: Array | None = None,
                 min_scale: float = 1.0, max_scale: float = 8.0, damping: float = 1e-6,
@@ -132,7 +173,7 @@ def refine_pose(X_w: Array, uv_meas: Array, levels: NDArray[np.int64] | Array, c
     """
     X_w = np.asarray(X_w, float).reshape(-1, 3)
     uv_meas = np.asarray(uv_meas, float).reshape(-1, 2)
-    sig = 2.0 ** np.asarray(levels, float).reshape(-1)
+    inv_sig = 2.0 ** -np.asarray(levels, float).reshape(-1)
     R = np.asarray(R_c_w, float).copy()
     t = np.asarray(t_c_w, float).reshape(3).copy()
     n = len(X_w)
@@ -144,38 +185,35 @@ def refine_pose(X_w: Array, uv_meas: Array, levels: NDArray[np.int64] | Array, c
     scale = min_scale if fixed_scale is None else float(fixed_scale)
     it = 0
     H = np.zeros((6, 6))
+    eye6 = np.eye(6)
     for it in range(1, iterations + 1):
-        uv, J, front = project_with_jacobian(X_w, camera, R, t, vel, dt)
-        e = (uv - uv_meas) / sig[:, None]
-        en = np.linalg.norm(e, axis=1)
-        en = np.where(front, en, 1e6)
+        e, e_flat, J, front = _normalised_residuals(X_w, uv_meas, inv_sig, camera, R, t, vel, dt)
+        en = np.where(front, np.hypot(e[:, 0], e[:, 1]), 1e6)
         scale = (float(fixed_scale) if fixed_scale is not None
                  else float(np.clip(1.4826 * np.median(en), min_scale, max_scale)))
         c = TUKEY_C * scale
         w = tukey_weight(en, c) * front
         if w.sum() < 1e-9:
             break
-        Jn = J / sig[:, None, None]
-        Jw = Jn * w[:, None, None]
-        H = np.einsum('nki,nkj->ij', Jw, Jn)
-        g = np.einsum('nki,nk->i', Jw, e)
+        w2 = np.concatenate([w, w])
+        Jw = J * w2[:, None]
+        H = Jw.T @ J
+        g = Jw.T @ e_flat
         try:
-            xi = -np.linalg.solve(H + damping * np.eye(6) * max(1.0, np.trace(H) / 6), g)
+            xi = -np.linalg.solve(H + damping * eye6 * max(1.0, np.trace(H) / 6), g)
         except np.linalg.LinAlgError:
             break
         dR, dtv = se3_exp(xi)
         R = dR @ R
         t = dR @ t + dtv
-        if np.linalg.norm(xi) < 1e-7:
+        if np.linalg.norm(xi) < 1e-6:  # ~1e-3 level-0 px at the image centre
             break
-    uv, J, front = project_with_jacobian(X_w, camera, R, t, vel, dt)
-    en = np.linalg.norm((uv - uv_meas) / sig[:, None], axis=1)
-    en = np.where(front, en, 1e6)
+    e, _, J, front = _normalised_residuals(X_w, uv_meas, inv_sig, camera, R, t, vel, dt)
+    en = np.where(front, np.hypot(e[:, 0], e[:, 1]), 1e6)
     c = TUKEY_C * scale
     w = tukey_weight(en, c)
     obj = float(tukey_rho(en, c).sum())
-    Jn = J / sig[:, None, None]
-    H = np.einsum('nki,nkj->ij', Jn * w[:, None, None], Jn)
+    H = (J * np.concatenate([w, w])[:, None]).T @ J
     # Orthonormalise R against drift.
     U, _, Vt = np.linalg.svd(R)
     R = U @ Vt

@@ -1,8 +1,8 @@
 """PTAM on a camera phone as one object: map, mapping thread and tracker (Klein & Murray 2009).
 
 :class:`SlamSystem` owns the :class:`SlamMap`, the back end's :class:`MapMaker` running in its
-background thread (sec. 3: tracking in the foreground, bundle adjustment in the background) and
-the :class:`Tracker`; ``process(gray, stamp_ns)`` tracks one frame. Accessors give what a ROS node
+background thread (sec. 3: tracking in the foreground, bundle adjustment in the background, its
+steps run while the tracker waits for a frame, :mod:`.frame_gate`) and the :class:`Tracker`; ``process(gray, stamp_ns)`` tracks one frame. Accessors give what a ROS node
 publishes: keyframe poses, map points and the camera path. No rclpy here.
 """
 from __future__ import annotations

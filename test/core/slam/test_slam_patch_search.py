@@ -59,3 +59,64 @@ def test_rejects_wrong_image_and_coarse_level() -> None:
     res2 = search_points(pc, cam, Rc, tc, X, *args, search_level=2, coarse=True)
     assert res2.level == 2 and res2.found.mean() > 0.6
     assert np.median(np.linalg.norm(res2.uv0[res2.found] - uvt[res2.found], axis=1)) < 2.0
+
+
+def test_vectorised_zssd_search_matches_brute_force() -> None:
+    """The batched ZSSD (row im2col matmul + stacked integral image) equals a per-point loop."""
+    import cv2
+
+    from ar_tracking.core.slam.patch_search import PATCH, SearchConfig, search
+    rng = np.random.default_rng(4)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8), (0, 0), 1.2)
+    img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX)
+    n = 40
+    uv = rng.uniform(12, 100, (n, 2))
+    S = PATCH + 2
+    templates = (rng.normal(0, 40, (n, S, S)) + 128).astype(np.float32)
+    for radius in (4.0, 6.5):
+        found, pos, best = search(img, templates, uv, SearchConfig(esm_iterations=0), radius=radius)
+        r = int(np.floor(radius))
+        for i in range(n):
+            T = templates[i, 1:-1, 1:-1].astype(float)
+            T -= T.mean()
+            x0, y0 = np.rint(uv[i] - (PATCH - 1) / 2.0).astype(int)
+            z = {}
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    if dx * dx + dy * dy <= radius * radius + 1e-9:
+                        w = img[y0 + dy:y0 + dy + PATCH, x0 + dx:x0 + dx + PATCH].astype(float)
+                        z[(dx, dy)] = float(((w - w.mean() - T) ** 2).sum()) / PATCH ** 2
+            (bx, by), bz = min(z.items(), key=lambda kv: kv[1])
+            assert abs(best[i] - bz) < 1e-3 * max(1.0, bz)
+            assert np.allclose(pos[i], [x0 + bx + (PATCH - 1) / 2.0, y0 + by + (PATCH - 1) / 2.0])
+
+
+def test_templates_from_several_keyframes_and_levels_match_per_point_warps() -> None:
+    import cv2
+
+    from ar_tracking.core.slam.patch_search import PATCH, warp_templates
+    pyrs = {k: build_pyramid(DeskScene(k).render(make_camera(320, 240), *look_at(np.array([0.0, -0.15, 0.5]),
+                                                                                     np.zeros(3)), supersample=1))
+            for k in (3, 7)}
+    rng = np.random.default_rng(2)
+    n = 30
+    src_kf = rng.choice([3, 7, 9], n)  # keyframe 9 has no pyramid: invalid
+    uv = rng.uniform(30, 200, (n, 2))
+    A = np.eye(2)[None] * rng.choice([0.5, 1.0, 2.0, 4.0], n)[:, None, None]
+    A[:, 0, 1] = rng.normal(0, 0.1, n)
+    out, ls, valid = warp_templates(pyrs, src_kf, uv, A, 1)
+    S = PATCH + 2
+    off = np.arange(S) - (S - 1) / 2.0
+    dx, dy = np.meshgrid(off, off)
+    for i in range(n):
+        if src_kf[i] == 9:
+            assert not valid[i]
+            continue
+        M = A[i] * 2.0 / 2.0 ** ls[i]
+        c = (uv[i] + 0.5) / 2.0 ** ls[i] - 0.5
+        mx = (c[0] + M[0, 0] * dx + M[0, 1] * dy).astype(np.float32)
+        my = (c[1] + M[1, 0] * dx + M[1, 1] * dy).astype(np.float32)
+        ref = cv2.remap(pyrs[src_kf[i]][ls[i]], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        assert np.array_equal(out[i], ref.astype(np.float32))
+        h, w = pyrs[src_kf[i]][ls[i]].shape
+        assert valid[i] == (mx.min() >= 0 and my.min() >= 0 and mx.max() <= w - 1 and my.max() <= h - 1)
