@@ -1,0 +1,60 @@
+"""SLAM core on the handheld_desk scenario: dropped frames, a textureless interval and recovery."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ar_tracking.core.slam.system import SlamSystem
+from ar_tracking.sim import handheld_desk
+
+W, H = 320, 240
+TRACKED = ('tracking', 'relocalised')
+
+
+@pytest.fixture(scope='module')
+def frames():
+    return list(handheld_desk.frames(1, 5.0, W, H))
+
+
+def _camera():
+    return handheld_desk.desk_camera(W, H).slam_camera()
+
+
+def _position_error_after_alignment(est: np.ndarray, truth: np.ndarray) -> float:
+    """RMS position error after a similarity alignment (Umeyama), in truth units."""
+    mu_e, mu_t = est.mean(0), truth.mean(0)
+    E, T = est - mu_e, truth - mu_t
+    U, S, Vt = np.linalg.svd(T.T @ E / len(est))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    s = np.trace(np.diag(S) @ D) / (E ** 2).sum(1).mean()
+    return float(np.sqrt((((s * (R @ E.T)).T - T) ** 2).sum(1).mean()))
+
+
+def test_dropped_frames_and_a_white_wall_do_not_break_tracking(frames):
+    dropped = set(range(60, 66))            # 300 ms without frames (after initialisation at ~2 s)
+    white = set(range(75, 80))              # a textureless interval
+    states: dict[int, str] = {}
+    est, truth = [], []
+    with SlamSystem(_camera()) as system:
+        for k, f in enumerate(frames):
+            if k in dropped:
+                continue
+            img = np.full((H, W), 250, np.uint8) if k in white else f.image
+            before = (len(system.map.keyframes), len(system.map.points))
+            res = system.process(img, int(f.stamp_ns) + 1)
+            system.wait_for_mapping()
+            states[k] = res.state
+            if k in white:
+                assert res.R_c_w is None and res.state not in TRACKED
+                assert not res.keyframe_added and len(system.map.keyframes) == before[0]
+            elif res.state in TRACKED:
+                est.append(-res.R_c_w.T @ res.t_c_w)
+                truth.append(f.p_w_c)
+    assert states[59] in TRACKED, 'initialised and tracking before the gap'
+    assert states[66] in TRACKED, 'the frame right after 300 ms of dropped frames is tracked'
+    assert sum(states[k] in TRACKED for k in range(80, 90)) >= 8, 'tracking comes back after the white frames'
+    assert all(states[k] in TRACKED for k in range(90, len(frames)))
+    est, truth = np.array(est), np.array(truth)
+    path = float(np.linalg.norm(np.diff(truth, axis=0), axis=1).sum())
+    assert _position_error_after_alignment(est, truth) < 0.01 * path
