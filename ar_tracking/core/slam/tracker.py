@@ -71,6 +71,9 @@ class TrackerConfig:
     lost_fraction: float = 0.2
     min_inliers: int = 10
     min_texture_std: float = 2.0  #: frames flatter than this (L2 grey std) are rejected
+    #: A longer gap since the last tracked frame makes the motion model stale: the next frame is
+    #: accepted only with a good match, else relocalised (as after lost frames), s.
+    max_gap_s: float = 1.0
     # keyframes
     kf_min_dist_frac: float = 0.10  #: distance to the nearest keyframe / mean scene depth
     kf_min_frames: int = 4  #: frames since the last keyframe
@@ -183,6 +186,9 @@ class Tracker:
             pyr = build_pyramid(gray)
             if float(pyr[2].std()) < self.cfg.min_texture_std:
                 self.stats['bad_input'] += 1
+                if self.R is not None:  # blind: the motion model goes stale, recover as from lost
+                    self.lost_frames += 1
+                    self.velocity = np.zeros(6)
                 return self._result('lost', 'bad input: textureless image', stamp_ns, t0)
             sbi = small_blurry_image(pyr)
             with self.map.lock:
@@ -309,25 +315,32 @@ class Tracker:
         if self.R is None:
             self.R, self.t = np.eye(3), np.zeros(3)
         relocalised = False
-        if self.lost_frames == 0:
-            R_pred, t_pred, fast = self._predict(sbi, stamp)
-        else:
-            R_pred, t_pred, fast = self._predict(sbi, stamp)
+        if (self.lost_frames == 0 and self.last_stamp is not None
+                and (stamp - self.last_stamp) * 1e-9 > self.cfg.max_gap_s):
+            self.lost_frames = 1  # frames were dropped for long: the prediction is stale
+            self.velocity = np.zeros(6)
+        R_pred, t_pred, fast = self._predict(sbi, stamp)
+        if self.lost_frames > 0:
             fast = False
         if fast:
             self.stats['fast_rotation'] += 1
         att = self._attempt(pyr, snap, R_pred, t_pred, coarse=fast)
         if att['quality'] != 'lost' and fast:
             pass  # sec. 4: fast rotation frames are tracked on L2 only and never become keyframes
-        if att['quality'] == 'lost' and self.lost_frames > 0:
+        if att['quality'] != 'good' and self.lost_frames > 0:
+            # Recovering from lost: the prediction is stale, so only a good match is trusted
+            # (a 'poor' one from a wrong pose can look consistent); otherwise relocalise.
             cand = relocalise(sbi, snap['kf_objs'], self.camera, self.cfg.reloc_max_ssd)
+            att2 = None
             if cand is not None:
                 att2 = self._attempt(pyr, snap, cand.R_c_w, cand.t_c_w, coarse=True, radius=5.0)
                 if att2['quality'] != 'lost':
                     att2 = self._attempt(pyr, snap, att2['R'], att2['t'], coarse=False)
-                if att2['quality'] == 'good':
-                    att = att2
-                    relocalised = True
+            if att2 is not None and att2['quality'] == 'good':
+                att = att2
+                relocalised = True
+            else:
+                att = dict(att, quality='lost')
         n_meas, n_in = att['n_found'], int(att['inliers'].sum())
         if att['quality'] == 'lost':
             self.lost_frames += 1

@@ -58,3 +58,29 @@ def test_dropped_frames_and_a_white_wall_do_not_break_tracking(frames):
     est, truth = np.array(est), np.array(truth)
     path = float(np.linalg.norm(np.diff(truth, axis=0), axis=1).sum())
     assert _position_error_after_alignment(est, truth) < 0.01 * path
+
+
+def test_relocalises_after_a_long_gap_in_another_place():
+    """4.5 s without frames (the camera moved on) then white frames: lost, then relocalised
+    against the keyframes (Klein & Murray's keyframe relocaliser), on the same map and scale."""
+    frames = list(handheld_desk.frames(1, 20.0, W, H))
+    gap, white = range(200, 290), range(290, 295)
+    states: dict[int, str] = {}
+    est, truth = [], []
+    with SlamSystem(_camera()) as system:
+        for k, f in enumerate(frames):
+            if k in gap:
+                continue
+            img = np.full((H, W), 250, np.uint8) if k in white else f.image
+            res = system.process(img, int(f.stamp_ns) + 1)
+            system.wait_for_mapping()
+            states[k] = res.state
+            if res.state in TRACKED and k not in white:
+                est.append(-res.R_c_w.T @ res.t_c_w)
+                truth.append(f.p_w_c)
+        relocalised = system.tracker.stats['relocalised']
+    assert relocalised >= 1
+    assert all(states[k] in TRACKED for k in range(310, len(frames)))
+    est, truth = np.array(est), np.array(truth)
+    path = float(np.linalg.norm(np.diff(truth, axis=0), axis=1).sum())
+    assert _position_error_after_alignment(est, truth) < 0.01 * path
