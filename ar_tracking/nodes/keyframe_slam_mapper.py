@@ -197,7 +197,8 @@ class KeyframeSlamMapperNode(TrackingNode):
             gray = cv2.remap(gray, self.undistort_maps[0], self.undistort_maps[1], cv2.INTER_LINEAR)
         res = self.system.process(gray, t)
         if res.state != self.last_state:
-            self.get_logger().info(f'slam: {res.state}{": " + res.message if res.message else ""}')
+            text = res.message if res.message.startswith(res.state) else f'{res.state}: {res.message}'
+            self.get_logger().info(f'slam: {text}')
             self.last_state = res.state
         stamp = to_stamp(t)
         if res.R_c_w is not None and res.t_c_w is not None:
@@ -210,8 +211,8 @@ class KeyframeSlamMapperNode(TrackingNode):
             self.pub_pose.publish(out)
             self.path.poses.append(out)
             self.tracked += 1
-        elif res.message:
-            self.warn_throttled(f'slam {res.state}: {res.message}')
+        elif res.state == 'lost' and res.message:
+            self.warn_throttled(f'slam lost: {res.message}')
         if res.keyframe_added or self.last_map_pub_ns is None or t - self.last_map_pub_ns >= self.map_period_ns:
             self._publish_map(t)
         if self.lockstep_hooks is not None:
