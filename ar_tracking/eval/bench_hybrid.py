@@ -31,13 +31,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.rotations import heading_tilt_error_deg, interpolate_rotations, quat_wxyz_to_xyzw, quat_xyzw_to_matrix
+from . import SHARED_DATA
 
 logger = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
 
 R_IMU_CAM_PHONE = np.diag([1.0, -1.0, -1.0])
-BROAD_DIR = Path(__file__).resolve().parents[3] / 'shared' / 'data' / 'broad'
+BROAD_DIR = SHARED_DATA / 'broad'
 
 
 # ----------------------------------------------------------------------------------------------

@@ -31,11 +31,11 @@ import numpy as np
 from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMapper
 from ar_tracking.core.panorama.cylinder import rotation_about_axis_y
 from ar_tracking.eval.panorama_metrics import camera_frames
+from ar_tracking.eval import SHARED_DATA
 
 logger = logging.getLogger(__name__)
 
 SAMPLE_BAG = Path(__file__).resolve().parents[2] / 'bags' / 'rotation_sweep_authoring.mcap'
-SHARED_DATA = Path(__file__).resolve().parents[3] / 'shared' / 'data'
 PHOTO_SETS = {'parrington': 'prtn', 'grail': 'grail'}
 STITCH_SPAN = 120
 STITCH_STEP = 10

@@ -26,8 +26,7 @@ from typing import Any
 
 import numpy as np
 
-#: Real recordings beside the repository (../shared/data), used when present.
-SHARED_DATA = Path(__file__).resolve().parents[3] / 'shared' / 'data'
+from . import SHARED_DATA
 
 
 def _frames(seed: int, duration_s: float, width: int, height: int) -> list[Any]:
@@ -119,7 +118,7 @@ def real_euroc_slice(data_dir: str | Path | None = None) -> dict[str, Any] | Non
     import cv2
 
     from ..core.rotations import angle_of
-    from ..core.slam.camera import Camera
+    from ..core.slam.camera import Rectifier
     from ..core.slam.system import SlamSystem
     from ..io.euroc import read_camera_calib, read_groundtruth_csv, read_images_csv
 
@@ -127,13 +126,11 @@ def real_euroc_slice(data_dir: str | Path | None = None) -> dict[str, Any] | Non
     if not (root / 'mav0' / 'cam0' / 'sensor.yaml').is_file():
         return None
     calib = read_camera_calib(root / 'mav0' / 'cam0' / 'sensor.yaml')
-    size = (calib.width, calib.height)
-    K_new, _ = cv2.getOptimalNewCameraMatrix(calib.K, calib.d, size, 0.0)
-    maps = cv2.initUndistortRectifyMap(calib.K, calib.d, None, K_new, size, cv2.CV_16SC2)
-    camera = Camera(float(K_new[0, 0]), float(K_new[1, 1]), float(K_new[0, 2]), float(K_new[1, 2]), *size)
+    rectify = Rectifier.from_calibration(calib.K, calib.d, calib.width, calib.height)
+    camera = rectify.camera
 
     def load(path: Path) -> np.ndarray:
-        return cv2.remap(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), maps[0], maps[1], cv2.INTER_LINEAR)
+        return rectify(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
 
     out: dict[str, Any] = {}
     static = read_images_csv(root / 'mav0' / 'cam0' / 'data.csv')

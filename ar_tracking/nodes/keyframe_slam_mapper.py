@@ -24,13 +24,12 @@ from __future__ import annotations
 
 from typing import Any
 
-import cv2
 import numpy as np
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 
-from ..core.slam.camera import Camera
+from ..core.slam.camera import Rectifier, camera_in_world
 from ..core.slam.system import SlamConfig, SlamSystem
 from ..core.stamp_pairing import NearestStampPairer
 from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
@@ -91,7 +90,7 @@ class KeyframeSlamMapperNode(TrackingNode):
         self.pairer: NearestStampPairer[np.ndarray, Info] = NearestStampPairer(self.max_info_gap_ns)
         self.system: SlamSystem | None = None
         self.info: Info | None = None
-        self.undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
+        self.rectify: Rectifier | None = None
         self.last_map_pub_ns: int | None = None
         self.path = Path()
         self.path.header.frame_id = self.frame_id
@@ -154,30 +153,25 @@ class KeyframeSlamMapperNode(TrackingNode):
             self.system.close()
         self.system = None
         self.info = None
-        self.undistort_maps = None
+        self.rectify = None
         self.pairer.reset()
         self.last_map_pub_ns = None
         self.path = Path()
         self.path.header.frame_id = self.frame_id
 
-    def _camera_for(self, info: Info) -> bool:
-        """Builds the SLAM system on the first camera_info; afterwards checks it is unchanged."""
+    def _start_or_check(self, info: Info) -> None:
+        """Builds the SLAM system on the first camera_info; afterwards warns if it changed (the
+        map keeps the intrinsics it was built with)."""
         K, D, (h, w) = info
-        if self.info is not None:
-            K0, D0, size0 = self.info
-            same = size0 == (h, w) and np.allclose(K0, K, rtol=1e-6, atol=1e-6) and np.allclose(
-                np.pad(D0, (0, max(0, len(D) - len(D0)))), np.pad(D, (0, max(0, len(D0) - len(D)))), atol=1e-9)
-            if not same:
-                self.warn_throttled('camera/camera_info changed while the map exists; the new intrinsics are ignored')
-            return True
-        Kn = K
-        if np.any(D != 0):
-            Kn, _ = cv2.getOptimalNewCameraMatrix(K, D, (w, h), 0.0)
-            self.undistort_maps = cv2.initUndistortRectifyMap(K, D, None, Kn, (w, h), cv2.CV_16SC2)
-        camera = Camera(float(Kn[0, 0]), float(Kn[1, 1]), float(Kn[0, 2]), float(Kn[1, 2]), w, h, self.readout_s)
-        self.system = SlamSystem(camera, self.config)
-        self.info = info
-        return True
+        if self.info is None:
+            self.rectify = Rectifier.from_calibration(K, D, w, h, self.readout_s)
+            self.system = SlamSystem(self.rectify.camera, self.config)
+            self.info = info
+            return
+        K0, D0, size0 = self.info
+        if size0 != (h, w) or not np.allclose(K0, K, rtol=1e-6, atol=1e-6) \
+                or not np.array_equal(np.trim_zeros(D0, 'b'), np.trim_zeros(D, 'b')):
+            self.warn_throttled('camera/camera_info changed while the map exists; the new intrinsics are ignored')
 
     def _handle(self, t: int, gray: np.ndarray, info: Info | None) -> None:
         self.frames += 1
@@ -188,22 +182,19 @@ class KeyframeSlamMapperNode(TrackingNode):
         if gray.shape != (h, w):
             self.warn_throttled(f'camera: frame is {gray.shape[1]}x{gray.shape[0]} but camera_info says {w}x{h}; frame skipped')
             return
-        self._camera_for(info)
-        assert self.system is not None
+        self._start_or_check(info)
+        assert self.system is not None and self.rectify is not None
         if gray.shape != (self.system.camera.height, self.system.camera.width):
             self.warn_throttled('camera: frame size differs from the map camera; frame skipped')
             return
-        if self.undistort_maps is not None:
-            gray = cv2.remap(gray, self.undistort_maps[0], self.undistort_maps[1], cv2.INTER_LINEAR)
-        res = self.system.process(gray, t)
+        res = self.system.process(self.rectify(gray), t)
         if res.state != self.last_state:
             text = res.message if res.message.startswith(res.state) else f'{res.state}: {res.message}'
             self.get_logger().info(f'slam: {text}')
             self.last_state = res.state
         stamp = to_stamp(t)
         if res.R_c_w is not None and res.t_c_w is not None:
-            R_w_c = np.asarray(res.R_c_w).T
-            p_w_c = -R_w_c @ np.asarray(res.t_c_w)
+            R_w_c, p_w_c = camera_in_world(res.R_c_w, res.t_c_w)
             out = PoseStamped()
             out.header.stamp = stamp
             out.header.frame_id = self.frame_id

@@ -11,6 +11,7 @@ row ``v`` (level-0 pixels) is captured ``(v - (height - 1) / 2) / height * reado
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,6 +66,39 @@ class Camera:
     def row_time_offset_s(self, v: Array) -> Array:
         """Capture time of level-0 row(s) ``v`` relative to the header stamp (the centre row)."""
         return (np.asarray(v, dtype=float) - (self.height - 1) / 2.0) / self.height * self.readout_s
+
+
+@dataclass(frozen=True)
+class Rectifier:
+    """Undoes a calibrated lens distortion so that :class:`Camera` (a pinhole) holds.
+
+    Built once from K and the OpenCV distortion coefficients of camera_info; ``camera`` is the
+    pinhole of the rectified images (alpha 0: no undefined border). Without distortion the
+    images pass through unchanged.
+    """
+
+    camera: Camera
+    maps: tuple[Any, Any] | None = None
+
+    @staticmethod
+    def from_calibration(K: Array, D: Array, width: int, height: int, readout_s: float = 0.0) -> 'Rectifier':
+        import cv2
+
+        K = np.asarray(K, dtype=float)
+        D = np.asarray(D, dtype=float)
+        Kn, maps = K, None
+        if np.any(D != 0):
+            Kn, _ = cv2.getOptimalNewCameraMatrix(K, D, (width, height), 0.0)
+            maps = cv2.initUndistortRectifyMap(K, D, None, Kn, (width, height), cv2.CV_16SC2)
+        camera = Camera(float(Kn[0, 0]), float(Kn[1, 1]), float(Kn[0, 2]), float(Kn[1, 2]), width, height, readout_s)
+        return Rectifier(camera, maps)
+
+    def __call__(self, gray: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        if self.maps is None:
+            return gray
+        import cv2
+
+        return cv2.remap(gray, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
 
 
 def level_to_level0(uv: Array, level: int) -> Array:

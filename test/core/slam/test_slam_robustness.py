@@ -6,6 +6,7 @@ import pytest
 
 from ar_tracking.core.slam.system import SlamSystem
 from ar_tracking.sim import handheld_desk
+from slam_synth import umeyama_sim3
 
 W, H = 320, 240
 TRACKED = ('tracking', 'relocalised')
@@ -22,13 +23,8 @@ def _camera():
 
 def _position_error_after_alignment(est: np.ndarray, truth: np.ndarray) -> float:
     """RMS position error after a similarity alignment (Umeyama), in truth units."""
-    mu_e, mu_t = est.mean(0), truth.mean(0)
-    E, T = est - mu_e, truth - mu_t
-    U, S, Vt = np.linalg.svd(T.T @ E / len(est))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    s = np.trace(np.diag(S) @ D) / (E ** 2).sum(1).mean()
-    return float(np.sqrt((((s * (R @ E.T)).T - T) ** 2).sum(1).mean()))
+    sc, R, t = umeyama_sim3(est, truth)
+    return float(np.sqrt((((sc * est @ R.T + t) - truth) ** 2).sum(1).mean()))
 
 
 def test_dropped_frames_and_a_white_wall_do_not_break_tracking(frames):
