@@ -50,6 +50,8 @@ from typing import Deque
 import numpy as np
 from numpy.typing import NDArray
 
+from .rotations import so3_exp, so3_log
+
 logger = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
@@ -57,42 +59,6 @@ Array = NDArray[np.float64]
 UP = np.array([0.0, 0.0, 1.0])
 _I3 = np.eye(3)
 _I3.setflags(write=False)
-
-
-# ----------------------------------------------------------------------------------------------
-# so(3) helpers. scipy's Rotation costs ~20-40 us per call for a single rotation; the filter must
-# run >= 20,000 updates/s, so exp/log of single rotations are the closed forms (Rodrigues).
-
-
-def skew(v: Array) -> Array:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def so3_exp(v: Array) -> Array:
-    """exp: so(3) 3-vector (rotation vector, rad) -> rotation matrix (Rodrigues)."""
-    theta = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    K = skew(v)
-    if theta < 1e-8:
-        return _I3 + K
-    return _I3 + (math.sin(theta) / theta) * K + ((1.0 - math.cos(theta)) / theta**2) * (K @ K)
-
-
-def so3_log(R: Array) -> Array:
-    """log: rotation matrix -> so(3) 3-vector (rad), robust near 0 and pi."""
-    cos_t = min(1.0, max(-1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    theta = math.acos(cos_t)
-    if theta < 1e-6:
-        return 0.5 * w
-    if math.pi - theta > 1e-4:
-        return (theta / (2.0 * math.sin(theta))) * w
-    # Near pi: the axis from the symmetric part.
-    B = 0.5 * (R + R.T) - cos_t * np.eye(3)
-    i = int(np.argmax(np.diag(B)))
-    axis = B[:, i] / max(float(np.linalg.norm(B[:, i])), 1e-12)  # B = (1 - cos) a a^T
-    if np.dot(axis, w) < 0:
-        axis = -axis
-    return theta * axis
 
 
 def slerp(R_a: Array, R_b: Array, s: float) -> Array:

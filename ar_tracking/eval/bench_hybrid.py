@@ -47,7 +47,8 @@ BROAD_DIR = SHARED_DATA / 'broad'
 
 def bench_filter_updates(samples: int = 20000, seed: int = 0) -> float:
     """Updates per second of :class:`PanoramaWorldFilter` (eq. 5-6 with the gates), one core."""
-    from ..core.hybrid_orientation import PanoramaWorldFilter, so3_exp
+    from ..core.hybrid_orientation import PanoramaWorldFilter
+    from ..core.rotations import so3_exp
 
     rng = np.random.default_rng(seed)
     R_pe = so3_exp(np.array([0.3, -0.2, 1.0]))

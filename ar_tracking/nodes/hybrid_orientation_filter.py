@@ -28,9 +28,8 @@ from ..core.hybrid_orientation import (
     HybridFilterParams,
     PanoramaWorldFilter,
     RotationBuffer,
-    so3_log,
 )
-from ..core.rotations import quat_xyzw_to_matrix
+from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..ros.conversions import (
     ConversionError,
     covariance_is_known,

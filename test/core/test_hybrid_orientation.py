@@ -12,10 +12,8 @@ from ar_tracking.core.hybrid_orientation import (
     HybridFilterParams,
     PanoramaWorldFilter,
     RotationBuffer,
-    so3_exp,
-    so3_log,
 )
-from ar_tracking.core.rotations import heading_tilt_error_deg, rot_z
+from ar_tracking.core.rotations import heading_tilt_error_deg, rot_z, so3_exp, so3_log
 
 R0_ENU_CAM = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # level, looking north
 R_IMU_CAM = np.diag([1.0, -1.0, -1.0])

@@ -33,7 +33,8 @@ from .camera import Camera
 from .patch_search import SearchConfig, search_points
 from .pose_update import refine_pose, tukey_weight
 from .pyramid import multiscale_corners
-from .rotation_prior import estimate_rotation, rotation_angle, so3_exp
+from ..rotations import so3_exp
+from .rotation_prior import estimate_rotation, rotation_angle
 from .slam_map import Keyframe
 
 log = logging.getLogger(__name__)

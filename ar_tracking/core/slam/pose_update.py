@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
-from .rotation_prior import so3_exp
+from ..rotations import skew, so3_exp, so3_log
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ def se3_exp(xi: Array) -> tuple[Array, Array]:
     v, w = xi[:3], xi[3:]
     th = float(np.linalg.norm(w))
     R = so3_exp(w)
-    Wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    Wx = skew(w)
     if th < 1e-8:
         V = np.eye(3) + 0.5 * Wx
     else:
@@ -58,10 +58,9 @@ def se3_exp(xi: Array) -> tuple[Array, Array]:
 
 def se3_log(R: Array, t: Array) -> Array:
     """Twist ``(v, w)`` of (R, t) (inverse of :func:`se3_exp`)."""
-    import cv2
-    w = cv2.Rodrigues(np.asarray(R, float))[0].reshape(3)
+    w = so3_log(np.asarray(R, float))
     th = float(np.linalg.norm(w))
-    Wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    Wx = skew(w)
     if th < 1e-8:
         Vinv = np.eye(3) - 0.5 * Wx
     else:

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from ..rotations import so3_exp
 from .camera import Camera
 
 log = logging.getLogger(__name__)
@@ -45,21 +46,6 @@ class RotationEstimate:
     iterations: int
     overlap: float
     converged: bool
-
-
-def so3_exp(w: Array) -> Array:
-    """Rotation matrix of the rotation vector ``w`` (Rodrigues)."""
-    w = np.asarray(w, dtype=float).reshape(3)
-    th = float(np.linalg.norm(w))
-    Wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-10:
-        return np.eye(3) + Wx
-    return np.eye(3) + np.sin(th) / th * Wx + (1 - np.cos(th)) / th ** 2 * (Wx @ Wx)
-
-
-def so3_log(R: Array) -> Array:
-    """Rotation vector of a rotation matrix."""
-    return cv2.Rodrigues(np.asarray(R, dtype=float))[0].reshape(3)
 
 
 def rotation_angle(R: Array) -> float:

@@ -107,10 +107,6 @@ def matrix_to_quat(R: Array) -> Array:
     return -q if q[0] < 0 else q
 
 
-def skew(v: Array) -> Array:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 # --- parameters ---------------------------------------------------------------------------
 
 @dataclass(frozen=True)
