@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from ..io.bags import BagError, BagMessage, BagReader, BagWriter
+from ..io.bags import BagReader, BagWriter
 from .params import params_for_node, to_overrides
 
 logger = logging.getLogger(__name__)

@@ -53,6 +53,7 @@ from .camera import Camera
 from .frame_gate import FrameGate
 from .culling import KEYFRAME_UTILITY_THRESHOLD, keyframes_to_cull, measurements_to_cull
 from .point_filter import mean_inverse_depth, predict_partial_uv, triangulate_two_view
+from .pyramid import multiscale_corners
 from .rolling_shutter import correct_keyframe
 from .slam_map import Keyframe, MapPoint, Measurement, PartialPoint, SlamMap
 
@@ -482,7 +483,6 @@ class MapMaker:
             excl.extend(uvp[(z > 1e-6) & self.camera.in_image(uvp)])
         excl_arr = np.array(excl, float).reshape(-1, 2)
         try:
-            from .pyramid import multiscale_corners
             uv_new, _ = multiscale_corners(kf.pyramid, max_corners=cfg.corner_candidates,
                                            exclude_uv=excl_arr,
                                            exclude_radius_px=cfg.corner_exclude_radius_px)[:2]

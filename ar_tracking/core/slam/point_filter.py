@@ -107,40 +107,50 @@ def partial_point_world(pp: PartialPoint, kf_src: Keyframe) -> Array:
     return np.asarray(kf_src.R_c_w, float).T @ (X_s - np.asarray(kf_src.t_c_w, float))
 
 
-def predict_partial_uv(pp: PartialPoint, kf_src: Keyframe, R_c_w: Array, t_c_w: Array,
-                       camera: Camera, n_sigma: float = 2.0, min_radius_px: float = 4.0,
-                       max_radius_px: float = 48.0, prior_depth_factor: float = 3.0
-                       ) -> tuple[Array, float]:
-    """Predicted level-0 pixel of a partial point and the search radius along its epipolar line.
+def predict_partial_uvs(rays: Array, q_hat: Array, info: Array, R_src_w: Array, t_src_w: Array,
+                        R_c_w: Array, t_c_w: Array, camera: Camera, n_sigma: float = 2.0,
+                        min_radius_px: float = 4.0, max_radius_px: float = 48.0,
+                        prior_depth_factor: float = 3.0) -> tuple[Array, Array]:
+    """Predicted level-0 pixels (N, 2) of N partial points and their search radii (N,) along
+    their epipolar lines; ``R_src_w`` (N, 3, 3) and ``t_src_w`` (N, 3) are the source keyframes.
 
     The position is the projection with ``q_hat``. The radius covers the epipolar segment
     between the projections of ``q_hat -/+ n_sigma / sqrt(info)`` (clamped to q > 0); with no
     information yet (``info = 0``, sigma = infinity) it covers q from 0 (infinity) to
     ``prior_depth_factor * q_hat``. The radius is at least ``min_radius_px`` (the patch search's
-    own radius, sec. 4) and at most ``max_radius_px``. If the predicted point is behind the
-    camera, ``uv`` is NaN.
+    own radius, sec. 4) and at most ``max_radius_px`` (also when an end of the segment is behind
+    the camera). A point predicted behind the camera has NaN pixels.
     """
-    R, t = _relative(R_c_w, t_c_w, kf_src.R_c_w, kf_src.t_c_w)
-    a = R @ np.asarray(pp.ray, float)
-    q = max(Q_MIN, float(pp.q_hat))
-    h = a + q * t
-    if h[2] <= 1e-9:
-        return np.full(2, np.nan), float(max_radius_px)
-    uv, _ = _project_h(camera, h)
-    if pp.info > 0.0:
-        s = n_sigma / np.sqrt(pp.info)
-        q_lo, q_hi = max(0.0, q - s), q + s
-    else:
-        q_lo, q_hi = 0.0, prior_depth_factor * q
-    radius = 0.0
-    for qe in (q_lo, q_hi):
-        he = a + qe * t
-        if he[2] <= 1e-9:
-            radius = max_radius_px
-            continue
-        uve, _ = _project_h(camera, he)
-        radius = max(radius, float(np.linalg.norm(uve - uv)))
-    return uv, float(np.clip(radius, min_radius_px, max_radius_px))
+    R_src_w = np.asarray(R_src_w, float).reshape(-1, 3, 3)
+    t_src_w = np.asarray(t_src_w, float).reshape(-1, 3)
+    Rrel = np.einsum('ij,nkj->nik', np.asarray(R_c_w, float), R_src_w)  # R_cur R_src^T
+    trel = np.asarray(t_c_w, float)[None, :] - np.einsum('nij,nj->ni', Rrel, t_src_w)
+    a = np.einsum('nij,nj->ni', Rrel, np.asarray(rays, float).reshape(-1, 3))
+    q = np.maximum(np.asarray(q_hat, float).reshape(-1), Q_MIN)
+    info = np.asarray(info, float).reshape(-1)
+
+    def project(qq: Array) -> Array:
+        h = a + qq[:, None] * trel
+        z = np.where(h[:, 2] > 1e-9, h[:, 2], np.nan)
+        return np.column_stack([camera.fx * h[:, 0] / z + camera.cx, camera.fy * h[:, 1] / z + camera.cy])
+
+    uv = project(q)
+    known = info > 0.0
+    s = np.where(known, n_sigma / np.sqrt(np.where(known, info, 1.0)), 0.0)
+    q_lo = np.where(known, np.maximum(0.0, q - s), 0.0)
+    q_hi = np.where(known, q + s, prior_depth_factor * q)
+    r = np.maximum(np.linalg.norm(project(q_lo) - uv, axis=1), np.linalg.norm(project(q_hi) - uv, axis=1))
+    return uv, np.clip(np.nan_to_num(r, nan=max_radius_px), min_radius_px, max_radius_px)
+
+
+def predict_partial_uv(pp: PartialPoint, kf_src: Keyframe, R_c_w: Array, t_c_w: Array,
+                       camera: Camera, n_sigma: float = 2.0, min_radius_px: float = 4.0,
+                       max_radius_px: float = 48.0, prior_depth_factor: float = 3.0
+                       ) -> tuple[Array, float]:
+    """:func:`predict_partial_uvs` for one partial point: (uv (2,), radius)."""
+    uv, r = predict_partial_uvs(pp.ray, [pp.q_hat], [pp.info], kf_src.R_c_w, kf_src.t_c_w, R_c_w, t_c_w,
+                                camera, n_sigma, min_radius_px, max_radius_px, prior_depth_factor)
+    return uv[0], float(r[0])
 
 
 def triangulate_two_view(R0_c_w: Array, t0_c_w: Array, uv0: Array, R1_c_w: Array, t1_c_w: Array,
@@ -200,5 +210,5 @@ def mean_inverse_depth(R_c_w: Array, t_c_w: Array, xyz_w: Array, default: float 
     return float(np.mean(1.0 / z))
 
 
-__all__ = ['update_inverse_depth', 'partial_point_world', 'predict_partial_uv',
+__all__ = ['update_inverse_depth', 'partial_point_world', 'predict_partial_uv', 'predict_partial_uvs',
            'triangulate_two_view', 'mean_inverse_depth', 'Q_MIN']

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import PYRAMID_LEVELS, level0_to_level, level_to_level0
+from .camera import PYRAMID_LEVELS
 
 log = logging.getLogger(__name__)
 
@@ -176,4 +176,4 @@ def small_blurry_image(pyramid: list[Image], sigma: float = 0.75) -> NDArray[np.
 
 
 __all__ = ['build_pyramid', 'shi_tomasi_score', 'multiscale_corners', 'small_blurry_image',
-           'DEFAULT_MIN_SCORE', 'level0_to_level', 'level_to_level0']
+           'DEFAULT_MIN_SCORE']

@@ -15,22 +15,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera, camera_in_world
+from .mapper import MapMaker, MapperConfig
 from .slam_map import SlamMap
 from .tracker import Tracker, TrackerConfig, TrackResult
-
-try:
-    from .mapper import MapMaker, MapperConfig
-except ImportError:  # pragma: no cover - back end not present
-    MapMaker = None  # type: ignore[assignment]
-    MapperConfig = None  # type: ignore[assignment]
 
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
-
-
-def _default_mapper_config() -> Any:
-    return MapperConfig() if MapperConfig is not None else None
 
 
 @dataclass
@@ -42,7 +33,7 @@ class SlamConfig:
     """
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    mapper: Any = field(default_factory=_default_mapper_config)
+    mapper: MapperConfig = field(default_factory=MapperConfig)
     readout_s: float | None = None
     threaded: bool = True
     max_path: int = 100000
@@ -57,8 +48,6 @@ class SlamSystem:
             camera = replace(camera, readout_s=float(self.config.readout_s))
         self.camera = camera
         self.map = SlamMap()
-        if MapMaker is None:
-            raise RuntimeError('SlamSystem needs the back end (ar_tracking.core.slam.mapper)')
         self.mapper = MapMaker(self.map, camera, self.config.mapper)
         if self.config.threaded:
             self.mapper.start()
@@ -109,9 +98,7 @@ class SlamSystem:
         out = {k: v for k, v in t.items() if k != 'times_ms'}
         out.update(track_ms_p50=p50, track_ms_p95=p95, n_points=len(self.map.points),
                    n_keyframes=len(self.map.keyframes))
-        ms = getattr(self.mapper, 'stats', None)
-        if isinstance(ms, dict):
-            out['mapper'] = dict(ms)
+        out['mapper'] = dict(self.mapper.stats)
         return out
 
     def close(self) -> None:

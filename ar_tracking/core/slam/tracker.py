@@ -32,17 +32,14 @@ from numpy.typing import NDArray
 
 from .camera import Camera, camera_in_world
 from .initialiser import InitConfig, Initialiser
+from .mapper import MapMaker
 from .patch_search import SearchConfig, search_points
+from .point_filter import predict_partial_uvs, update_inverse_depth
 from .pose_update import refine_pose, se3_exp, se3_log
 from .pyramid import build_pyramid, small_blurry_image
 from .relocaliser import relocalise
 from .rotation_prior import estimate_rotation, rotation_angle, rotation_homography
 from .slam_map import Keyframe, Measurement, SlamMap
-
-try:  # the back end's inverse-depth filter (sec. 5.2)
-    from .point_filter import partial_point_world, predict_partial_uv, update_inverse_depth
-except ImportError:  # pragma: no cover - back end not present
-    partial_point_world = predict_partial_uv = update_inverse_depth = None
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +108,7 @@ class TrackResult:
 class Tracker:
     """PTAM tracker: ``track(gray, stamp_ns)`` per frame; feeds ``mapper`` with keyframes."""
 
-    def __init__(self, camera: Camera, slam_map: SlamMap, mapper: Any,
+    def __init__(self, camera: Camera, slam_map: SlamMap, mapper: MapMaker,
                  config: TrackerConfig | None = None) -> None:
         self.camera = camera
         self.map = slam_map
@@ -165,16 +162,13 @@ class Tracker:
     def track(self, gray: Image, stamp_ns: int) -> TrackResult:
         """Tracks one frame; never raises on bad input (state 'lost' with a message).
 
-        The mapper's frame gate (if any) is told when the frame starts and ends, so that mapping
+        The mapper's frame gate is told when the frame starts and ends, so that mapping
         steps run between frames (sec. 3, :mod:`.frame_gate`)."""
-        gate = getattr(self.mapper, 'gate', None)
-        if gate is not None:
-            gate.frame_started()
+        self.mapper.gate.frame_started()
         try:
             return self._track(gray, stamp_ns)
         finally:
-            if gate is not None:
-                gate.frame_finished()
+            self.mapper.gate.frame_finished()
 
     def _track(self, gray: Image, stamp_ns: int) -> TrackResult:
         t0 = time.perf_counter()
@@ -238,7 +232,7 @@ class Tracker:
             kfs = {k: (kf.R_c_w.copy(), kf.t_c_w.copy(), kf.pyramid, kf.erased) for k, kf in self.map.keyframes.items()}
             kf_objs = list(self.map.keyframes.values())
             partial = []
-            if update_inverse_depth is not None and self.map.partial_points:
+            if self.map.partial_points:
                 pp_list = list(self.map.partial_points.values())
                 if len(pp_list) > self.cfg.max_partial:
                     sel = self._rng.choice(len(pp_list), self.cfg.max_partial, replace=False)
@@ -421,30 +415,16 @@ class Tracker:
         return out
 
     def _predict_partial(self, pps: list, kfs: dict) -> tuple[Array, Array, Array]:
-        """Vectorised partial-point prediction (same model as point_filter.predict_partial_uv):
-        level-0 pixel at q_hat, epipolar search radius (q_hat +- 2 sigma, or 0..3 q_hat without
-        information), and the world point at q_hat."""
+        """Level-0 pixels and epipolar search radii of partial points (sec. 5.2, the point
+        filter's model, :func:`.point_filter.predict_partial_uvs`), and their world points at
+        q_hat."""
         Rs = np.array([kfs[pp.source_kf][0] for pp in pps])
         ts = np.array([kfs[pp.source_kf][1] for pp in pps])
         ray = np.array([pp.ray for pp in pps], float)
-        q = np.maximum(np.array([pp.q_hat for pp in pps], float), 1e-6)
-        info = np.array([pp.info for pp in pps], float)
-        Rrel = np.einsum('ij,nkj->nik', self.R, Rs)  # R_cur R_src^T
-        trel = self.t[None, :] - np.einsum('nij,nj->ni', Rrel, ts)
-        a = np.einsum('nij,nj->ni', Rrel, ray)
-
-        def proj(qq: Array) -> Array:
-            h = a + qq[:, None] * trel
-            z = np.where(h[:, 2] > 1e-9, h[:, 2], np.nan)
-            return np.column_stack([self.camera.fx * h[:, 0] / z + self.camera.cx,
-                                    self.camera.fy * h[:, 1] / z + self.camera.cy])
-        uv = proj(q)
-        s = np.where(info > 0, 2.0 / np.sqrt(np.maximum(info, 1e-300)), 0.0)
-        q_lo = np.where(info > 0, np.maximum(0.0, q - s), 0.0)
-        q_hi = np.where(info > 0, q + s, 3.0 * q)
-        r = np.maximum(np.linalg.norm(proj(q_lo) - uv, axis=1), np.linalg.norm(proj(q_hi) - uv, axis=1))
-        r = np.clip(np.nan_to_num(r, nan=48.0), 4.0, 48.0)
-        Xs = ray / q[:, None]
+        q = np.array([pp.q_hat for pp in pps], float)
+        uv, r = predict_partial_uvs(ray, q, np.array([pp.info for pp in pps], float), Rs, ts,
+                                    self.R, self.t, self.camera)
+        Xs = ray / np.maximum(q, 1e-6)[:, None]
         X = np.einsum('nji,nj->ni', Rs, Xs - ts)
         return uv, r, X
 
@@ -452,11 +432,8 @@ class Tracker:
                             meas_now: dict[int, Array], level: int, partial_meas: dict[int, Measurement]) -> bool:
         if self.frames_since_kf < self.cfg.kf_min_frames:
             return False
-        try:
-            if self.mapper.queue_length() > self.cfg.kf_max_mapper_queue:
-                return False
-        except Exception:  # pragma: no cover - a mapper without queue_length
-            pass
+        if self.mapper.queue_length() > self.cfg.kf_max_mapper_queue:
+            return False
         _, p_w = camera_in_world(self.R, self.t)
         pos = np.array([-(v[0].T @ v[1]) for v in snap['kfs'].values()])
         dmin = float(np.min(np.linalg.norm(pos - p_w, axis=1))) if len(pos) else np.inf
