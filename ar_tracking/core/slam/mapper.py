@@ -52,7 +52,7 @@ from .bundle_adjustment import BAResult, bundle_adjust, project_world
 from .camera import Camera
 from .frame_gate import FrameGate
 from .culling import KEYFRAME_UTILITY_THRESHOLD, keyframes_to_cull, measurements_to_cull
-from .point_filter import mean_inverse_depth, predict_partial_uv, triangulate_two_view
+from .point_filter import mean_inverse_depth, predict_partial_uvs, triangulate_two_view
 from .pyramid import multiscale_corners
 from .rolling_shutter import correct_keyframe
 from .slam_map import Keyframe, MapPoint, Measurement, PartialPoint, SlamMap
@@ -469,15 +469,14 @@ class MapMaker:
                 if src.id not in srcs:
                     srcs[src.id] = _snapshot_kf(src, set())
                 partial.append((replace(pp, ray=np.array(pp.ray, float)), srcs[src.id]))
-        partial_uv = []
-        for pp, src in partial:
-            if src.id == kf.id:
-                partial_uv.append(np.asarray(pp.source_uv, float))
-                continue
-            uv, _ = predict_partial_uv(pp, src, R, t, self.camera)
-            if np.all(np.isfinite(uv)):
-                partial_uv.append(uv)
-        excl = list(meas_uv) + partial_uv
+        own = [np.asarray(pp.source_uv, float) for pp, src in partial if src.id == kf.id]
+        others = [(pp, src) for pp, src in partial if src.id != kf.id]
+        excl = list(meas_uv) + own
+        if others:  # where the partial points of other keyframes fall in this one (batched)
+            uv, _ = predict_partial_uvs(np.array([pp.ray for pp, _ in others]), [pp.q_hat for pp, _ in others],
+                                        [pp.info for pp, _ in others], np.array([src.R_c_w for _, src in others]),
+                                        np.array([src.t_c_w for _, src in others]), R, t, self.camera)
+            excl.extend(uv[np.all(np.isfinite(uv), axis=1)])
         if len(all_xyz):
             uvp, z = project_world(self.camera, R, t, all_xyz)
             excl.extend(uvp[(z > 1e-6) & self.camera.in_image(uvp)])
