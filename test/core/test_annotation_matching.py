@@ -285,3 +285,61 @@ def test_guided_all_replaces_a_look_alike_candidate():
         p = next(p for p in al.placements if p.index == 1)
         placed[guided_all] = math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v)
     assert placed[False] == pytest.approx(12.0, abs=0.01) and placed[True] < 1.0
+
+
+def _rotated_by(R: np.ndarray, deg: float, axis=(0.0, 0.0, 1.0)) -> np.ndarray:
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis)).as_matrix() @ R
+
+
+def test_prior_alignment_places_by_the_compass_when_ransac_finds_no_valid_hypothesis():
+    # Two of four annotations consistent (50 %, not more): RANSAC alone has no hypothesis and the
+    # paper falls back to the best candidates, two of them look-alikes far off.
+    case = make_case(seed=6, n=4)
+    cands = _candidates(case, wrong={0, 1}, none=set(), rng=np.random.default_rng(3))
+    assert ransac_alignment(case.dirs, cands, MatchConfig()).R_target_source is None
+    R_prior = _rotated_by(case.R_target_source, 2.0)  # a compass 2 deg off
+    al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior)
+    assert al.R_target_source is not None
+    ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+    assert ang < 0.2  # refined on the two matches the prior explains
+    status = {p.index: p.status for p in al.placements}
+    assert status == {0: 'inferred', 1: 'inferred', 2: 'matched', 3: 'matched'}
+    for p in al.placements:
+        u, v = case.truth_uv[p.index]
+        assert math.hypot((p.u - u + 1024) % 2048 - 1024, p.v - v) < 2.0
+    # Switched off, the prior is ignored.
+    assert ransac_alignment(case.dirs, cands, MatchConfig(prior_alignment=False), R_prior=R_prior).R_target_source is None
+
+
+def test_prior_alignment_rejects_a_consistent_rotation_the_compass_rules_out():
+    # Every annotation has a look-alike copy 30 deg round the cylinder: both rotations explain all
+    # matches; only the compass tells them apart.
+    case = make_case(seed=9, n=5)
+    W = GEO.width
+    shift = 30.0 / 360.0 * W
+    cands = [[Candidate(float(u), float(v), 0.8, 0.8), Candidate(float((u + shift) % W), float(v), 0.82, 0.82)]
+             for u, v in case.truth_uv]
+    for compass_err, truth_expected in ((3.0, True), (-3.0, True)):
+        R_prior = _rotated_by(case.R_target_source, compass_err)
+        al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior)
+        ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+        assert (ang < 0.1) == truth_expected
+    # A compass that points at the look-alikes (within its 10 deg window of them) picks them.
+    shifted_prior = _rotated_by(case.R_target_source, 28.0, axis=(0.0, -1.0, 0.0))
+    al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=shifted_prior)
+    ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+    assert ang > 25.0
+
+
+def test_redetector_gives_the_prior_rotation_to_the_alignment():
+    case = make_case(seed=5, n=4)
+    R_enu_source = Rotation.from_euler('z', 40, degrees=True).as_matrix()
+    R_enu_target = R_enu_source @ case.R_target_source.T
+    det = ReDetector([np.zeros((16, 16), np.uint8)] * 4, case.dirs, ['p'] * 4, MatchConfig(), GEO, [R_enu_source] * 4)
+    assert det._prior_rotation([0, 1, 2, 3]) is None  # no target orientation yet
+    det.set_orientation(R_enu_target)
+    np.testing.assert_allclose(det._prior_rotation([0, 1, 2, 3]), case.R_target_source, atol=1e-12)
+    off = ReDetector([np.zeros((16, 16), np.uint8)] * 4, case.dirs, ['p'] * 4, MatchConfig(sensor_prior=False), GEO,
+                     [R_enu_source] * 4)
+    off.set_orientation(R_enu_target)
+    assert off._prior_rotation([0, 1, 2, 3]) is None

@@ -116,6 +116,11 @@ class MatchConfig:
     #: Guided re-match of the matched annotations too (after the alignment): a position in the
     #: window that scores better than their candidate replaces it.
     guided_all: bool = True
+    #: With the sensor prior, a RANSAC hypothesis must lie within ``prior_window_px`` (the
+    #: compass error) of the rotation the two absolute orientations give, and with no valid
+    #: hypothesis that prior rotation aligns the panoramas (an extension joining sec. 4.2 and
+    #: 4.3: a rotation the compass rules out is a coincidence of look-alikes).
+    prior_alignment: bool = True
     seed: int = 0
 
 
@@ -400,7 +405,7 @@ def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
 
 def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
                      config: MatchConfig | None = None, geometry: CylinderGeometry | None = None,
-                     rng: np.random.Generator | None = None) -> Alignment:
+                     rng: np.random.Generator | None = None, R_prior: Array | None = None) -> Alignment:
     """Global rotation between the source and the target panorama (sec. 4.3; module docstring).
 
     ``source_dirs`` (n, 3): unit vectors of the annotations in the source panorama;
@@ -409,15 +414,21 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     else that many random ones (seeded). A hypothesis is valid with more than
     ``min_inlier_ratio`` inliers; among the valid ones the lowest normalised error wins (the
     paper) or, with ``consensus_score``, the highest placement score (:func:`placement_score`).
-    The winner is refined by least squares on all its matches (:func:`absolute_orientation`)."""
+    The winner is refined by least squares on all its matches (:func:`absolute_orientation`).
+
+    ``R_prior`` (R_target_source from the absolute orientations, with ``prior_alignment``):
+    hypotheses further than ``prior_window_px`` from it are not valid, and when none is valid
+    the annotations are placed by ``R_prior`` itself (refined on the matches it explains)."""
     cfg = config or MatchConfig()
     geo = geometry or CylinderGeometry()
     src = np.asarray(source_dirs, float).reshape(-1, 3)
     n = len(src)
     with_c = [i for i in range(n) if candidates[i]]
+    if R_prior is not None and not cfg.prior_alignment:
+        R_prior = None
     result = Alignment(None)
     if len(with_c) < max(2, cfg.min_inliers):
-        return result
+        return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
     # Candidate directions and positions, flattened.
     cu = [np.array([c.u for c in candidates[i]]) for i in range(n)]
     cv_ = [np.array([c.v for c in candidates[i]]) for i in range(n)]
@@ -437,12 +448,15 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     ang_b = np.arccos(np.clip(np.einsum('ij,ij->i', b1, b2), -1, 1))
     ok = (ang_a >= math.radians(2.0)) & (ang_b >= math.radians(2.0)) & (np.abs(ang_a - ang_b) <= 2 * tol_rad)
     if not ok.any():
-        return result
-    a1, a2, b1, b2 = a1[ok], a2[ok], b1[ok], b2[ok]
-    result.hypotheses = int(ok.sum())
-    # Least-squares rotation of two vector pairs (absolute orientation): it maps the bisector
-    # and the normal of (a1, a2) onto those of (b1, b2).
-    Rs = _frames(b1, b2) @ np.swapaxes(_frames(a1, a2), 1, 2)
+        return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
+    hyp_R = _frames(b1[ok], b2[ok]) @ np.swapaxes(_frames(a1[ok], a2[ok]), 1, 2)
+    if R_prior is not None:
+        hyp_R = hyp_R[_rotation_angles(hyp_R, R_prior) <= cfg.prior_window_px / geo.f]
+        if not len(hyp_R):
+            return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
+    # hyp_R: the least-squares rotation of each two vector pairs (absolute orientation): it
+    # maps the bisector and the normal of (a1, a2) onto those of (b1, b2).
+    Rs = hyp_R
     # Every hypothesis against every annotation's candidates at once.
     cs = _CandidateArrays(candidates, with_c, cu, cv_)
     dd = cs.distances(Rs, src, geo)  # (H, n_c, k)
@@ -451,11 +465,15 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     n_inl = inl.sum(axis=1)
     valid = n_inl >= need
     if not valid.any():
-        return result
+        return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
+    result.hypotheses = len(Rs)
     nerr = np.where(valid, np.where(inl, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
     if cfg.consensus_score:
         # Highest placement score wins; among equal scores, the lower normalised error.
         gain = np.where(valid, cs.placement_score(dd, cfg), -np.inf)
+        if R_prior is not None:
+            # The compass as one more vote: prior_penalty per annotation at the window's edge.
+            gain = gain - cfg.prior_penalty * len(with_c) * _rotation_angles(Rs, R_prior) / (cfg.prior_window_px / geo.f)
         h = int(np.lexsort((np.round(nerr, 9), -np.round(gain, 9)))[0])
     else:
         # Lowest normalised error wins; among equal errors, more inliers.
@@ -484,6 +502,31 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     result.normalised_error_px = err / len(inl)
     result.placements = place_annotations(R, src, candidates, cfg, geo)
     return result
+
+
+def _rotation_angles(Rs: Array, R: Array) -> Array:
+    """(H,) angles (rad) between each of the rotations ``Rs`` (H, 3, 3) and ``R``."""
+    tr = np.einsum('hij,ij->h', Rs, R)
+    return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
+
+
+def _prior_alignment(R_prior: Array | None, src: Array, candidates: Sequence[Sequence[Candidate]],
+                     with_c: list[int], cfg: MatchConfig, geo: CylinderGeometry) -> Alignment:
+    """The alignment when RANSAC finds no valid hypothesis: with a prior rotation, the
+    annotations placed by it after a least-squares refinement on the matches it explains (two
+    at least); without one, nothing."""
+    if R_prior is None:
+        return Alignment(None)
+    R = np.asarray(R_prior, float)
+    if with_c:
+        cu = [np.array([c.u for c in candidates[i]]) for i in range(len(src))]
+        cv_ = [np.array([c.v for c in candidates[i]]) for i in range(len(src))]
+        cd = [geo.unproject(cu[i], cv_[i]) if len(cu[i]) else np.zeros((0, 3)) for i in range(len(src))]
+        R = _refine_on_placements(R, src, _CandidateArrays(candidates, with_c, cu, cv_), cd, geo, cfg, 2)
+        if _rotation_angles(R[None], np.asarray(R_prior, float))[0] > cfg.prior_window_px / geo.f:
+            R = np.asarray(R_prior, float)
+    placements = place_annotations(R, src, candidates, cfg, geo)
+    return Alignment(R, placements, [p.index for p in placements if p.status == 'matched'])
 
 
 def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
@@ -562,7 +605,7 @@ def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[A
     def choice(dd: Array) -> tuple[list[int], list[int], float]:
         with np.errstate(invalid='ignore'):
             value = np.where(dd < gate, cs.NCC - cfg.placement_penalty * dd / cfg.placement_px, -np.inf)
-        value = np.nan_to_num(value, nan=-np.inf)
+        value[np.isnan(value)] = -np.inf  # (nan_to_num would make -inf finite too)
         rows = [int(r) for r in np.flatnonzero(np.isfinite(value).any(axis=1))]
         return rows, [int(np.argmax(value[r])) for r in rows], float(cs.placement_score(dd[None], cfg)[0])
 
@@ -661,6 +704,7 @@ class ReDetector:
         self.queue: deque[int] = deque()
         self.seen: set[int] = set()
         self.expected_uv: Array | None = None
+        self.R_enu_target: Array | None = None
         self.dirty = False
         self.tiles_done = 0
         self._cache: tuple[str, Alignment] | None = None
@@ -679,6 +723,7 @@ class ReDetector:
 
     def set_orientation(self, R_enu_target: Array | None) -> None:
         """The browsing panorama's absolute orientation (R_enu_panorama) for the prior."""
+        self.R_enu_target = None if R_enu_target is None else np.asarray(R_enu_target, float)
         if R_enu_target is None or not self.config.sensor_prior:
             self.expected_uv = None
         else:
@@ -758,6 +803,14 @@ class ReDetector:
         p.status = 'matched'
         p.score = float(res[y, x])
 
+    def _prior_rotation(self, ids: list[int]) -> Array | None:
+        """R_target_source from the absolute orientations of both panoramas (sec. 4.2), None
+        without the sensor prior or either orientation."""
+        R_src = self.R_enu_source[ids[0]] if ids else None
+        if not self.config.sensor_prior or self.R_enu_target is None or R_src is None:
+            return None
+        return self.R_enu_target.T @ np.asarray(R_src, float)
+
     def result(self) -> tuple[str | None, Alignment]:
         """(source panorama id, alignment/placements) of the best-scoring group."""
         if self._cache is not None and not self.dirty:
@@ -771,7 +824,8 @@ class ReDetector:
             if score <= best[0]:
                 continue
             if self.config.ransac:
-                al = ransac_alignment(self.source_dirs[ids], cands, self.config, self.geometry)
+                al = ransac_alignment(self.source_dirs[ids], cands, self.config, self.geometry,
+                                      R_prior=self._prior_rotation(ids))
                 if al.R_target_source is None:
                     al.placements = best_candidate_placements(cands, self.geometry)
             else:
