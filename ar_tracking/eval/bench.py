@@ -116,7 +116,7 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
     if 'annotations' in chosen:
         from .bench_annotations import bench_annotations
 
-        results['annotations'] = bench_annotations()  # incl. the Fig. 7 table over 10+ spots (minutes)
+        results['annotations'] = bench_annotations()  # incl. the Fig. 7 table over 26 spots (~17 min)
     if 'slam' in chosen:
         from .bench_slam import bench_slam
 

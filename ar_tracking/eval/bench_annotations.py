@@ -16,6 +16,10 @@ simulator straight into :class:`PanoramaMapper`): authoring map -> patches at th
 browsing map -> :class:`ReDetector` on all finished tiles; the sensor prior is the browsing
 panorama's orientation from gravity + field (eq. 3-4, the device calibration of the sidecar)
 averaged over the tracked frames, i.e. with the simulated compass errors.
+
+26 spots (about 120 annotations, ~17 min): on 13 spots the parameters of the extensions fitted
+the first 13 seeds (changed lighting, all: 0.97 redetection) while seeds 14-26 gave 0.75, so the
+table is taken over both halves.
 """
 from __future__ import annotations
 
@@ -218,7 +222,7 @@ def bench_fig7(spots: int = 10, first_seed: int = 1, duration_s: float = 30.0) -
     return table
 
 
-def bench_annotations(fig7_spots: int = 10, duration_s: float = 30.0) -> dict[str, Any]:
+def bench_annotations(fig7_spots: int = 26, duration_s: float = 30.0) -> dict[str, Any]:
     """The ``annotations`` area of ``ar-tracking bench`` (fig7_spots=0 skips the table)."""
     out: dict[str, Any] = {'tile_match_ms': bench_tile_match(), 'ransac_ms': bench_ransac()}
     if fig7_spots > 0:
