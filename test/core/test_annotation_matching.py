@@ -319,11 +319,10 @@ def test_prior_alignment_rejects_a_consistent_rotation_the_compass_rules_out():
     shift = 30.0 / 360.0 * W
     cands = [[Candidate(float(u), float(v), 0.8, 0.8), Candidate(float((u + shift) % W), float(v), 0.82, 0.82)]
              for u, v in case.truth_uv]
-    for compass_err, truth_expected in ((3.0, True), (-3.0, True)):
-        R_prior = _rotated_by(case.R_target_source, compass_err)
-        al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior)
+    for compass_err in (3.0, -3.0):
+        al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=_rotated_by(case.R_target_source, compass_err))
         ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
-        assert (ang < 0.1) == truth_expected
+        assert ang < 0.1
     # A compass that points at the look-alikes (within its 10 deg window of them) picks them.
     shifted_prior = _rotated_by(case.R_target_source, 28.0, axis=(0.0, -1.0, 0.0))
     al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=shifted_prior)

@@ -18,6 +18,7 @@ from ar_tracking.core.rotations import (
     rot_x,
     rot_y,
     rot_z,
+    trace_angle,
 )
 
 d = np.radians
@@ -224,3 +225,10 @@ def test_interpolate_single_sample():
     out, inside = interpolate_rotations([5.0], rot_x(d(3))[None], [4.0, 5.0, 6.0])
     np.testing.assert_array_equal(inside, [False, True, False])
     np.testing.assert_allclose(out, rot_x(d(3))[None], atol=0)
+
+
+def test_trace_angle_agrees_with_angle_of_on_a_stack():
+    Rs = Rotation.random(200, random_state=3).as_matrix()
+    np.testing.assert_allclose(trace_angle(Rs), angle_of(Rs), atol=1e-9)
+    assert float(trace_angle(np.eye(3))) == 0.0
+    assert abs(float(trace_angle(Rotation.from_rotvec([0, 0, np.pi]).as_matrix())) - np.pi) < 1e-6

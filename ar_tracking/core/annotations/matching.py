@@ -59,7 +59,7 @@ import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
-from ..rotations import align_directions
+from ..rotations import align_directions, trace_angle
 from ..panorama.cylinder import CylinderGeometry
 
 logger = logging.getLogger(__name__)
@@ -424,15 +424,22 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     src = np.asarray(source_dirs, float).reshape(-1, 3)
     n = len(src)
     with_c = [i for i in range(n) if candidates[i]]
-    if R_prior is not None and not cfg.prior_alignment:
-        R_prior = None
-    result = Alignment(None)
-    if len(with_c) < max(2, cfg.min_inliers):
-        return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
-    # Candidate directions and positions, flattened.
+    # Candidate directions and positions, per annotation.
     cu = [np.array([c.u for c in candidates[i]]) for i in range(n)]
     cv_ = [np.array([c.v for c in candidates[i]]) for i in range(n)]
     cd = [geo.unproject(cu[i], cv_[i]) if len(cu[i]) else np.zeros((0, 3)) for i in range(n)]
+    cs = _CandidateArrays(candidates, with_c, cu, cv_) if with_c else None
+    if R_prior is not None and cfg.prior_alignment:
+        R_prior = np.asarray(R_prior, float)
+    else:
+        R_prior = None
+
+    def fallback() -> Alignment:
+        return _prior_alignment(R_prior, src, candidates, cs, cd, cfg, geo)
+
+    result = Alignment(None)
+    if len(with_c) < max(2, cfg.min_inliers):
+        return fallback()
     pairs = [(i, j, a, b) for i, j in itertools.combinations(with_c, 2)
              for a in range(len(candidates[i])) for b in range(len(candidates[j]))]
     if len(pairs) > cfg.max_hypotheses:
@@ -448,32 +455,31 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     ang_b = np.arccos(np.clip(np.einsum('ij,ij->i', b1, b2), -1, 1))
     ok = (ang_a >= math.radians(2.0)) & (ang_b >= math.radians(2.0)) & (np.abs(ang_a - ang_b) <= 2 * tol_rad)
     if not ok.any():
-        return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
-    hyp_R = _frames(b1[ok], b2[ok]) @ np.swapaxes(_frames(a1[ok], a2[ok]), 1, 2)
+        return fallback()
+    # Least-squares rotation of two vector pairs (absolute orientation): it maps the bisector
+    # and the normal of (a1, a2) onto those of (b1, b2).
+    Rs = _frames(b1[ok], b2[ok]) @ np.swapaxes(_frames(a1[ok], a2[ok]), 1, 2)
+    prior_tol = cfg.prior_window_px / geo.f  # the compass error, rad
     if R_prior is not None:
-        hyp_R = hyp_R[_rotation_angles(hyp_R, R_prior) <= cfg.prior_window_px / geo.f]
-        if not len(hyp_R):
-            return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
-    # hyp_R: the least-squares rotation of each two vector pairs (absolute orientation): it
-    # maps the bisector and the normal of (a1, a2) onto those of (b1, b2).
-    Rs = hyp_R
+        Rs = Rs[trace_angle(R_prior.T @ Rs) <= prior_tol]
+        if not len(Rs):
+            return fallback()
+    result.hypotheses = len(Rs)
     # Every hypothesis against every annotation's candidates at once.
-    cs = _CandidateArrays(candidates, with_c, cu, cv_)
     dd = cs.distances(Rs, src, geo)  # (H, n_c, k)
     dist = np.nanmin(dd, axis=2)  # (H, n)
     inl = dist < cfg.inlier_px
     n_inl = inl.sum(axis=1)
     valid = n_inl >= need
     if not valid.any():
-        return _prior_alignment(R_prior, src, candidates, with_c, cfg, geo)
-    result.hypotheses = len(Rs)
+        return fallback()
     nerr = np.where(valid, np.where(inl, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
     if cfg.consensus_score:
         # Highest placement score wins; among equal scores, the lower normalised error.
         gain = np.where(valid, cs.placement_score(dd, cfg), -np.inf)
         if R_prior is not None:
             # The compass as one more vote: prior_penalty per annotation at the window's edge.
-            gain = gain - cfg.prior_penalty * len(with_c) * _rotation_angles(Rs, R_prior) / (cfg.prior_window_px / geo.f)
+            gain = gain - cfg.prior_penalty * len(with_c) * trace_angle(R_prior.T @ Rs) / prior_tol
         h = int(np.lexsort((np.round(nerr, 9), -np.round(gain, 9)))[0])
     else:
         # Lowest normalised error wins; among equal errors, more inliers.
@@ -504,27 +510,19 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     return result
 
 
-def _rotation_angles(Rs: Array, R: Array) -> Array:
-    """(H,) angles (rad) between each of the rotations ``Rs`` (H, 3, 3) and ``R``."""
-    tr = np.einsum('hij,ij->h', Rs, R)
-    return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
-
-
 def _prior_alignment(R_prior: Array | None, src: Array, candidates: Sequence[Sequence[Candidate]],
-                     with_c: list[int], cfg: MatchConfig, geo: CylinderGeometry) -> Alignment:
+                     cs: _CandidateArrays | None, cd: list[Array], cfg: MatchConfig,
+                     geo: CylinderGeometry) -> Alignment:
     """The alignment when RANSAC finds no valid hypothesis: with a prior rotation, the
     annotations placed by it after a least-squares refinement on the matches it explains (two
-    at least); without one, nothing."""
+    at least; kept only within the compass error of the prior); without one, nothing."""
     if R_prior is None:
         return Alignment(None)
-    R = np.asarray(R_prior, float)
-    if with_c:
-        cu = [np.array([c.u for c in candidates[i]]) for i in range(len(src))]
-        cv_ = [np.array([c.v for c in candidates[i]]) for i in range(len(src))]
-        cd = [geo.unproject(cu[i], cv_[i]) if len(cu[i]) else np.zeros((0, 3)) for i in range(len(src))]
-        R = _refine_on_placements(R, src, _CandidateArrays(candidates, with_c, cu, cv_), cd, geo, cfg, 2)
-        if _rotation_angles(R[None], np.asarray(R_prior, float))[0] > cfg.prior_window_px / geo.f:
-            R = np.asarray(R_prior, float)
+    R = R_prior
+    if cs is not None:
+        R = _refine_on_placements(R_prior, src, cs, cd, geo, cfg, 2)
+        if float(trace_angle(R_prior.T @ R)) > cfg.prior_window_px / geo.f:
+            R = R_prior
     placements = place_annotations(R, src, candidates, cfg, geo)
     return Alignment(R, placements, [p.index for p in placements if p.status == 'matched'])
 
