@@ -159,6 +159,28 @@ def align_directions(src: Array, dst: Array, weights: Array | None = None) -> Ar
     return U @ D @ Vt
 
 
+
+def align_about_axis(src: Array, dst: Array, axis: Array, weights: Array | None = None) -> float:
+    """The angle psi (rad) minimising sum w_i |dst_i - R(axis, psi) src_i|^2 for (n, 3) vectors,
+    n >= 1: the rotation about one known axis (closed form, the 1-DoF case of Wahba's problem).
+    With the axis vertical it is the heading between two gravity-aligned direction sets."""
+    src = np.asarray(src, float).reshape(-1, 3)
+    dst = np.asarray(dst, float).reshape(-1, 3)
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    sin_part = np.einsum('ij,ij->i', dst, np.cross(k, src))
+    cos_part = np.einsum('ij,ij->i', dst, src) - (dst @ k) * (src @ k)
+    return math.atan2(float(w @ sin_part), float(w @ cos_part))
+
+
+def rotations_about_axis(axis: Array, angles: Array) -> Array:
+    """(H, 3, 3) rotations by ``angles`` (rad) about one unit axis (Rodrigues, batched)."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    a = np.asarray(angles, float).reshape(-1)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return (np.eye(3)[None] + np.sin(a)[:, None, None] * K[None]
+            + (1.0 - np.cos(a))[:, None, None] * (K @ K)[None])
+
 # ----------------------------------------------------------------------------------------------
 # Single rotations on hot paths. scipy's Rotation costs ~20-40 us per call for one rotation; the
 # filters run >= 20,000 updates/s and the SLAM tracker several per frame, so exp/log of single

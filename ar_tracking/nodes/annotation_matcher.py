@@ -71,6 +71,9 @@ class AnnotationMatcherNode(TrackingNode):
         consensus = p('consensus_score', True, 'Choose the RANSAC hypothesis by the placement score (penalised NCC of the placed matches) instead of the lowest normalised error, refine it on all matches (extension of sec. 4.3)')
         guided_all = p('guided_all', True, 'Search the matched annotations again around their aligned position too (with guided_search)')
         prior_alignment = p('prior_alignment', True, 'With the sensor prior: RANSAC rotations beyond the compass error of the absolute orientations are not valid, the compass votes in the choice, and with no valid hypothesis the prior rotation places the annotations (extension of sec. 4.2/4.3)')
+        gravity = p('gravity_alignment', True, 'With prior_alignment: the alignment turns the prior rotation about the vertical only (gravity fixes the tilt of both panoramas); candidates more than gravity_v_px above or below are not matches')
+        gravity_v_px = p('gravity_v_px', 4.0, 'Vertical tolerance of a match after the gravity-constrained alignment, map pixels', min_value=0.5, max_value=100.0)
+        parallax = p('parallax_model', True, 'With gravity_alignment: fit the heading residuals of the matches with the parallax of a displaced standing point and place again (extension of sec. 4.3)')
         min_ncc = p('min_ncc', 0.55, 'Smallest NCC of a candidate match', min_value=-1.0, max_value=1.0)
         walsh_min = p('walsh_min', 0.5, 'Walsh pre-check threshold (sec. 3.2): positions below it get no NCC', min_value=-1.0, max_value=1.0)
         self.marker_distance_m = p('marker_distance_m', 10.0, 'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0)
@@ -83,7 +86,8 @@ class AnnotationMatcherNode(TrackingNode):
             prior_outer_factor=outer, prior_penalty=penalty, ransac=ransac, inlier_px=inlier_px,
             min_inlier_ratio=ratio, min_ncc=min_ncc, walsh_min=walsh_min,
             placement_px=placement_px, guided_search=guided, placement_penalty=placement_penalty,
-            consensus_score=consensus, guided_all=guided_all, prior_alignment=prior_alignment)
+            consensus_score=consensus, guided_all=guided_all, prior_alignment=prior_alignment,
+            gravity_alignment=gravity, gravity_v_px=gravity_v_px, parallax_model=parallax)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.detector: ReDetector | None = None

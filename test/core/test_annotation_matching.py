@@ -342,3 +342,82 @@ def test_redetector_gives_the_prior_rotation_to_the_alignment():
                      [R_enu_source] * 4)
     off.set_orientation(R_enu_target)
     assert off._prior_rotation([0, 1, 2, 3]) is None
+
+
+# -- gravity-constrained alignment and parallax model -------------------------------------------
+
+#: ENU from the panorama frame of annotation_synth (x right = east, y down, z forward = north).
+_M_ENU_PANO = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+_UP = _M_ENU_PANO[2]  # ENU z in the panorama frame: (0, -1, 0)
+
+
+def test_gravity_alignment_turns_about_the_vertical_and_rejects_look_alikes_above():
+    case = make_case(seed=31, n=5)
+    u0, v0 = case.truth_uv[0]
+    # Annotation 0: the true match and a better look-alike 8 px above it (a window one floor up).
+    cands = [[Candidate(float(u0), float(v0 - 8.0), 0.9, 0.9), Candidate(float(u0), float(v0), 0.75, 0.75)]]
+    cands += [[Candidate(float(u), float(v), 0.85, 0.85)] for u, v in case.truth_uv[1:]]
+    R_prior = _rotated_by(case.R_target_source, 3.0, axis=-_UP)  # a compass 3 deg off
+    free = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior)
+    assert free.v_tol is None and free.placements[0].v == pytest.approx(v0 - 8.0)  # the look-alike
+    al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior, up=_UP)
+    assert al.v_tol == MatchConfig().gravity_v_px
+    assert al.placements[0].status == 'matched' and al.placements[0].v == pytest.approx(v0)
+    # The result is the prior turned about the vertical only, by the compass error.
+    rotvec = Rotation.from_matrix(al.R_target_source @ R_prior.T).as_rotvec()
+    assert np.degrees(np.linalg.norm(rotvec)) == pytest.approx(3.0, abs=0.05)
+    assert abs(rotvec @ _UP) / np.linalg.norm(rotvec) > 0.9999
+    # Switched off, the up direction is ignored.
+    off = ransac_alignment(case.dirs, cands, MatchConfig(gravity_alignment=False), R_prior=R_prior, up=_UP)
+    assert off.v_tol is None and off.placements[0].v == pytest.approx(v0 - 8.0)
+
+
+def _displaced_spot_case(seed: int, t_enu: np.ndarray, depths: np.ndarray):
+    """make_case's annotations seen from a browsing spot displaced by ``t_enu`` (m) with anchors
+    at ``depths`` (m): their true target directions and map positions."""
+    case = make_case(seed=seed, n=len(depths))
+    d_enu = (case.dirs @ case.R_target_source.T) @ _M_ENU_PANO.T * depths[:, None]  # anchors
+    seen = d_enu - t_enu
+    seen /= np.linalg.norm(seen, axis=1, keepdims=True)
+    truth = seen @ _M_ENU_PANO  # back into the target panorama frame
+    uv = np.stack(GEO.project(truth), axis=1)
+    return case, truth, uv
+
+
+def test_fit_parallax_recovers_a_displacement_at_a_common_depth():
+    from ar_tracking.core.annotations.parallax import fit_parallax
+
+    t = np.array([1.2, -0.8, 0.0])
+    case, truth, _ = _displaced_spot_case(32, t, np.full(6, 40.0))
+    predicted = case.dirs @ case.R_target_source.T
+    model = fit_parallax(predicted, truth, _UP, sigma_match=0.001, sigma_parallax=1.0)
+    assert model.amplitude == pytest.approx(np.linalg.norm(t) / 40.0, rel=0.05)
+    fixed = model.apply(predicted)
+    # The heading error is what the model removes (elevated anchors also move up or down a
+    # little, which it leaves).
+    heading_err = lambda a: np.degrees(np.abs((model.azimuth(a) - model.azimuth(truth) + np.pi) % (2 * np.pi) - np.pi))
+    assert heading_err(predicted).max() > 1.0 and heading_err(fixed).max() < 0.05
+
+
+def test_parallax_model_moves_the_inferred_annotation_of_a_displaced_spot():
+    t = np.array([1.5, 0.5, 0.0])
+    depths = np.array([30.0, 45.0, 35.0, 50.0, 40.0, 38.0])
+    case, truth, uv = _displaced_spot_case(33, t, depths)
+    # The browsing panorama rotated like make_case's: R_enu_target; the source from the prior.
+    R_enu_target = _M_ENU_PANO
+    R_enu_source = _M_ENU_PANO @ _rotated_by(case.R_target_source, 2.0, axis=-_UP)
+    errors = {}
+    for on in (False, True):
+        det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(parallax_model=on),
+                         R_enu_source=[R_enu_source] * 6)
+        det.set_orientation(R_enu_target)
+        for i in range(5):  # annotation 5 has no candidate
+            det.candidates[i].items = [Candidate(float(uv[i, 0]), float(uv[i, 1]), 0.9, 0.9)]
+        det.dirty = True
+        _, al = det.result()
+        assert (al.parallax is not None) == on
+        p = next(p for p in al.placements if p.index == 5)
+        assert p.status == 'inferred'
+        errors[on] = float(np.degrees(np.arccos(np.clip(p.direction @ truth[5], -1, 1))))
+        assert all(q.status == 'matched' for q in al.placements if q.index != 5)
+    assert errors[False] > 1.0 and errors[True] < 0.5 * errors[False]

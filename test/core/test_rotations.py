@@ -6,6 +6,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ar_tracking.core.rotations import (
+    align_about_axis,
+    align_directions,
     angle_of,
     camera_heading_pitch_roll_deg,
     heading_tilt_error_deg,
@@ -18,6 +20,7 @@ from ar_tracking.core.rotations import (
     rot_x,
     rot_y,
     rot_z,
+    rotations_about_axis,
     trace_angle,
 )
 
@@ -232,3 +235,30 @@ def test_trace_angle_agrees_with_angle_of_on_a_stack():
     np.testing.assert_allclose(trace_angle(Rs), angle_of(Rs), atol=1e-9)
     assert float(trace_angle(np.eye(3))) == 0.0
     assert abs(float(trace_angle(Rotation.from_rotvec([0, 0, np.pi]).as_matrix())) - np.pi) < 1e-6
+
+
+def test_rotations_about_axis_match_scipy():
+    axis = np.array([0.3, -0.8, 0.5])
+    angles = np.array([-2.0, -0.1, 0.0, 0.7, 3.0])
+    k = axis / np.linalg.norm(axis)
+    expected = Rotation.from_rotvec(angles[:, None] * k).as_matrix()
+    np.testing.assert_allclose(rotations_about_axis(axis, angles), expected, atol=1e-12)
+
+
+@pytest.mark.parametrize('n', [1, 2, 7])
+def test_align_about_axis_recovers_the_angle_and_is_the_constrained_least_squares(n):
+    rng = np.random.default_rng(n)
+    axis = rng.normal(size=3)
+    src = rng.normal(size=(n, 3))
+    R = rotations_about_axis(axis, [0.9])[0]
+    assert align_about_axis(src, src @ R.T, axis) == pytest.approx(0.9, abs=1e-12)
+    # With noise: no other angle about the axis fits better, and the unconstrained (3-DoF)
+    # solution fits at least as well.
+    dst = src @ R.T + rng.normal(0, 0.05, (n, 3))
+    psi = align_about_axis(src, dst, axis)
+    cost = lambda Q: float(np.sum((dst - src @ Q.T) ** 2))
+    best = cost(rotations_about_axis(axis, [psi])[0])
+    for d in (-0.01, 0.01):
+        assert best < cost(rotations_about_axis(axis, [psi + d])[0])
+    if n >= 2:
+        assert cost(align_directions(src, dst)) <= best + 1e-12

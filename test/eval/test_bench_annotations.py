@@ -7,7 +7,7 @@ from ar_tracking.eval.bench_annotations import ROWS, bench_ransac, bench_tile_ma
 
 
 def test_bench_functions_report_finite_times():
-    for value in (bench_tile_match(n=3), bench_ransac(n=3)):
+    for value in (bench_tile_match(n=3), bench_ransac(n=3), bench_ransac(n=3, gravity=True)):
         assert math.isfinite(value) and value > 0
 
 

@@ -52,15 +52,16 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
-from ..rotations import align_directions, trace_angle
+from ..rotations import align_about_axis, align_directions, rotations_about_axis, trace_angle
 from ..panorama.cylinder import CylinderGeometry
+from .parallax import ParallaxModel, fit_parallax
 
 logger = logging.getLogger(__name__)
 
@@ -121,6 +122,24 @@ class MatchConfig:
     #: hypothesis that prior rotation aligns the panoramas (an extension joining sec. 4.2 and
     #: 4.3: a rotation the compass rules out is a coincidence of look-alikes).
     prior_alignment: bool = True
+    #: With ``prior_alignment`` and the browsing panorama's up direction: the alignment is the
+    #: prior rotation followed by a heading correction about the vertical (1 DoF). Gravity from
+    #: the accelerometers fixes the tilt of both panoramas far better than the compass fixes
+    #: the heading (averaged over a panorama the tilt error is a small fraction of a degree), so
+    #: parallax and look-alikes can no longer tilt the rotation; a candidate whose elevation
+    #: differs from the prior's by more than ``inlier_px`` makes no hypothesis.
+    gravity_alignment: bool = True
+    #: With ``gravity_alignment`` the rotation predicts the elevation to about a pixel (parallax
+    #: moves anchors sideways): a candidate further above or below than this is not a match.
+    gravity_v_px: float = 4.0
+    #: After a gravity-constrained alignment with at least ``parallax_min_matches`` matches:
+    #: fit the heading residuals with the parallax of a horizontal displacement (one common
+    #: depth, :mod:`.parallax`) and place again around the corrected positions. Sigmas in rad:
+    #: a match (with the depth differences), the prior on |t| / d.
+    parallax_model: bool = True
+    parallax_min_matches: int = 3
+    parallax_sigma_match: float = 0.01
+    parallax_sigma: float = 0.02
     seed: int = 0
 
 
@@ -383,6 +402,10 @@ class Alignment:
     inliers: list[int] = field(default_factory=list)
     normalised_error_px: float = float('nan')
     hypotheses: int = 0
+    #: Vertical tolerance of matches when the alignment is gravity-constrained, else None.
+    v_tol: float | None = None
+    #: The parallax model the placements were corrected with (None: the rotation alone).
+    parallax: ParallaxModel | None = None
 
 
 def _map_dist(geometry: CylinderGeometry, u1: Array, v1: Array, u2: Array, v2: Array) -> Array:
@@ -405,7 +428,8 @@ def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
 
 def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
                      config: MatchConfig | None = None, geometry: CylinderGeometry | None = None,
-                     rng: np.random.Generator | None = None, R_prior: Array | None = None) -> Alignment:
+                     rng: np.random.Generator | None = None, R_prior: Array | None = None,
+                     up: Array | None = None) -> Alignment:
     """Global rotation between the source and the target panorama (sec. 4.3; module docstring).
 
     ``source_dirs`` (n, 3): unit vectors of the annotations in the source panorama;
@@ -418,7 +442,10 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
 
     ``R_prior`` (R_target_source from the absolute orientations, with ``prior_alignment``):
     hypotheses further than ``prior_window_px`` from it are not valid, and when none is valid
-    the annotations are placed by ``R_prior`` itself (refined on the matches it explains)."""
+    the annotations are placed by ``R_prior`` itself (refined on the matches it explains).
+    ``up`` (unit up direction in the target panorama, with ``gravity_alignment``): the rotations
+    are ``R_prior`` followed by a rotation about ``up`` only, hypotheses come from single
+    matches and pairs (:func:`_heading_hypotheses`) and refinements fit the heading alone."""
     cfg = config or MatchConfig()
     geo = geometry or CylinderGeometry()
     src = np.asarray(source_dirs, float).reshape(-1, 3)
@@ -428,42 +455,39 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     cu = [np.array([c.u for c in candidates[i]]) for i in range(n)]
     cv_ = [np.array([c.v for c in candidates[i]]) for i in range(n)]
     cd = [geo.unproject(cu[i], cv_[i]) if len(cu[i]) else np.zeros((0, 3)) for i in range(n)]
-    cs = _CandidateArrays(candidates, with_c, cu, cv_) if with_c else None
     if R_prior is not None and cfg.prior_alignment:
         R_prior = np.asarray(R_prior, float)
     else:
         R_prior = None
+    k_up = v_tol = None
+    if R_prior is not None and up is not None and cfg.gravity_alignment:
+        k_up = np.asarray(up, float) / np.linalg.norm(up)
+        v_tol = cfg.gravity_v_px
+    cs = _CandidateArrays(candidates, with_c, cu, cv_, v_tol) if with_c else None
+
+    def fit(a: Array, b: Array) -> Array:
+        """Least-squares rotation mapping directions a onto b (the heading only, with gravity)."""
+        if k_up is None:
+            return absolute_orientation(a, b)
+        return rotations_about_axis(k_up, align_about_axis(a @ R_prior.T, b, k_up))[0] @ R_prior
 
     def fallback() -> Alignment:
-        return _prior_alignment(R_prior, src, candidates, cs, cd, cfg, geo)
+        return _prior_alignment(R_prior, src, candidates, cs, cd, cfg, geo, fit, v_tol)
 
     result = Alignment(None)
     if len(with_c) < max(2, cfg.min_inliers):
         return fallback()
-    pairs = [(i, j, a, b) for i, j in itertools.combinations(with_c, 2)
-             for a in range(len(candidates[i])) for b in range(len(candidates[j]))]
-    if len(pairs) > cfg.max_hypotheses:
-        rng = rng or np.random.default_rng(cfg.seed)
-        pairs = [pairs[k] for k in rng.choice(len(pairs), cfg.max_hypotheses, replace=False)]
     tol_rad = cfg.inlier_px / geo.f
-    need = max(cfg.min_inliers, int(math.floor(cfg.min_inlier_ratio * len(with_c))) + 1)
-    P = np.array(pairs, dtype=np.int64)
-    a1, a2 = src[P[:, 0]], src[P[:, 1]]
-    b1 = np.array([cd[i][k] for i, k in zip(P[:, 0], P[:, 2])])
-    b2 = np.array([cd[j][k] for j, k in zip(P[:, 1], P[:, 3])])
-    ang_a = np.arccos(np.clip(np.einsum('ij,ij->i', a1, a2), -1, 1))
-    ang_b = np.arccos(np.clip(np.einsum('ij,ij->i', b1, b2), -1, 1))
-    ok = (ang_a >= math.radians(2.0)) & (ang_b >= math.radians(2.0)) & (np.abs(ang_a - ang_b) <= 2 * tol_rad)
-    if not ok.any():
-        return fallback()
-    # Least-squares rotation of two vector pairs (absolute orientation): it maps the bisector
-    # and the normal of (a1, a2) onto those of (b1, b2).
-    Rs = _frames(b1[ok], b2[ok]) @ np.swapaxes(_frames(a1[ok], a2[ok]), 1, 2)
     prior_tol = cfg.prior_window_px / geo.f  # the compass error, rad
-    if R_prior is not None:
-        Rs = Rs[trace_angle(R_prior.T @ Rs) <= prior_tol]
-        if not len(Rs):
-            return fallback()
+    need = max(cfg.min_inliers, int(math.floor(cfg.min_inlier_ratio * len(with_c))) + 1)
+    if k_up is not None:
+        Rs = _heading_hypotheses(src, with_c, cd, R_prior, k_up, tol_rad, prior_tol)
+    else:
+        Rs = _pair_hypotheses(src, with_c, candidates, cd, cfg, tol_rad, rng)
+        if R_prior is not None and len(Rs):
+            Rs = Rs[trace_angle(R_prior.T @ Rs) <= prior_tol]
+    if not len(Rs):
+        return fallback()
     result.hypotheses = len(Rs)
     # Every hypothesis against every annotation's candidates at once.
     dd = cs.distances(Rs, src, geo)  # (H, n_c, k)
@@ -487,7 +511,7 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     best = (float(nerr[h]), Rs[h], [with_c[r] for r in np.flatnonzero(inl[h])])
     R = best[1]
     if cfg.consensus_score:
-        R = _refine_on_placements(R, src, cs, cd, geo, cfg, need)
+        R = _refine_on_placements(R, src, cs, cd, geo, cfg, need, fit)
     else:
         # Refine on all inliers (their nearest candidates), then score once more.
         for _ in range(2):
@@ -497,7 +521,7 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
                 a_in.append(src[i])
                 b_in.append(cd[i][k])
             if len(a_in) >= 2:
-                R_new = absolute_orientation(np.array(a_in), np.array(b_in))
+                R_new = fit(np.array(a_in), np.array(b_in))
                 if len(_score(R_new, src, with_c, cu, cv_, geo, cfg.inlier_px)[0]) >= len(a_in):
                     R = R_new
     inl, err = _score(R, src, with_c, cu, cv_, geo, cfg.inlier_px)
@@ -506,13 +530,63 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     result.R_target_source = R
     result.inliers = inl
     result.normalised_error_px = err / len(inl)
-    result.placements = place_annotations(R, src, candidates, cfg, geo)
+    result.placements = place_annotations(R, src, candidates, cfg, geo, v_tol)
+    result.v_tol = v_tol
     return result
+
+
+def _pair_hypotheses(src: Array, with_c: list[int], candidates: Sequence[Sequence[Candidate]],
+                     cd: list[Array], cfg: MatchConfig, tol_rad: float,
+                     rng: np.random.Generator | None) -> Array:
+    """(H, 3, 3) rotation hypotheses of sec. 4.3: every pair of annotations and one candidate
+    of each (at most ``max_hypotheses``, drawn with a seeded generator), the least-squares
+    rotation of the two vector pairs (absolute orientation: it maps the bisector and the normal
+    of (a1, a2) onto those of (b1, b2)); pairs closer than 2 deg or whose angles differ by more
+    than two inlier tolerances make none."""
+    pairs = [(i, j, a, b) for i, j in itertools.combinations(with_c, 2)
+             for a in range(len(candidates[i])) for b in range(len(candidates[j]))]
+    if len(pairs) > cfg.max_hypotheses:
+        rng = rng or np.random.default_rng(cfg.seed)
+        pairs = [pairs[k] for k in rng.choice(len(pairs), cfg.max_hypotheses, replace=False)]
+    P = np.array(pairs, dtype=np.int64)
+    a1, a2 = src[P[:, 0]], src[P[:, 1]]
+    b1 = np.array([cd[i][k] for i, k in zip(P[:, 0], P[:, 2])])
+    b2 = np.array([cd[j][k] for j, k in zip(P[:, 1], P[:, 3])])
+    ang_a = np.arccos(np.clip(np.einsum('ij,ij->i', a1, a2), -1, 1))
+    ang_b = np.arccos(np.clip(np.einsum('ij,ij->i', b1, b2), -1, 1))
+    ok = (ang_a >= math.radians(2.0)) & (ang_b >= math.radians(2.0)) & (np.abs(ang_a - ang_b) <= 2 * tol_rad)
+    return _frames(b1[ok], b2[ok]) @ np.swapaxes(_frames(a1[ok], a2[ok]), 1, 2)
+
+
+def _heading_hypotheses(src: Array, with_c: list[int], cd: list[Array], R_prior: Array,
+                        up: Array, tol_rad: float, prior_tol: float) -> Array:
+    """(H, 3, 3) gravity-constrained hypotheses ``R(up, psi) @ R_prior``: psi from every single
+    match and the least-squares psi of every pair of matches of two annotations. A match whose
+    elevation differs from the prior's prediction by more than ``tol_rad`` makes none (the tilt
+    is known), nor does a psi beyond the compass error ``prior_tol``."""
+    rows = [(i, k) for i in with_c for k in range(len(cd[i]))]
+    a = src[[i for i, _ in rows]] @ R_prior.T
+    b = np.array([cd[i][k] for i, k in rows])
+    elev_a = np.arcsin(np.clip(a @ up, -1, 1))
+    elev_b = np.arcsin(np.clip(b @ up, -1, 1))
+    ok = np.abs(elev_a - elev_b) <= tol_rad
+    ann = np.array([i for i, _ in rows])[ok]
+    # psi = atan2(sum of sine parts, sum of cosine parts) for one match or a pair (align_about_axis).
+    sin_p = np.einsum('ij,ij->i', b[ok], np.cross(up, a[ok]))
+    cos_p = np.einsum('ij,ij->i', b[ok], a[ok]) - (b[ok] @ up) * (a[ok] @ up)
+    r1, r2 = np.triu_indices(len(ann), 1)
+    two = ann[r1] != ann[r2]
+    psi = np.concatenate([np.arctan2(sin_p, cos_p),
+                          np.arctan2(sin_p[r1[two]] + sin_p[r2[two]], cos_p[r1[two]] + cos_p[r2[two]])])
+    psi = psi[np.abs(psi) <= prior_tol]
+    return rotations_about_axis(up, psi) @ R_prior
 
 
 def _prior_alignment(R_prior: Array | None, src: Array, candidates: Sequence[Sequence[Candidate]],
                      cs: _CandidateArrays | None, cd: list[Array], cfg: MatchConfig,
-                     geo: CylinderGeometry) -> Alignment:
+                     geo: CylinderGeometry,
+                     fit: Callable[[Array, Array], Array] = absolute_orientation,
+                     v_tol: float | None = None) -> Alignment:
     """The alignment when RANSAC finds no valid hypothesis: with a prior rotation, the
     annotations placed by it after a least-squares refinement on the matches it explains (two
     at least; kept only within the compass error of the prior); without one, nothing."""
@@ -520,32 +594,37 @@ def _prior_alignment(R_prior: Array | None, src: Array, candidates: Sequence[Seq
         return Alignment(None)
     R = R_prior
     if cs is not None:
-        R = _refine_on_placements(R_prior, src, cs, cd, geo, cfg, 2)
+        R = _refine_on_placements(R_prior, src, cs, cd, geo, cfg, 2, fit)
         if float(trace_angle(R_prior.T @ R)) > cfg.prior_window_px / geo.f:
             R = R_prior
-    placements = place_annotations(R, src, candidates, cfg, geo)
-    return Alignment(R, placements, [p.index for p in placements if p.status == 'matched'])
+    placements = place_annotations(R, src, candidates, cfg, geo, v_tol)
+    return Alignment(R, placements, [p.index for p in placements if p.status == 'matched'], v_tol=v_tol)
 
 
 def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
-                      config: MatchConfig | None = None, geometry: CylinderGeometry | None = None
-                      ) -> list[Placement]:
+                      config: MatchConfig | None = None, geometry: CylinderGeometry | None = None,
+                      v_tol: float | None = None, predicted: Array | None = None) -> list[Placement]:
     """Every annotation placed by the rotation R (sec. 4.3): at its candidate within
     ``placement_px`` of where R puts it with the best NCC minus ``placement_penalty`` x
     distance / ``placement_px`` (matched; the NCC, not the prior-penalised score: the rotation
-    supersedes the compass), or, with none there, at that position (inferred)."""
+    supersedes the compass), or, with none there, at that position (inferred). ``v_tol``: a
+    candidate further above or below than this is none (``gravity_v_px``). ``predicted`` (n, 3):
+    the directions to use instead of R's (the rotation with the parallax model)."""
     cfg = config or MatchConfig()
     geo = geometry or CylinderGeometry()
     src = np.asarray(source_dirs, float).reshape(-1, 3)
+    pred = src @ np.asarray(R, float).T if predicted is None else np.asarray(predicted, float)
     out = []
     for i in range(len(src)):
-        d = R @ src[i]
+        d = pred[i]
         pu, pv = geo.project(d)
         k = -1
         if candidates[i]:
             dist = _map_dist(geo, np.array([c.u for c in candidates[i]]), np.array([c.v for c in candidates[i]]), pu, pv)
             value = np.array([c.ncc for c in candidates[i]]) - cfg.placement_penalty * dist / cfg.placement_px
             value[dist >= max(cfg.placement_px, cfg.inlier_px)] = -np.inf
+            if v_tol is not None:
+                value[np.abs(np.array([c.v for c in candidates[i]]) - pv) > v_tol] = -np.inf
             if np.isfinite(value).any():
                 k = int(np.argmax(value))
         if k >= 0:
@@ -560,8 +639,9 @@ class _CandidateArrays:
     """The candidates of the annotations ``with_c`` as padded (n_c, k) arrays (NaN: none)."""
 
     def __init__(self, candidates: Sequence[Sequence[Candidate]], with_c: list[int],
-                 cu: list[Array], cv_: list[Array]) -> None:
+                 cu: list[Array], cv_: list[Array], v_tol: float | None = None) -> None:
         self.with_c = with_c
+        self.v_tol = v_tol
         k_max = max(len(cu[i]) for i in with_c)
         self.U = np.full((len(with_c), k_max), np.nan)
         self.V = np.full((len(with_c), k_max), np.nan)
@@ -573,11 +653,16 @@ class _CandidateArrays:
 
     def distances(self, Rs: Array, src: Array, geo: CylinderGeometry) -> Array:
         """(H, n_c, k) map distances between where each rotation puts each annotation and its
-        candidates (NaN for missing candidates)."""
+        candidates (NaN for missing candidates, inf beyond ``v_tol`` above or below)."""
         pu, pv = geo.project(np.einsum('hij,nj->hni', Rs.reshape(-1, 3, 3), src[self.with_c]))
         W = geo.width
         du = np.abs((pu[:, :, None] - self.U[None] + W / 2) % W - W / 2)
-        return np.hypot(du, pv[:, :, None] - self.V[None])
+        dv = pv[:, :, None] - self.V[None]
+        dist = np.hypot(du, dv)
+        if self.v_tol is not None:
+            with np.errstate(invalid='ignore'):
+                dist[np.abs(dv) > self.v_tol] = np.inf
+        return dist
 
     def placement_score(self, dd: Array, cfg: MatchConfig) -> Array:
         """(H,) placement score of each rotation: the sum over the annotations of the best NCC
@@ -593,7 +678,8 @@ class _CandidateArrays:
 
 
 def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[Array],
-                          geo: CylinderGeometry, cfg: MatchConfig, need: int) -> Array:
+                          geo: CylinderGeometry, cfg: MatchConfig, need: int,
+                          fit: Callable[[Array, Array], Array] = absolute_orientation) -> Array:
     """Least-squares rotation (absolute orientation) on all matched annotations, each one's
     candidate chosen as in :func:`place_annotations`, repeated (at most ``refine_iterations``
     times) while the choice stays the same or the placement score grows. The minimal pair of
@@ -614,7 +700,7 @@ def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[A
             break
         a = src[[cs.with_c[r] for r in rows]]
         b = np.array([cd[cs.with_c[r]][k] for r, k in zip(rows, ks)])
-        R_new = absolute_orientation(a, b)
+        R_new = fit(a, b)
         rows_new, ks_new, score_new = choice(cs.distances(R_new[None], src, geo)[0])
         same = rows_new == rows and ks_new == ks
         if not (same or score_new > score):
@@ -749,12 +835,14 @@ class ReDetector:
             self._cache = None if self.dirty else self._cache
         return done
 
-    def _guided(self, p: Placement, predicted: tuple[float, float] | None = None) -> None:
+    def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
+                v_tol: float | None = None) -> None:
         """Guided re-detection around where the alignment puts an annotation (``predicted``,
         default the placement itself, i.e. an inferred one): NCC in a +-``placement_px``
-        window, minus ``guided_penalty`` x distance / ``placement_px``; the best position with
-        an NCC of at least ``guided_min_ncc`` becomes the placement when its penalised score
-        beats that of the current match (an inferred placement has none)."""
+        window (+-``v_tol`` vertically after a gravity-constrained alignment), minus
+        ``guided_penalty`` x distance / ``placement_px``; the best position with an NCC of at
+        least ``guided_min_ncc`` becomes the placement when its penalised score beats that of
+        the current match (an inferred placement has none)."""
         if self._map is None:
             return
         gray, mapped = self._map
@@ -768,26 +856,28 @@ class ReDetector:
         cu, cv_ = predicted if predicted is not None else (p.u, p.v)
         P = patch.shape[0]
         r = int(math.ceil(cfg.placement_px))
+        rv = r if v_tol is None else int(math.ceil(min(v_tol, cfg.placement_px)))
         x0 = int(round(cu - (P - 1) / 2)) - r
-        y0 = int(round(cv_ - (P - 1) / 2)) - r
-        n = P + 2 * r
-        if y0 < 0 or y0 + n > gray.shape[0]:
+        y0 = int(round(cv_ - (P - 1) / 2)) - rv
+        if y0 < 0 or y0 + P + 2 * rv > gray.shape[0]:
             return
-        cols = np.arange(x0, x0 + n) % geo.width
-        reg = gray[y0:y0 + n][:, cols].astype(np.float32)
+        cols = np.arange(x0, x0 + P + 2 * r) % geo.width
+        reg = gray[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
         if mapped is not None:
-            m = mapped[y0:y0 + n][:, cols].astype(np.float32)
-            full = cv2.boxFilter(m, -1, (P, P), anchor=(0, 0), normalize=True, borderType=cv2.BORDER_CONSTANT)[:2 * r + 1, :2 * r + 1]
+            m = mapped[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
+            full = cv2.boxFilter(m, -1, (P, P), anchor=(0, 0), normalize=True,
+                                 borderType=cv2.BORDER_CONSTANT)[:2 * rv + 1, :2 * r + 1]
         else:
-            full = np.ones((2 * r + 1, 2 * r + 1), np.float32)
+            full = np.ones((2 * rv + 1, 2 * r + 1), np.float32)
         res = cv2.matchTemplate(reg, patch.astype(np.float32), cv2.TM_CCOEFF_NORMED)
         res[(full < 0.999) | ~np.isfinite(res)] = -1.0
         # Offsets from the predicted position (sub-pixel: x0, y0 were rounded).
         c = (P - 1) / 2.0
         xs = x0 + c + np.arange(2 * r + 1) - cu
-        ys = y0 + c + np.arange(2 * r + 1) - cv_
+        ys = y0 + c + np.arange(2 * rv + 1) - cv_
         dist = np.hypot(xs[None, :], ys[:, None])
-        score = np.where(dist <= cfg.placement_px, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
+        inside = (dist <= cfg.placement_px) & (np.abs(ys)[:, None] <= (v_tol if v_tol is not None else np.inf))
+        score = np.where(inside, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
         y, x = np.unravel_index(int(np.argmax(score)), score.shape)
         if res[y, x] < cfg.guided_min_ncc:
             return
@@ -800,6 +890,48 @@ class ReDetector:
         p.direction = geo.unproject(np.array(p.u), np.array(p.v))
         p.status = 'matched'
         p.score = float(res[y, x])
+
+    def _finish(self, al: Alignment, ids: list[int], cands: list[list[Candidate]]) -> None:
+        """Make the placements' indices global and re-detect them guided; with a gravity-
+        constrained alignment and enough matches, the parallax model: fitted on the matches,
+        then every annotation placed and guided again around its corrected position."""
+        cfg, geo = self.config, self.geometry
+        R = al.R_target_source
+        src = self.source_dirs[ids]
+        predicted = None if R is None else src @ R.T
+        self._guide_all(al.placements, ids, predicted, al.v_tol)
+        matched = [ids.index(p.index) for p in al.placements if p.status == 'matched']
+        up = self._up()
+        if (R is None or al.v_tol is None or up is None or not cfg.parallax_model
+                or len(matched) < cfg.parallax_min_matches):
+            return
+        found = {p.index: p.direction for p in al.placements}
+        model = fit_parallax(predicted[matched], np.array([found[ids[k]] for k in matched]), up,
+                             cfg.parallax_sigma_match, cfg.parallax_sigma)
+        corrected = model.apply(predicted)
+        al.placements = place_annotations(R, src, cands, cfg, geo, al.v_tol, predicted=corrected)
+        al.parallax = model
+        self._guide_all(al.placements, ids, corrected, al.v_tol)
+
+    def _guide_all(self, placements: list[Placement], ids: list[int], predicted: Array | None,
+                   v_tol: float | None) -> None:
+        """Placement indices from the group's (local) to the annotations' (``ids``), then the
+        guided re-detection (``guided_search``) of inferred placements and, with ``guided_all``,
+        of matched ones around their ``predicted`` direction (local order)."""
+        for p in placements:
+            local = p.index
+            p.index = ids[local]
+            if not self.config.guided_search:
+                continue
+            if p.status == 'inferred':
+                self._guided(p, v_tol=v_tol)
+            elif self.config.guided_all and predicted is not None:
+                u, v = self.geometry.project(predicted[local])
+                self._guided(p, (float(u), float(v)), v_tol)
+
+    def _up(self) -> Array | None:
+        """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
+        return None if self.R_enu_target is None else self.R_enu_target[2].copy()
 
     def _prior_rotation(self, ids: list[int]) -> Array | None:
         """R_target_source from the absolute orientations of both panoramas (sec. 4.2), None
@@ -823,22 +955,12 @@ class ReDetector:
                 continue
             if self.config.ransac:
                 al = ransac_alignment(self.source_dirs[ids], cands, self.config, self.geometry,
-                                      R_prior=self._prior_rotation(ids))
+                                      R_prior=self._prior_rotation(ids), up=self._up())
                 if al.R_target_source is None:
                     al.placements = best_candidate_placements(cands, self.geometry)
             else:
                 al = Alignment(None, best_candidate_placements(cands, self.geometry))
-            R = al.R_target_source
-            for p in al.placements:
-                src_dir = self.source_dirs[ids[p.index]]
-                p.index = ids[p.index]
-                if not self.config.guided_search:
-                    continue
-                if p.status == 'inferred':
-                    self._guided(p)
-                elif self.config.guided_all and R is not None:
-                    u, v = self.geometry.project(R @ src_dir)
-                    self._guided(p, (float(u), float(v)))
+            self._finish(al, ids, cands)
             best = (score, g, al)
         self._cache = (best[1], best[2])
         return self._cache

@@ -1,0 +1,86 @@
+"""Horizontal parallax between the authoring and the browsing standing point (an extension of
+Langlotz 2011 sec. 4.3 for the 2 m radius of sec. 6.1).
+
+The global alignment of sec. 4.3 is a rotation; the two panoramas are never taken from the same
+spot. When the browsing spot is displaced horizontally by ``t`` from the authoring spot, an
+anchor at horizontal azimuth ``theta`` and distance ``d`` appears turned about the vertical by
+
+    delta(theta) ~= (t_north * cos(theta) - t_east * sin(theta)) / d
+
+(small-angle; the elevation barely changes for anchors tens of metres away). The depths are not
+in the annotation record, so the model takes one common depth: after the rotation, the heading
+residuals of the matched annotations follow ``c + a cos(theta) + b sin(theta)``, with ``c`` what
+the rotation left of the heading and ``(a, b) = (t_north, -t_east) / d``. Fitted by least squares
+with a Gaussian prior on ``(a, b)`` (``sigma_parallax``: about 1 m at 50 m), it moves the inferred
+annotations - whose placement otherwise carries the mean parallax the rotation absorbed from the
+matched ones - and the positions around which candidates are chosen.
+
+Azimuths are measured about ``up`` (the browsing panorama's vertical from gravity), so the model
+applies after the gravity-constrained alignment (``MatchConfig.gravity_alignment``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..rotations import rotations_about_axis
+
+Array = NDArray[np.float64]
+
+
+def _horizontal_axes(up: Array) -> tuple[Array, Array]:
+    """Two unit vectors completing ``up`` to a right-handed frame (e1, e2, up)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
+@dataclass(frozen=True)
+class ParallaxModel:
+    """Heading shift ``c + a cos(theta) + b sin(theta)`` (rad) about ``up``; theta from ``e1``."""
+
+    up: Array
+    c: float
+    a: float
+    b: float
+
+    def azimuth(self, dirs: Array) -> Array:
+        e1, e2 = _horizontal_axes(self.up)
+        dirs = np.asarray(dirs, float).reshape(-1, 3)
+        return np.arctan2(dirs @ e2, dirs @ e1)
+
+    def shift(self, dirs: Array) -> Array:
+        """(n,) heading shifts (rad) at the given directions."""
+        th = self.azimuth(dirs)
+        return self.c + self.a * np.cos(th) + self.b * np.sin(th)
+
+    def apply(self, dirs: Array) -> Array:
+        """(n, 3) directions turned about ``up`` by their shift."""
+        dirs = np.asarray(dirs, float).reshape(-1, 3)
+        return np.einsum('nij,nj->ni', rotations_about_axis(self.up, self.shift(dirs)), dirs)
+
+    @property
+    def amplitude(self) -> float:
+        """|t| / d of the fit (rad)."""
+        return math.hypot(self.a, self.b)
+
+
+def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: float = 0.01,
+                 sigma_parallax: float = 0.02) -> ParallaxModel:
+    """The model from (n, 3) directions where the rotation puts the matched annotations
+    (``predicted``) and where they were found (``observed``), n >= 1: weighted least squares of
+    the heading residuals (``sigma_match``: a match's localisation plus the depth differences
+    the common depth ignores), ``a`` and ``b`` pulled to 0 with ``sigma_parallax``; ``c`` free."""
+    k = np.asarray(up, float) / np.linalg.norm(up)
+    model = ParallaxModel(k, 0.0, 0.0, 0.0)
+    th = model.azimuth(predicted)
+    r = (model.azimuth(observed) - th + math.pi) % (2 * math.pi) - math.pi
+    A = np.vstack([np.stack([np.ones_like(th), np.cos(th), np.sin(th)], axis=1) / sigma_match,
+                   np.diag([0.0, 1.0, 1.0])[1:] / sigma_parallax])
+    y = np.concatenate([r / sigma_match, [0.0, 0.0]])
+    c, a, b = np.linalg.lstsq(A, y, rcond=None)[0]
+    return ParallaxModel(k, float(c), float(a), float(b))
