@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ar_tracking.core.panorama import MapperConfig, PanoramaMapper
-from ar_tracking.core.rotations import interpolate_rotations, quat_xyzw_to_matrix
+from ar_tracking.core.rotations import interpolate_rotations, quat_xyzw_to_matrix, trace_angle
 from ar_tracking.io.bags import BagError, BagReader, stamp_to_ns
 
 logger = logging.getLogger(__name__)
@@ -165,8 +165,7 @@ def tracking_errors(est_stamps: NDArray[np.int64], R_est: Array, truth_stamps: N
     rel_true = np.einsum('ji,njk->nik', R0, Rt)
     rel_est = np.einsum('ji,njk->nik', Re0, Re)
     E = np.einsum('nji,njk->nik', rel_est, rel_true)
-    cos = np.clip((np.trace(E, axis1=1, axis2=2) - 1) / 2, -1, 1)
-    return st, np.degrees(np.arccos(cos))
+    return st, np.degrees(trace_angle(E))
 
 
 def evaluate_panorama(bag_path: str | Path, source_bag: str | Path | None = None,
@@ -235,6 +234,6 @@ def _rates_deg_s(ts: NDArray[np.int64], R: Array) -> Array:
     if ts.size < 2:
         return np.zeros(0)
     E = np.einsum('nji,njk->nik', R[:-1], R[1:])
-    ang = np.arccos(np.clip((np.trace(E, axis1=1, axis2=2) - 1) / 2, -1, 1))
+    ang = trace_angle(E)
     dt = np.maximum(np.diff(ts) * 1e-9, 1e-9)
     return np.degrees(ang) / dt

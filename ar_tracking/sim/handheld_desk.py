@@ -59,7 +59,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from ..core.rotations import matrix_to_quat_xyzw
+from ..core.rotations import matrix_to_quat_xyzw, trace_angle
 from .world import rng_stream
 
 logger = logging.getLogger(__name__)
@@ -250,8 +250,7 @@ def _rates(motion: DeskMotion, t: Array, h: float = 1e-3) -> tuple[Array, Array]
     Rb, pb = motion.pose(t + h)
     v = np.linalg.norm(pb - pa, axis=1) / (2 * h)
     rel = np.einsum('nji,njk->nik', Ra, Rb)
-    ang = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
-    return v, ang / (2 * h)
+    return v, trace_angle(rel) / (2 * h)
 
 
 @functools.lru_cache(maxsize=8)
@@ -965,7 +964,7 @@ def subframe_count(cam: DeskCamera, pose_fn: PoseFn, t_s: float) -> int:
         return 1
     R, p = pose_fn(np.array([t_s - cam.exposure_s / 2, t_s + cam.exposure_s / 2]))
     rel = R[0].T @ R[1]
-    ang = math.acos(max(-1.0, min(1.0, (np.trace(rel) - 1) / 2)))
+    ang = float(trace_angle(rel))
     px = ang * cam.fx + float(np.linalg.norm(p[1] - p[0])) * cam.fx / 0.3
     return int(min(MAX_SUBFRAMES, max(1, math.ceil(px / BLUR_STEP_PX))))
 

@@ -33,8 +33,8 @@ from .camera import Camera
 from .patch_search import SearchConfig, search_points
 from .pose_update import refine_pose, tukey_weight
 from .pyramid import multiscale_corners
-from ..rotations import so3_exp
-from .rotation_prior import estimate_rotation, rotation_angle
+from ..rotations import so3_exp, trace_angle
+from .rotation_prior import estimate_rotation
 from .slam_map import Keyframe
 
 log = logging.getLogger(__name__)
@@ -263,7 +263,7 @@ class Initialiser:
         if self._coarse_cam is None:
             self._coarse_cam = self.camera.at_level(n_levels - 1)
         est = estimate_rotation(self.sbi_prev, sbi, self._coarse_cam, iterations=6)
-        if not np.isfinite(est.residual) or est.residual > est.residual0 * 1.05 or rotation_angle(est.R_cur_prev) > 0.5:
+        if not np.isfinite(est.residual) or est.residual > est.residual0 * 1.05 or trace_angle(est.R_cur_prev) > 0.5:
             return np.eye(3)
         return est.R_cur_prev
 
@@ -330,7 +330,7 @@ class Initialiser:
                 # Degenerate decomposition (no translation): the rotation is H's polar part.
                 U, S, Vt = np.linalg.svd(H / np.median(np.linalg.svd(H, compute_uv=False)))
                 R_rep = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-            rot_deg = np.degrees(rotation_angle(R_rep))
+            rot_deg = np.degrees(trace_angle(R_rep))
             if rot_deg > self.cfg.rotation_wait_deg and tnorm < max(self.cfg.translation_wait,
                                                                    0.15 * np.radians(rot_deg)):
                 return InitStatus('waiting', WAIT_ROTATION_MSG, None, None, nf, int(meas.sum()), cond)

@@ -16,8 +16,9 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from ..rotations import trace_angle
 from .camera import Camera
-from .rotation_prior import estimate_rotation, rotation_angle
+from .rotation_prior import estimate_rotation
 from .slam_map import Keyframe
 
 log = logging.getLogger(__name__)
@@ -66,6 +67,6 @@ def relocalise(sbi: NDArray[np.float32], keyframes: Sequence[Keyframe], camera: 
     level = int(round(np.log2(camera.width / sbi.shape[1])))
     est = estimate_rotation(kf.sbi, sbi, camera.at_level(level), iterations=10)
     R = est.R_cur_prev
-    if not np.isfinite(est.residual) or est.residual > est.residual0 or rotation_angle(R) > 0.6:
+    if not np.isfinite(est.residual) or est.residual > est.residual0 or trace_angle(R) > 0.6:
         R = np.eye(3)
     return RelocCandidate(kf.id, R @ kf.R_c_w, R @ kf.t_c_w, d, est.residual)

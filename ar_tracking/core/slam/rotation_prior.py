@@ -48,11 +48,6 @@ class RotationEstimate:
     converged: bool
 
 
-def rotation_angle(R: Array) -> float:
-    """Angle (rad) of a rotation matrix."""
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-
-
 class _Grid:
     """Per-size cache of the template pixel grid and the rotation warp Jacobian (d pix / d w)."""
 

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..rotations import trace_angle
 from .camera import Camera, camera_in_world
 from .initialiser import InitConfig, Initialiser
 from .mapper import MapMaker
@@ -38,7 +39,7 @@ from .point_filter import predict_partial_uvs, update_inverse_depth
 from .pose_update import refine_pose, se3_exp, se3_log
 from .pyramid import build_pyramid, small_blurry_image
 from .relocaliser import relocalise
-from .rotation_prior import estimate_rotation, rotation_angle, rotation_homography
+from .rotation_prior import estimate_rotation, rotation_homography
 from .slam_map import Keyframe, Measurement, SlamMap
 
 log = logging.getLogger(__name__)
@@ -252,11 +253,11 @@ class Tracker:
             H0 = rotation_homography(self._coarse_cam, dR, dtv, self.mean_depth)
             est = estimate_rotation(self.last_sbi, sbi, self._coarse_cam, H0=H0, iterations=6)
             if (np.isfinite(est.residual) and est.residual < est.residual0 and est.overlap > 0.3
-                    and rotation_angle(est.R_cur_prev) < 0.3):
+                    and trace_angle(est.R_cur_prev) < 0.3):
                 dRp = est.R_cur_prev
                 R_pred, t_pred = dRp @ R_pred, dRp @ t_pred
                 total_rot = dRp @ dR
-        fast = rotation_angle(total_rot) * self.camera.fx > self.cfg.fast_rotation_px
+        fast = trace_angle(total_rot) * self.camera.fx > self.cfg.fast_rotation_px
         return R_pred, t_pred, fast
 
     def _measure(self, pyr: list[Image], snap: dict[str, Any], R: Array, t: Array, coarse: bool,
