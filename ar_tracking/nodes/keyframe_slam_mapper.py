@@ -201,6 +201,9 @@ class KeyframeSlamMapperNode(TrackingNode):
             _pose(R_w_c, p_w_c, out.pose)
             self.pub_pose.publish(out)
             self.path.poses.append(out)
+            if len(self.path.poses) > self.config.max_path:
+                # Same bound as SlamSystem.path: drop the oldest tenth at once (amortised).
+                del self.path.poses[: len(self.path.poses) // 10]
             self.tracked += 1
         elif res.state == 'lost' and res.message:
             self.warn_throttled(f'slam lost: {res.message}')

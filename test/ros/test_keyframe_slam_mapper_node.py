@@ -1,6 +1,8 @@
 """keyframe_slam_mapper in-process: handheld_desk frames in, slam/* out; bad input (DESIGN sec. 7)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -97,6 +99,8 @@ def _stamp(f) -> int:
 
 def test_initialises_and_publishes_pose_keyframes_points_and_path(ros_context, desk_frames):
     h = Harness(ros_context)
+    # A small bound on the path (default 100000 poses) to see it dropping the oldest poses.
+    h.node.config = dataclasses.replace(h.node.config, max_path=12)
     try:
         for f in desk_frames:
             h.frame(f.image, _stamp(f))
@@ -111,7 +115,9 @@ def test_initialises_and_publishes_pose_keyframes_points_and_path(ros_context, d
         assert h.points and h.points[-1].width >= 20 and len(h.points[-1].data) == 12 * h.points[-1].width
         xyz = np.frombuffer(bytes(h.points[-1].data), np.float32).reshape(-1, 3)
         assert np.all(np.isfinite(xyz))
-        assert h.paths and 0 < len(h.paths[-1].poses) <= len(h.poses)
+        assert h.paths and 0 < len(h.paths[-1].poses) <= 12 < len(h.poses)
+        kept = [stamp_ns(m.header) for m in h.node.path.poses]
+        assert len(kept) <= 12 and kept == [stamp_ns(m.header) for m in h.poses[-len(kept):]]
         # The camera moves sideways at the start: the tracked positions must move too.
         p = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in h.poses])
         assert np.ptp(p, axis=0).max() > 0.02
