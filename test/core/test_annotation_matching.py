@@ -421,3 +421,24 @@ def test_parallax_model_moves_the_inferred_annotation_of_a_displaced_spot():
         errors[on] = float(np.degrees(np.arccos(np.clip(p.direction @ truth[5], -1, 1))))
         assert all(q.status == 'matched' for q in al.placements if q.index != 5)
     assert errors[False] > 1.0 and errors[True] < 0.5 * errors[False]
+
+
+def test_parallax_model_judges_each_match_by_the_others():
+    # Annotation 0 was first matched at a look-alike one facade repetition (14 px) away with a
+    # better NCC; the model fitted on the other matches predicts the true position, so the true
+    # candidate wins the second placement (fitted on all matches, the look-alike's own residual
+    # pulls the prediction towards it far enough to keep it).
+    t = np.array([1.2, -0.6, 0.0])
+    depths = np.array([35.0, 45.0, 40.0, 50.0, 42.0, 38.0])
+    case, truth, uv = _displaced_spot_case(34, t, depths)
+    det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(),
+                     R_enu_source=[_M_ENU_PANO @ _rotated_by(case.R_target_source, 2.0, axis=-_UP)] * 6)
+    det.set_orientation(_M_ENU_PANO)
+    for i in range(6):
+        det.candidates[i].items = [Candidate(float(uv[i, 0]), float(uv[i, 1]), 0.8, 0.8)]
+    det.candidates[0].items.insert(0, Candidate(float(uv[0, 0] - 14.0), float(uv[0, 1]), 0.86, 0.86))
+    det.dirty = True
+    _, al = det.result()
+    assert al.parallax is not None
+    p0 = next(p for p in al.placements if p.index == 0)
+    assert p0.status == 'matched' and p0.u == pytest.approx(uv[0, 0]) and p0.score == pytest.approx(0.8)

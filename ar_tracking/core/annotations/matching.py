@@ -906,9 +906,15 @@ class ReDetector:
                 or len(matched) < cfg.parallax_min_matches):
             return
         found = {p.index: p.direction for p in al.placements}
-        model = fit_parallax(predicted[matched], np.array([found[ids[k]] for k in matched]), up,
-                             cfg.parallax_sigma_match, cfg.parallax_sigma)
+        observed = np.array([found[ids[k]] for k in matched])
+        model = fit_parallax(predicted[matched], observed, up, cfg.parallax_sigma_match, cfg.parallax_sigma)
         corrected = model.apply(predicted)
+        # A matched annotation's own position comes from the others only (leave-one-out): a
+        # look-alike match must not pull the prediction it is judged against towards itself.
+        for r, k in enumerate(matched):
+            others = np.arange(len(matched)) != r
+            corrected[k] = fit_parallax(predicted[matched][others], observed[others], up, cfg.parallax_sigma_match,
+                                        cfg.parallax_sigma).apply(predicted[k])[0]
         al.placements = place_annotations(R, src, cands, cfg, geo, al.v_tol, predicted=corrected)
         al.parallax = model
         self._guide_all(al.placements, ids, corrected, al.v_tol)
