@@ -36,7 +36,14 @@
   - ``guided_search``: an inferred annotation is searched once more with NCC in a
     +-``placement_px`` window around its aligned position, which recovers true matches that
     were not among the three best candidates; with ``guided_all`` every matched annotation
-    too, the window's best penalised NCC replacing its candidate when it scores better.
+    too, the window's best penalised NCC replacing its candidate when it scores better;
+  - ``gravity_alignment`` (with the sensor prior): the accelerometers fix the tilt of both
+    panoramas, so the alignment is the prior rotation turned about the vertical only (one
+    degree of freedom, hypotheses from single matches and pairs), and a match must lie within
+    ``gravity_v_px`` of the predicted elevation;
+  - ``parallax_model``: the heading residuals of the matches are fitted with the parallax of a
+    displaced standing point (:mod:`.parallax`), each match judged against the fit of the
+    others, and the annotations are placed again around the corrected positions.
 * :class:`ReDetector` ties them together with the work queue of sec. 3.2 (finished tiles are
   queued and processed under a budget per frame) and the choice between several source
   panoramas near one GPS fix (sec. 6.1: the one whose annotations score best).
