@@ -159,3 +159,18 @@ def test_config_file_equals_declared_defaults(ros_context):
             assert node.get_parameter(key).value == value, key
     finally:
         node.destroy_node()
+
+
+def test_alignment_parameters_reach_the_match_config(ros_context):
+    overrides = {'gravity_alignment': False, 'gravity_v_px': 6.5, 'parallax_model': False, 'prior_alignment': False}
+    node = AnnotationMatcherNode(context=ros_context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+    try:
+        cfg = node.match_config
+        assert (cfg.gravity_alignment, cfg.gravity_v_px, cfg.parallax_model, cfg.prior_alignment) == (False, 6.5, False, False)
+    finally:
+        node.destroy_node()
+    node = AnnotationMatcherNode(context=ros_context)
+    try:
+        assert node.match_config.gravity_alignment and node.match_config.parallax_model
+    finally:
+        node.destroy_node()
