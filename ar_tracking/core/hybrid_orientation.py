@@ -50,7 +50,7 @@ from typing import Deque
 import numpy as np
 from numpy.typing import NDArray
 
-from .rotations import so3_exp, so3_log
+from .rotations import nearest_rotation, so3_exp, so3_log
 
 logger = logging.getLogger(__name__)
 
@@ -64,13 +64,6 @@ _I3.setflags(write=False)
 def slerp(R_a: Array, R_b: Array, s: float) -> Array:
     """The rotation a fraction s of the way from R_a to R_b (geodesic)."""
     return R_a @ so3_exp(s * so3_log(R_a.T @ R_b))
-
-
-def project_rotation(R: Array) -> Array:
-    """The nearest rotation matrix (SVD), to keep R_hat orthonormal after many updates."""
-    U, _, Vt = np.linalg.svd(R)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 # ----------------------------------------------------------------------------------------------
@@ -198,7 +191,7 @@ class PanoramaWorldFilter:
 
     def seed(self, t_ns: int, R_pano_enu: Array, P_pano: Array) -> None:
         """Start from one estimate (the first reading, or the backup's when vision returns)."""
-        self.R_hat = project_rotation(np.asarray(R_pano_enu, dtype=float))
+        self.R_hat = nearest_rotation(np.asarray(R_pano_enu, dtype=float))
         self.P = np.array(P_pano, dtype=float)
         self.initialized = True
         self.t_ns = int(t_ns)
@@ -304,7 +297,7 @@ class PanoramaWorldFilter:
         self.P = I_K @ self.P @ I_K.T + K @ Rm @ K.T  # Joseph form: stays symmetric positive
         self.updates += 1
         if self.updates % 1000 == 0:
-            self.R_hat = project_rotation(self.R_hat)
+            self.R_hat = nearest_rotation(self.R_hat)
         return UpdateResult(True, '', z, d2)
 
     def _gate(self, cov_enu: Array, d2: float) -> str:

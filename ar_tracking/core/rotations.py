@@ -160,6 +160,14 @@ def align_directions(src: Array, dst: Array, weights: Array | None = None) -> Ar
 
 
 
+def nearest_rotation(M: Array) -> Array:
+    """The rotation matrix nearest to a 3x3 matrix in the Frobenius norm (SVD): re-orthonormalises
+    a drifting estimate, and applied to a sum of rotations it is their chordal L2 mean."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
 def align_about_axis(src: Array, dst: Array, axis: Array, weights: Array | None = None) -> float:
     """The angle psi (rad) minimising sum w_i |dst_i - R(axis, psi) src_i|^2 for (n, 3) vectors,
     n >= 1: the rotation about one known axis (closed form, the 1-DoF case of Wahba's problem).

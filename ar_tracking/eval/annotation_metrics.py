@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.rotations import quat_xyzw_to_matrix
+from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
 from ..io.bags import BagReader
 
 TOPIC_MARKERS = '/annotations/markers'
@@ -31,13 +31,6 @@ CORRECT_DEG = 1.0
 
 def _q(r: Any) -> np.ndarray:
     return np.array([r.x, r.y, r.z, r.w], float)
-
-
-def mean_rotation(Rs: np.ndarray) -> np.ndarray:
-    """Chordal L2 mean of rotation matrices (n, 3, 3)."""
-    U, _, Vt = np.linalg.svd(np.sum(Rs, axis=0))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
 
 
 def evaluate_annotations(path: str | Path, correct_deg: float = CORRECT_DEG) -> dict[str, Any] | None:
@@ -72,7 +65,7 @@ def evaluate_annotations(path: str | Path, correct_deg: float = CORRECT_DEG) -> 
     if not inside:
         return None
     R_enu_cam = slerp([float(t) for t, _ in inside]).as_matrix()
-    R_enu_pano = mean_rotation(np.stack([Rc @ Rp.T for Rc, (_, Rp) in zip(R_enu_cam, inside)]))
+    R_enu_pano = nearest_rotation(np.sum([Rc @ Rp.T for Rc, (_, Rp) in zip(R_enu_cam, inside)], axis=0))
     spot = np.asarray(gt_p)[order][int(np.searchsorted(gt_t_arr, inside[0][0]).clip(0, len(gt_t_arr) - 1))]
     truth = {}
     for label, p in zip(labels, positions):

@@ -36,6 +36,7 @@ from ..core.annotations.matching import (Candidate, MatchConfig, ReDetector, Til
                                          ransac_alignment)
 from ..core.panorama import MapConfig, MapperConfig, PanoramaMapper
 from ..core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
+from ..core.rotations import nearest_rotation
 
 logger = logging.getLogger(__name__)
 
@@ -153,10 +154,7 @@ def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) 
     out = {'spot': spot, 'anchors': world.anchors}
     for edr, m in mappers.items():
         Rs = np.stack(prior[edr]) if prior[edr] else None
-        R_prior = None
-        if Rs is not None:
-            U, _, Vt = np.linalg.svd(Rs.sum(axis=0))
-            R_prior = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        R_prior = nearest_rotation(Rs.sum(axis=0)) if Rs is not None else None  # chordal mean
         out[edr] = {'gray': m.map.gray.copy(), 'mapped': m.map.mapped.copy(), 'tiles': m.map.tiles_image(),
                     'R_enu_pano': imu.R_enu_cam[init[edr]] if init[edr] is not None else None,
                     'R_enu_pano_sensor': R_prior}

@@ -5,7 +5,8 @@ Subscribes ``panorama/image`` (mono16/mono8 map) and ``panorama/tiles`` (mono8, 
 same stamp as the map) from panorama_mapper, ``gps/fix`` (NavSatFix) to load the annotations
 within ``radius_m`` from the store (all of them when GPS is poor), and for the sensor prior
 ``orientation/panorama_in_world`` (TransformStamped enu -> panorama) or ``orientation/global``
-(Imu, camera in ENU, paired by stamp with ``panorama/orientation``). Newly finished tiles go to a
+(Imu, camera in ENU, paired by stamp with ``panorama/orientation``), averaged over all samples
+of the current panorama (chordal mean: the panorama does not turn). Newly finished tiles go to a
 work queue; every map and orientation message (the frame clock) drains it within
 ``budget_ms``, counted with a fixed cost per tile x annotation (``op_cost_ms``) so that lockstep
 runs stay reproducible. Publishes ``annotations/markers`` (MarkerArray, one TEXT marker per
@@ -27,7 +28,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from ..core.annotations.matching import MatchConfig, ReDetector
 from ..core.annotations.store import Annotation, SqliteAnnotationStore, StoreError
 from ..core.panorama.cylinder import CylinderGeometry
-from ..core.rotations import quat_xyzw_to_matrix
+from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
 from ..ros.conversions import ConversionError, image_to_array, rotation_from_quaternion, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
@@ -98,6 +99,7 @@ class AnnotationMatcherNode(TrackingNode):
         self.finished_tiles: np.ndarray | None = None
         self.last_query_ns: int | None = None
         self.R_enu_pano: np.ndarray | None = None
+        self.prior_sum = np.zeros((3, 3))  # sum of the orientation samples of this panorama
         self.pano_orientation: dict[int, np.ndarray] = {}
         self.guard = StampGuard(reset_s)
         self.published = 0
@@ -222,6 +224,7 @@ class AnnotationMatcherNode(TrackingNode):
         self.map_stamp = None
         self.pending_tiles = None
         self.R_enu_pano = None
+        self.prior_sum = np.zeros((3, 3))
         self.pano_orientation.clear()
         if self.annotations:
             self.set_annotations(self.annotations)
@@ -262,7 +265,11 @@ class AnnotationMatcherNode(TrackingNode):
         self._set_prior(R_enu_cam @ R_pano_cam.T, t)
 
     def _set_prior(self, R_enu_pano: np.ndarray, t: int) -> None:
-        self.R_enu_pano = R_enu_pano
+        # The panorama's orientation in ENU is constant: every sample estimates it, and their
+        # chordal mean averages the compass and accelerometer noise (the gravity-constrained
+        # alignment relies on the tilt).
+        self.prior_sum += R_enu_pano
+        self.R_enu_pano = nearest_rotation(self.prior_sum)
         if self.detector is not None:
             self.detector.set_orientation(R_enu_pano)
         self._work(t)

@@ -20,6 +20,7 @@ from ar_tracking.core.rotations import (
     rot_x,
     rot_y,
     rot_z,
+    nearest_rotation,
     rotations_about_axis,
     trace_angle,
 )
@@ -262,3 +263,14 @@ def test_align_about_axis_recovers_the_angle_and_is_the_constrained_least_square
         assert best < cost(rotations_about_axis(axis, [psi + d])[0])
     if n >= 2:
         assert cost(align_directions(src, dst)) <= best + 1e-12
+
+
+def test_nearest_rotation_reorthonormalises_and_gives_the_chordal_mean():
+    R = Rotation.from_euler('zyx', [40.0, -10.0, 5.0], degrees=True).as_matrix()
+    noisy = R + np.random.default_rng(0).normal(0, 1e-3, (3, 3))
+    Q = nearest_rotation(noisy)
+    assert np.allclose(Q.T @ Q, np.eye(3), atol=1e-12) and np.linalg.det(Q) == pytest.approx(1.0)
+    assert np.degrees(angle_of(Q.T @ R)) < 0.2
+    # Samples symmetric about R: their chordal mean is R.
+    d = rotations_about_axis([0.2, 1.0, -0.3], [0.03])[0]
+    assert np.allclose(nearest_rotation(R @ d + R @ d.T), R, atol=1e-12)

@@ -174,3 +174,23 @@ def test_alignment_parameters_reach_the_match_config(ros_context):
         assert node.match_config.gravity_alignment and node.match_config.parallax_model
     finally:
         node.destroy_node()
+
+
+def test_sensor_prior_is_the_mean_of_the_orientation_samples(ros_context):
+    from scipy.spatial.transform import Rotation
+
+    h = Harness(ros_context, {})
+    pub = h.src.create_publisher(TransformStamped, 'orientation/panorama_in_world', 10)
+    assert spin_until(h.ex, lambda: pub.get_subscription_count() > 0)
+    base = Rotation.from_euler('zyx', [30.0, 2.0, -1.0], degrees=True)
+    for k, tilt in enumerate((1.5, -1.5, 0.5, -0.5)):  # noisy samples, symmetric about base
+        R = base * Rotation.from_rotvec([np.radians(tilt), 0.0, 0.0])
+        msg = TransformStamped()
+        msg.header.stamp = to_stamp(T0 + k * 50_000_000)
+        msg.header.frame_id, msg.child_frame_id = 'enu', 'panorama'
+        x, y, z, w = R.as_quat()
+        msg.transform.rotation.x, msg.transform.rotation.y, msg.transform.rotation.z, msg.transform.rotation.w = x, y, z, w
+        pub.publish(msg)
+        assert spin_until(h.ex, lambda: len(h.node.callback_stats['orientation/panorama_in_world'].durations_ms) > k)
+    err = np.degrees((Rotation.from_matrix(h.node.R_enu_pano) * base.inv()).magnitude())
+    assert err < 0.01  # a single sample is 0.5-1.5 deg off
