@@ -10,7 +10,8 @@ anchor at horizontal azimuth ``theta`` and distance ``d`` appears turned about t
 (small-angle; the elevation barely changes for anchors tens of metres away). The depths are not
 in the annotation record, so the model takes one common depth: after the rotation, the heading
 residuals of the matched annotations follow ``c + a cos(theta) + b sin(theta)``, with ``c`` what
-the rotation left of the heading and ``(a, b) = (t_north, -t_east) / d``. Fitted by least squares
+the rotation left of the heading and ``(a, b)`` the horizontal displacement over the depth (in
+the azimuth's axes, e.g. ``(t_north, -t_east) / d`` with theta from east). Fitted by least squares
 with a Gaussian prior on ``(a, b)`` (``sigma_parallax``: about 1 m at 50 m), it moves the inferred
 annotations - whose placement otherwise carries the mean parallax the rotation absorbed from the
 matched ones - and the positions around which candidates are chosen.
@@ -49,6 +50,7 @@ class ParallaxModel:
     b: float
 
     def azimuth(self, dirs: Array) -> Array:
+        """(n,) azimuths (rad) about ``up`` of (n, 3) directions, from ``e1`` towards ``e2``."""
         e1, e2 = _horizontal_axes(self.up)
         dirs = np.asarray(dirs, float).reshape(-1, 3)
         return np.arctan2(dirs @ e2, dirs @ e1)
