@@ -470,7 +470,7 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     if R_prior is not None and up is not None and cfg.gravity_alignment:
         k_up = np.asarray(up, float) / np.linalg.norm(up)
         v_tol = cfg.gravity_v_px
-    cs = _CandidateArrays(candidates, with_c, cu, cv_, v_tol) if with_c else None
+    cs = _CandidateArrays(candidates, with_c, v_tol) if with_c else None
 
     def fit(a: Array, b: Array) -> Array:
         """Least-squares rotation mapping directions a onto b (the heading only, with gravity)."""
@@ -621,24 +621,20 @@ def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequenc
     geo = geometry or CylinderGeometry()
     src = np.asarray(source_dirs, float).reshape(-1, 3)
     pred = src @ np.asarray(R, float).T if predicted is None else np.asarray(predicted, float)
+    with_c = [i for i in range(len(src)) if candidates[i]]
+    best: dict[int, int] = {}
+    if with_c:
+        cs = _CandidateArrays(candidates, with_c, v_tol)
+        value = cs.values(cs.distances_from(pred[with_c][None], geo)[0], cfg)
+        best = {i: int(np.argmax(value[r])) for r, i in enumerate(with_c) if np.isfinite(value[r]).any()}
     out = []
     for i in range(len(src)):
-        d = pred[i]
-        pu, pv = geo.project(d)
-        k = -1
-        if candidates[i]:
-            dist = _map_dist(geo, np.array([c.u for c in candidates[i]]), np.array([c.v for c in candidates[i]]), pu, pv)
-            value = np.array([c.ncc for c in candidates[i]]) - cfg.placement_penalty * dist / cfg.placement_px
-            value[dist >= max(cfg.placement_px, cfg.inlier_px)] = -np.inf
-            if v_tol is not None:
-                value[np.abs(np.array([c.v for c in candidates[i]]) - pv) > v_tol] = -np.inf
-            if np.isfinite(value).any():
-                k = int(np.argmax(value))
-        if k >= 0:
-            c = candidates[i][k]
+        if i in best:
+            c = candidates[i][best[i]]
             out.append(Placement(i, c.u, c.v, geo.unproject(np.array(c.u), np.array(c.v)), 'matched', c.ncc))
         else:
-            out.append(Placement(i, float(pu), float(pv), d, 'inferred', float('nan')))
+            pu, pv = geo.project(pred[i])
+            out.append(Placement(i, float(pu), float(pv), pred[i], 'inferred', float('nan')))
     return out
 
 
@@ -646,22 +642,27 @@ class _CandidateArrays:
     """The candidates of the annotations ``with_c`` as padded (n_c, k) arrays (NaN: none)."""
 
     def __init__(self, candidates: Sequence[Sequence[Candidate]], with_c: list[int],
-                 cu: list[Array], cv_: list[Array], v_tol: float | None = None) -> None:
+                 v_tol: float | None = None) -> None:
         self.with_c = with_c
         self.v_tol = v_tol
-        k_max = max(len(cu[i]) for i in with_c)
+        k_max = max(len(candidates[i]) for i in with_c)
         self.U = np.full((len(with_c), k_max), np.nan)
         self.V = np.full((len(with_c), k_max), np.nan)
         self.NCC = np.full((len(with_c), k_max), np.nan)
         for r, i in enumerate(with_c):
-            m = len(cu[i])
-            self.U[r, :m], self.V[r, :m] = cu[i], cv_[i]
+            m = len(candidates[i])
+            self.U[r, :m] = [c.u for c in candidates[i]]
+            self.V[r, :m] = [c.v for c in candidates[i]]
             self.NCC[r, :m] = [c.ncc for c in candidates[i]]
 
     def distances(self, Rs: Array, src: Array, geo: CylinderGeometry) -> Array:
         """(H, n_c, k) map distances between where each rotation puts each annotation and its
         candidates (NaN for missing candidates, inf beyond ``v_tol`` above or below)."""
-        pu, pv = geo.project(np.einsum('hij,nj->hni', Rs.reshape(-1, 3, 3), src[self.with_c]))
+        return self.distances_from(np.einsum('hij,nj->hni', Rs.reshape(-1, 3, 3), src[self.with_c]), geo)
+
+    def distances_from(self, dirs: Array, geo: CylinderGeometry) -> Array:
+        """(H, n_c, k) map distances from predicted directions (H, n_c, 3) to the candidates."""
+        pu, pv = geo.project(dirs)
         W = geo.width
         du = np.abs((pu[:, :, None] - self.U[None] + W / 2) % W - W / 2)
         dv = pv[:, :, None] - self.V[None]
@@ -671,17 +672,23 @@ class _CandidateArrays:
                 dist[np.abs(dv) > self.v_tol] = np.inf
         return dist
 
-    def placement_score(self, dd: Array, cfg: MatchConfig) -> Array:
-        """(H,) placement score of each rotation: the sum over the annotations of the best NCC
-        minus ``placement_penalty`` x distance / ``placement_px`` among the candidates within
-        ``placement_px`` (0 without one). It counts the annotations the rotation explains,
-        like the inliers, weighted by how well they match; the normalised error alone prefers
-        a rotation that lines up look-alikes one repetition away (repeated facades) over the
-        true one, whose near anchors are shifted by parallax."""
+    def values(self, dd: Array, cfg: MatchConfig) -> Array:
+        """Placement value of each candidate at distances ``dd`` (..., n_c, k): its NCC minus
+        ``placement_penalty`` x distance / ``placement_px``; -inf outside the gate
+        (max(placement_px, inlier_px); beyond ``v_tol``, inf distances) or without a candidate."""
         gate = max(cfg.placement_px, cfg.inlier_px)
         with np.errstate(invalid='ignore'):
-            v = np.where(dd < gate, self.NCC[None] - cfg.placement_penalty * dd / cfg.placement_px, 0.0)
-        return np.maximum(np.nan_to_num(v, nan=0.0).max(axis=2), 0.0).sum(axis=1)
+            value = np.where(dd < gate, self.NCC - cfg.placement_penalty * dd / cfg.placement_px, -np.inf)
+        value[np.isnan(value)] = -np.inf  # (nan_to_num would make -inf finite too)
+        return value
+
+    def placement_score(self, dd: Array, cfg: MatchConfig) -> Array:
+        """(H,) placement score of each rotation: the sum over the annotations of the best
+        placement value (:meth:`values`), 0 without a candidate in the gate. It counts the
+        annotations the rotation explains, like the inliers, weighted by how well they match;
+        the normalised error alone prefers a rotation that lines up look-alikes one repetition
+        away (repeated facades) over the true one, whose near anchors are shifted by parallax."""
+        return np.maximum(self.values(dd, cfg).max(axis=2), 0.0).sum(axis=1)
 
 
 def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[Array],
@@ -694,13 +701,10 @@ def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[A
     least squares over all matches averages them (the score, a sum of distances, may then drop
     a little: the choice of candidates decides)."""
     def choice(dd: Array) -> tuple[list[int], list[int], float]:
-        with np.errstate(invalid='ignore'):
-            value = np.where(dd < gate, cs.NCC - cfg.placement_penalty * dd / cfg.placement_px, -np.inf)
-        value[np.isnan(value)] = -np.inf  # (nan_to_num would make -inf finite too)
+        value = cs.values(dd, cfg)
         rows = [int(r) for r in np.flatnonzero(np.isfinite(value).any(axis=1))]
         return rows, [int(np.argmax(value[r])) for r in rows], float(cs.placement_score(dd[None], cfg)[0])
 
-    gate = max(cfg.placement_px, cfg.inlier_px)
     rows, ks, score = choice(cs.distances(R[None], src, geo)[0])
     for _ in range(cfg.refine_iterations):
         if len(rows) < max(2, need):
