@@ -153,8 +153,7 @@ def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) 
                 prior[edr].append(est.R_enu_body @ rs.R_IMU_CAM @ res.R_pano_cam.T)
     out = {'spot': spot, 'anchors': world.anchors}
     for edr, m in mappers.items():
-        Rs = np.stack(prior[edr]) if prior[edr] else None
-        R_prior = nearest_rotation(Rs.sum(axis=0)) if Rs is not None else None  # chordal mean
+        R_prior = nearest_rotation(np.sum(prior[edr], axis=0)) if prior[edr] else None  # chordal mean
         out[edr] = {'gray': m.map.gray.copy(), 'mapped': m.map.mapped.copy(), 'tiles': m.map.tiles_image(),
                     'R_enu_pano': imu.R_enu_cam[init[edr]] if init[edr] is not None else None,
                     'R_enu_pano_sensor': R_prior}
