@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ar_tracking.core.annotations.store import Annotation
 from ar_tracking.core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
@@ -75,3 +76,25 @@ def annotation(patch: np.ndarray, d: np.ndarray, text: str = 'a', lat: float = 4
                       longitude_deg=lon, altitude_m=350.0, panorama_id=pano, author='peter',
                       created_ns=1_700_000_000_000_000_000,
                       panorama_in_world_quat_xyzw=np.full(4, np.nan) if q is None else q)
+
+
+#: R_enu_panorama of a level panorama (x east, y down, z north) and the up direction in it.
+M_ENU_PANO = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+UP = M_ENU_PANO[2]  # ENU z in the panorama frame: (0, -1, 0)
+
+
+def rotated_by(R: np.ndarray, deg: float, axis=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """R turned by ``deg`` about ``axis`` (applied after R)."""
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis)).as_matrix() @ R
+
+
+def displaced_spot_case(seed: int, t_enu: np.ndarray, depths: np.ndarray):
+    """make_case's annotations seen from a browsing spot displaced by ``t_enu`` (m) with anchors
+    at ``depths`` (m): (case, their true target directions, their map positions)."""
+    case = make_case(seed=seed, n=len(depths))
+    d_enu = (case.dirs @ case.R_target_source.T) @ M_ENU_PANO.T * depths[:, None]  # anchors
+    seen = d_enu - t_enu
+    seen /= np.linalg.norm(seen, axis=1, keepdims=True)
+    truth = seen @ M_ENU_PANO  # back into the target panorama frame
+    uv = np.stack(GEO.project(truth), axis=1)
+    return case, truth, uv

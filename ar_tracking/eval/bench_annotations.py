@@ -4,7 +4,9 @@
 * ``tile_match_ms``: one 64 x 64 tile against 12 annotations (Walsh pre-check + NCC), median
   (seed: 28 ms on an HTC HD2; target here <= 1 ms);
 * ``ransac_ms``: one global alignment with 8 annotations and 3 candidates each (seed: 30 ms;
-  target <= 2 ms); ``ransac_gravity_ms`` the same with the gravity-constrained alignment;
+  target <= 2 ms); ``ransac_gravity_ms`` the same with the gravity-constrained alignment,
+  ``ransac_landmarks_ms`` that with 24 landmarks besides the 8 annotations (what an annotated
+  spot authored with landmarks aligns);
 * ``fig7.<row>.<column>``: redetection rate over ``spots`` simulated spots (4-6 annotations
   each), rows baseline, +sensor, +RANSAC, +sensor+RANSAC, +EDR, all; columns ``same_lighting``
   (browsing walk under the authoring sun: ``make_bag(..., session='browsing',
@@ -31,15 +33,19 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..annotate import cut_patch
+from ..core.annotations.landmarks import select_landmarks
 from ..core.annotations.matching import (Candidate, MatchConfig, ReDetector, TileMatcher,
                                          ransac_alignment)
+from ..core.annotations.patches import cut_patch
 from ..core.panorama import MapConfig, MapperConfig, PanoramaMapper
 from ..core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
 from ..core.rotations import nearest_rotation
 
 logger = logging.getLogger(__name__)
 
+#: Rows of Fig. 7: which enhancements are on. The source panorama's landmarks (stored with its
+#: annotations, :mod:`ar_tracking.core.annotations.landmarks`) are matched in every row; only
+#: the alignment (RANSAC) uses them. ``all_without_landmarks``: the annotations alone.
 ROWS = {
     'baseline': dict(edr=False, sensor_prior=False, ransac=False),
     'sensor': dict(edr=False, sensor_prior=True, ransac=False),
@@ -47,6 +53,7 @@ ROWS = {
     'sensor_ransac': dict(edr=False, sensor_prior=True, ransac=True),
     'edr': dict(edr=True, sensor_prior=False, ransac=False),
     'all': dict(edr=True, sensor_prior=True, ransac=True),
+    'all_without_landmarks': dict(edr=True, sensor_prior=True, ransac=True, landmarks=False),
 }
 COLUMNS = {'same_lighting': 'authoring', 'changed_lighting': 'browsing'}
 CORRECT_DEG = 1.0
@@ -85,22 +92,23 @@ def bench_tile_match(n: int = 300, seed: int = 0) -> float:
     return _median_ms(lambda: matcher.match_tile(gray, None, tile), n)
 
 
-def bench_ransac(n: int = 200, seed: int = 0, gravity: bool = False) -> float:
-    """Median ms of one alignment: 8 annotations, 3 candidates each (2 of 8 only wrong ones);
-    the paper's rotation hypotheses, or with ``gravity`` the sensor prior (3 deg off) turned
-    about the vertical (``MatchConfig.gravity_alignment``)."""
+def bench_ransac(n: int = 200, seed: int = 0, gravity: bool = False, points: int = 8) -> float:
+    """Median ms of one alignment: ``points`` annotations (8) or annotations and landmarks, 3
+    candidates each (a quarter with only wrong ones); the paper's rotation hypotheses, or with
+    ``gravity`` the sensor prior (3 deg off) turned about the vertical
+    (``MatchConfig.gravity_alignment``)."""
     geo = CylinderGeometry()
     rng = np.random.default_rng(seed)
-    u = rng.uniform(0, 2048, 8)
-    v = rng.uniform(150, 350, 8)
+    u = rng.uniform(0, 2048, points)
+    v = rng.uniform(150, 350, points)
     dirs = geo.unproject(u, v)
     R = rotation_about_axis_y(0.7)
     tu, tv = geo.project(dirs @ R.T)
     cands = []
-    for i in range(8):
+    for i in range(points):
         c = [Candidate(float((tu[i] + rng.uniform(100, 1900)) % 2048), float(tv[i] + rng.uniform(-40, 40)), 0.8, 0.8)
              for _ in range(2)]
-        if i >= 2:
+        if i >= points // 4:
             c.insert(int(rng.integers(0, 3)), Candidate(float(tu[i]), float(tv[i]), 0.7, 0.7))
         cands.append(c)
     cfg = MatchConfig()
@@ -181,14 +189,21 @@ def fig7_spot(seed: int, duration_s: float = 30.0) -> dict[str, dict[str, list[f
                 patches.append(patch)
                 dirs.append(d)
                 labels.append(a)
+        landmarks = []
+        if patches and opts.get('landmarks', True):
+            landmarks = select_landmarks(src['gray'], src['mapped'], geo, src['R_enu_pano'][2],
+                                         avoid=np.array(dirs))
+        all_patches = patches + [lm.patch for lm in landmarks]
+        all_dirs = np.array(dirs + [lm.direction for lm in landmarks]).reshape(-1, 3)
+        flags = [False] * len(patches) + [True] * len(landmarks)
         out[row] = {}
         for col in COLUMNS:
             tgt = browse[col][edr]
             errors = [math.inf] * len(labels)  # the annotations that could be authored
             if patches and tgt['R_enu_pano'] is not None:
                 cfg = MatchConfig(sensor_prior=opts['sensor_prior'], ransac=opts['ransac'])
-                det = ReDetector(patches, np.array(dirs), ['p'] * len(patches), cfg, geo,
-                                 [src['R_enu_pano']] * len(patches))
+                det = ReDetector(all_patches, all_dirs, ['p'] * len(all_patches), cfg, geo,
+                                 [src['R_enu_pano']] * len(all_patches), landmark=flags)
                 det.set_orientation(tgt['R_enu_pano_sensor'])
                 det.add_finished_tiles(tgt['tiles'])
                 det.step(tgt['gray'], tgt['mapped'])
@@ -228,7 +243,8 @@ def bench_fig7(spots: int = 10, first_seed: int = 1, duration_s: float = 30.0) -
 def bench_annotations(fig7_spots: int = 26, duration_s: float = 30.0) -> dict[str, Any]:
     """The ``annotations`` area of ``ar-tracking bench`` (fig7_spots=0 skips the table)."""
     out: dict[str, Any] = {'tile_match_ms': bench_tile_match(), 'ransac_ms': bench_ransac(),
-                           'ransac_gravity_ms': bench_ransac(gravity=True)}
+                           'ransac_gravity_ms': bench_ransac(gravity=True),
+                           'ransac_landmarks_ms': bench_ransac(gravity=True, points=8 + 24)}
     if fig7_spots > 0:
         out['fig7'] = bench_fig7(fig7_spots, duration_s=duration_s)
     return out

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotation_synth import GEO, make_case, tiles_of
+from annotation_synth import GEO, M_ENU_PANO, UP, displaced_spot_case, make_case, rotated_by, tiles_of
 from ar_tracking.core.annotations.matching import (Candidate, CandidateList, MatchConfig, ReDetector,
                                                    TileMatcher, _walsh_basis, absolute_orientation,
                                                    place_annotations, ransac_alignment)
@@ -287,17 +287,13 @@ def test_guided_all_replaces_a_look_alike_candidate():
     assert placed[False] == pytest.approx(12.0, abs=0.01) and placed[True] < 1.0
 
 
-def _rotated_by(R: np.ndarray, deg: float, axis=(0.0, 0.0, 1.0)) -> np.ndarray:
-    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis)).as_matrix() @ R
-
-
 def test_prior_alignment_places_by_the_compass_when_ransac_finds_no_valid_hypothesis():
     # Two of four annotations consistent (50 %, not more): RANSAC alone has no hypothesis and the
     # paper falls back to the best candidates, two of them look-alikes far off.
     case = make_case(seed=6, n=4)
     cands = _candidates(case, wrong={0, 1}, none=set(), rng=np.random.default_rng(3))
     assert ransac_alignment(case.dirs, cands, MatchConfig()).R_target_source is None
-    R_prior = _rotated_by(case.R_target_source, 2.0)  # a compass 2 deg off
+    R_prior = rotated_by(case.R_target_source, 2.0)  # a compass 2 deg off
     al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior)
     assert al.R_target_source is not None
     ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
@@ -320,11 +316,11 @@ def test_prior_alignment_rejects_a_consistent_rotation_the_compass_rules_out():
     cands = [[Candidate(float(u), float(v), 0.8, 0.8), Candidate(float((u + shift) % W), float(v), 0.82, 0.82)]
              for u, v in case.truth_uv]
     for compass_err in (3.0, -3.0):
-        al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=_rotated_by(case.R_target_source, compass_err))
+        al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=rotated_by(case.R_target_source, compass_err))
         ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
         assert ang < 0.1
     # A compass that points at the look-alikes (within its 10 deg window of them) picks them.
-    shifted_prior = _rotated_by(case.R_target_source, 28.0, axis=(0.0, -1.0, 0.0))
+    shifted_prior = rotated_by(case.R_target_source, 28.0, axis=(0.0, -1.0, 0.0))
     al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=shifted_prior)
     ang = np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
     assert ang > 25.0
@@ -347,50 +343,34 @@ def test_redetector_gives_the_prior_rotation_to_the_alignment():
 # -- gravity-constrained alignment and parallax model -------------------------------------------
 
 #: ENU from the panorama frame of annotation_synth (x right = east, y down, z forward = north).
-_M_ENU_PANO = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-_UP = _M_ENU_PANO[2]  # ENU z in the panorama frame: (0, -1, 0)
-
-
 def test_gravity_alignment_turns_about_the_vertical_and_rejects_look_alikes_above():
     case = make_case(seed=31, n=5)
     u0, v0 = case.truth_uv[0]
     # Annotation 0: the true match and a better look-alike 8 px above it (a window one floor up).
     cands = [[Candidate(float(u0), float(v0 - 8.0), 0.9, 0.9), Candidate(float(u0), float(v0), 0.75, 0.75)]]
     cands += [[Candidate(float(u), float(v), 0.85, 0.85)] for u, v in case.truth_uv[1:]]
-    R_prior = _rotated_by(case.R_target_source, 3.0, axis=-_UP)  # a compass 3 deg off
+    R_prior = rotated_by(case.R_target_source, 3.0, axis=-UP)  # a compass 3 deg off
     free = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior)
     assert free.v_tol is None and free.placements[0].v == pytest.approx(v0 - 8.0)  # the look-alike
-    al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior, up=_UP)
+    al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior, up=UP)
     assert al.v_tol == MatchConfig().gravity_v_px
     assert al.placements[0].status == 'matched' and al.placements[0].v == pytest.approx(v0)
     # The result is the prior turned about the vertical only, by the compass error.
     rotvec = Rotation.from_matrix(al.R_target_source @ R_prior.T).as_rotvec()
     assert np.degrees(np.linalg.norm(rotvec)) == pytest.approx(3.0, abs=0.05)
-    assert abs(rotvec @ _UP) / np.linalg.norm(rotvec) > 0.9999
+    assert abs(rotvec @ UP) / np.linalg.norm(rotvec) > 0.9999
     # Switched off, the up direction is ignored.
-    off = ransac_alignment(case.dirs, cands, MatchConfig(gravity_alignment=False), R_prior=R_prior, up=_UP)
+    off = ransac_alignment(case.dirs, cands, MatchConfig(gravity_alignment=False), R_prior=R_prior, up=UP)
     assert off.v_tol is None and off.placements[0].v == pytest.approx(v0 - 8.0)
-
-
-def _displaced_spot_case(seed: int, t_enu: np.ndarray, depths: np.ndarray):
-    """make_case's annotations seen from a browsing spot displaced by ``t_enu`` (m) with anchors
-    at ``depths`` (m): their true target directions and map positions."""
-    case = make_case(seed=seed, n=len(depths))
-    d_enu = (case.dirs @ case.R_target_source.T) @ _M_ENU_PANO.T * depths[:, None]  # anchors
-    seen = d_enu - t_enu
-    seen /= np.linalg.norm(seen, axis=1, keepdims=True)
-    truth = seen @ _M_ENU_PANO  # back into the target panorama frame
-    uv = np.stack(GEO.project(truth), axis=1)
-    return case, truth, uv
 
 
 def test_fit_parallax_recovers_a_displacement_at_a_common_depth():
     from ar_tracking.core.annotations.parallax import fit_parallax
 
     t = np.array([1.2, -0.8, 0.0])
-    case, truth, _ = _displaced_spot_case(32, t, np.full(6, 40.0))
+    case, truth, _ = displaced_spot_case(32, t, np.full(6, 40.0))
     predicted = case.dirs @ case.R_target_source.T
-    model = fit_parallax(predicted, truth, _UP, sigma_match=0.001, sigma_parallax=1.0)
+    model = fit_parallax(predicted, truth, UP, sigma_match=0.001, sigma_parallax=1.0)
     assert model.amplitude == pytest.approx(np.linalg.norm(t) / 40.0, rel=0.05)
     fixed = model.apply(predicted)
     # The heading error is what the model removes (elevated anchors also move up or down a
@@ -402,10 +382,10 @@ def test_fit_parallax_recovers_a_displacement_at_a_common_depth():
 def test_parallax_model_moves_the_inferred_annotation_of_a_displaced_spot():
     t = np.array([1.5, 0.5, 0.0])
     depths = np.array([30.0, 45.0, 35.0, 50.0, 40.0, 38.0])
-    case, truth, uv = _displaced_spot_case(33, t, depths)
+    case, truth, uv = displaced_spot_case(33, t, depths)
     # The browsing panorama rotated like make_case's: R_enu_target; the source from the prior.
-    R_enu_target = _M_ENU_PANO
-    R_enu_source = _M_ENU_PANO @ _rotated_by(case.R_target_source, 2.0, axis=-_UP)
+    R_enu_target = M_ENU_PANO
+    R_enu_source = M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)
     errors = {}
     for on in (False, True):
         det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(parallax_model=on),
@@ -430,10 +410,10 @@ def test_parallax_model_judges_each_match_by_the_others():
     # pulls the prediction towards it far enough to keep it).
     t = np.array([1.2, -0.6, 0.0])
     depths = np.array([35.0, 45.0, 40.0, 50.0, 42.0, 38.0])
-    case, truth, uv = _displaced_spot_case(34, t, depths)
+    case, truth, uv = displaced_spot_case(34, t, depths)
     det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(),
-                     R_enu_source=[_M_ENU_PANO @ _rotated_by(case.R_target_source, 2.0, axis=-_UP)] * 6)
-    det.set_orientation(_M_ENU_PANO)
+                     R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * 6)
+    det.set_orientation(M_ENU_PANO)
     for i in range(6):
         det.candidates[i].items = [Candidate(float(uv[i, 0]), float(uv[i, 1]), 0.8, 0.8)]
     det.candidates[0].items.insert(0, Candidate(float(uv[0, 0] - 14.0), float(uv[0, 1]), 0.86, 0.86))

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from annotation_synth import annotation
-from ar_tracking.core.annotations.store import (SqliteAnnotationStore, StoreError, distance_m,
-                                                open_store)
+from ar_tracking.core.annotations.store import (Landmark, SqliteAnnotationStore, StoreError, distance_m,
+                                                open_store, validate_annotation, validate_landmark)
 
 LAT, LON = 47.0458, 15.4251
 
@@ -24,6 +24,29 @@ def rec(seed: int = 0, side: int = 16, **kw):
     rng = np.random.default_rng(seed)
     d = rng.normal(size=3)
     return annotation(rng.integers(0, 256, (side, side), dtype=np.uint8), d / np.linalg.norm(d), **kw)
+
+
+def landmark(seed: int = 0, pano: str = 'p1', side: int = 16) -> Landmark:
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=3)
+    return Landmark(pano, rng.integers(0, 256, (side, side), dtype=np.uint8), d / np.linalg.norm(d))
+
+
+def make_version_1(path) -> None:
+    """Turn a fresh store file into what the version-1 program wrote: no landmarks table."""
+    db = sqlite3.connect(path)
+    db.execute('DROP TABLE landmarks')
+    db.execute("UPDATE meta SET value = '1' WHERE key = 'version'")
+    db.commit()
+    db.close()
+
+
+def meta_version(path) -> str:
+    db = sqlite3.connect(path)
+    try:
+        return db.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0]
+    finally:
+        db.close()
 
 
 @pytest.fixture
@@ -190,3 +213,136 @@ def test_open_store_urls(tmp_path):
 def test_invalid_query_position_is_an_error(store):
     with pytest.raises(StoreError):
         store.near(float('nan'), 15.0)
+
+
+def test_new_store_has_the_landmarks_table(tmp_path):
+    path = tmp_path / 'n.db'
+    SqliteAnnotationStore(path, create=True).close()
+    assert meta_version(path) == '2'
+    db = sqlite3.connect(path)
+    names = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE tbl_name = 'landmarks'")}
+    db.close()
+    assert names == {'landmarks', 'landmarks_panorama_id'}
+
+
+def test_landmarks_round_trip_per_panorama(store):
+    a = [landmark(k, 'pa', side=8 * (k % 4 + 1)) for k in range(3)]
+    b = [landmark(10 + k, 'pb') for k in range(2)]
+    report = store.add_landmarks([a[0], b[0], a[1], b[1], a[2]])
+    assert report.ids == [1, 2, 3, 4, 5] and not report.skipped
+    got = store.landmarks(['pa'])
+    assert [lm.id for lm in got] == [1, 3, 5] and {lm.panorama_id for lm in got} == {'pa'}
+    for want, lm in zip(a, got):
+        assert lm.patch.dtype == np.uint8 and np.array_equal(lm.patch, want.patch)
+        assert np.array_equal(lm.direction, want.direction)
+    assert [lm.id for lm in store.landmarks(['pb', 'pa', 'pb'])] == [1, 2, 3, 4, 5]
+    assert store.landmarks(['nope']) == [] and store.landmarks([]) == []
+    assert store.count() == 0 and store.all() == []  # landmarks are not annotations
+
+
+def test_landmarks_query_accepts_many_panorama_ids(store):
+    store._db.setlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER, 999)  # sqlite's old default
+    n = 1500  # more ids than one statement may bind
+    store.add_landmarks([landmark(0, f'p{n - 1}'), landmark(1, 'p0')])
+    ids = [f'p{k}' for k in range(n)]
+    assert [lm.panorama_id for lm in store.landmarks(iter(ids))] == [f'p{n - 1}', 'p0']
+    with pytest.raises(TypeError, match='one string'):
+        store.landmarks('p0')
+
+
+def test_invalid_landmarks_are_skipped_and_reported(store):
+    good = landmark(0)
+    wrong_size = Landmark('p1', np.zeros((15, 15), np.uint8), good.direction)
+    nan_dir = Landmark('p1', good.patch, np.array([np.nan, 0.0, 1.0]))
+    long_dir = Landmark('p1', good.patch, 2 * good.direction)
+    no_pano = Landmark('', good.patch, good.direction)
+    report = store.add_landmarks([wrong_size, good, nan_dir, long_dir, no_pano, landmark(1)])
+    assert report.ids == [1, 2]
+    reasons = dict(report.skipped)
+    assert sorted(reasons) == [0, 2, 3, 4]
+    assert 'patch' in reasons[0] and 'finite' in reasons[2] and 'unit' in reasons[3]
+    assert 'panorama_id' in reasons[4]
+    assert [lm.id for lm in store.landmarks(['p1'])] == [1, 2]
+    # the patch and direction checks are the annotations' ones
+    for lm in (wrong_size, nan_dir, long_dir):
+        assert validate_landmark(lm) == validate_annotation(annotation(lm.patch, lm.direction))
+    assert validate_landmark(rec(0)) is not None  # an annotation is not a landmark
+
+
+def test_only_invalid_landmarks_write_nothing(store):
+    report = store.add_landmarks([Landmark('p1', np.zeros((16, 16), np.uint8), np.array([0.0, 0.0, 1.0]))])
+    assert report.ids == [] and report.skipped == [(0, 'patch has no texture')]
+    assert store.landmarks(['p1']) == []
+
+
+def test_version_1_store_opens_and_upgrades_on_add_landmarks(tmp_path):
+    path = tmp_path / 'v1.db'
+    with SqliteAnnotationStore(path, create=True) as s:
+        s.add([rec(0), rec(1)])
+    make_version_1(path)
+    with SqliteAnnotationStore(path) as s:
+        assert s.landmarks(['p1']) == [] and not s.skipped
+        assert [a.id for a in s.all()] == [1, 2]
+        assert meta_version(path) == '1'  # opening and reading do not upgrade
+        assert s.add_landmarks([landmark(0), landmark(1, 'p2')]).ids == [1, 2]
+        assert meta_version(path) == '2'
+        assert [lm.id for lm in s.landmarks(['p1', 'p2'])] == [1, 2]
+        assert s.add([rec(2)]).ids == [3] and s.integrity_ok()
+    with SqliteAnnotationStore(path) as s:
+        assert [lm.panorama_id for lm in s.landmarks(['p1', 'p2'])] == ['p1', 'p2']
+        assert s.count() == 3
+        plan = ' '.join(str(r) for r in s._db.execute(
+            "EXPLAIN QUERY PLAN SELECT id FROM landmarks WHERE panorama_id IN ('p1')").fetchall())
+        assert 'landmarks_panorama_id' in plan
+
+
+def test_read_only_handle_never_upgrades_a_version_1_store(tmp_path):
+    path = tmp_path / 'ro.db'
+    with SqliteAnnotationStore(path, create=True) as s:
+        s.add([rec(0)])
+    make_version_1(path)
+    with SqliteAnnotationStore(path, read_only=True) as s:
+        assert s.landmarks(['p1']) == [] and len(s.all()) == 1
+        with pytest.raises(StoreError) as info:
+            s.add_landmarks([landmark(0)])
+        assert '\n' not in str(info.value)
+    assert meta_version(path) == '1'
+    db = sqlite3.connect(path)
+    assert db.execute("SELECT name FROM sqlite_master WHERE name LIKE 'landmarks%'").fetchall() == []
+    db.close()
+
+
+def test_newer_store_version_is_refused(tmp_path):
+    path = tmp_path / 'v3.db'
+    SqliteAnnotationStore(path, create=True).close()
+    db = sqlite3.connect(path)
+    db.execute("UPDATE meta SET value = '3' WHERE key = 'version'")
+    db.commit()
+    db.close()
+    with pytest.raises(StoreError, match='version 3 is newer'):
+        SqliteAnnotationStore(path)
+
+
+def test_corrupt_landmark_row_is_skipped_on_read(tmp_path):
+    path = tmp_path / 'cl.db'
+    with SqliteAnnotationStore(path, create=True) as s:
+        assert s.add_landmarks([landmark(k) for k in range(3)]).ids == [1, 2, 3]
+    db = sqlite3.connect(path)
+    db.execute('UPDATE landmarks SET patch = ? WHERE id = 2', (b'\x00' * 100,))
+    db.execute('UPDATE landmarks SET dx = 5.0 WHERE id = 3')
+    db.commit()
+    db.close()
+    with SqliteAnnotationStore(path) as s:
+        assert [lm.id for lm in s.landmarks(['p1'])] == [1]
+        assert len(s.skipped) == 2
+        assert 'landmark 2' in s.skipped[0] and '100 bytes' in s.skipped[0]
+        assert 'landmark 3' in s.skipped[1] and 'unit' in s.skipped[1]
+        s.all()
+        assert s.skipped == []  # the list is of the last query
+
+
+def test_integrity_ok_after_adding_landmarks(store):
+    store.add([rec(0), rec(1)])
+    store.add_landmarks([landmark(k, f'p{k % 2}') for k in range(20)])
+    assert store.integrity_ok() and store.count() == 2
+    assert len(store.landmarks(['p0', 'p1'])) == 20

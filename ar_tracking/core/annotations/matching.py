@@ -58,7 +58,7 @@ import itertools
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import cv2
@@ -147,6 +147,11 @@ class MatchConfig:
     parallax_min_matches: int = 3
     parallax_sigma_match: float = 0.01
     parallax_sigma: float = 0.02
+    #: After the parallax model, matches must lie within this many robust standard deviations
+    #: of the model's leave-one-out residuals of the matches (horizontal; between inlier_px and
+    #: placement_px): fitted on tens of landmark matches the model predicts to a pixel or two,
+    #: and a look-alike a facade repetition away no longer passes. 0: keep placement_px.
+    parallax_gate_sigmas: float = 3.0
     seed: int = 0
 
 
@@ -413,6 +418,10 @@ class Alignment:
     v_tol: float | None = None
     #: The parallax model the placements were corrected with (None: the rotation alone).
     parallax: ParallaxModel | None = None
+    #: Placement gate after the parallax model (pixels; NaN: none applied).
+    parallax_gate_px: float = float('nan')
+    #: Placements of the landmarks (:mod:`.landmarks`; not in ``placements``).
+    landmarks: list[Placement] = field(default_factory=list)
 
 
 def _map_dist(geometry: CylinderGeometry, u1: Array, v1: Array, u2: Array, v2: Array) -> Array:
@@ -778,17 +787,23 @@ class ReDetector:
     annotation); matching runs on all of them, the alignment per group, and :meth:`result`
     gives the group whose annotations score best (sec. 6.1). Newly finished tiles go into a
     FIFO (:meth:`add_finished_tiles`), :meth:`step` does at most ``max_ops`` tile x annotation
-    comparisons (the per-frame budget of sec. 3.2)."""
+    comparisons (the per-frame budget of sec. 3.2).
+
+    ``landmark`` flags the patches that are landmarks of their source panorama
+    (:mod:`.landmarks`): matched and aligned like annotations, but not placed for the user and
+    not counted in the group's score; their placements are in ``Alignment.landmarks``."""
 
     def __init__(self, patches: Sequence[NDArray[np.uint8]], source_dirs: Array,
                  groups: Sequence[str], config: MatchConfig | None = None,
                  geometry: CylinderGeometry | None = None,
-                 R_enu_source: Sequence[Array | None] | None = None) -> None:
+                 R_enu_source: Sequence[Array | None] | None = None,
+                 landmark: Sequence[bool] | None = None) -> None:
         self.config = cfg = config or MatchConfig()
         self.geometry = geo = geometry or CylinderGeometry()
         self.source_dirs = np.asarray(source_dirs, float).reshape(-1, 3)
         n = len(self.source_dirs)
         self.groups = list(groups)
+        self.landmark = np.zeros(n, bool) if landmark is None else np.asarray(landmark, bool).reshape(n)
         self.R_enu_source = list(R_enu_source) if R_enu_source is not None else [None] * n
         # One TileMatcher per patch size.
         self.matchers: list[tuple[TileMatcher, list[int]]] = []
@@ -847,7 +862,7 @@ class ReDetector:
         return done
 
     def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
-                v_tol: float | None = None) -> None:
+                v_tol: float | None = None, config: MatchConfig | None = None) -> None:
         """Guided re-detection around where the alignment puts an annotation (``predicted``,
         default the placement itself, i.e. an inferred one): NCC in a +-``placement_px``
         window (+-``v_tol`` vertically after a gravity-constrained alignment), minus
@@ -857,7 +872,7 @@ class ReDetector:
         if self._map is None:
             return
         gray, mapped = self._map
-        cfg, geo = self.config, self.geometry
+        cfg, geo = config or self.config, self.geometry
         patch = None
         for matcher, ids in self.matchers:
             if p.index in ids:
@@ -926,25 +941,43 @@ class ReDetector:
             others = np.arange(len(matched)) != r
             corrected[k] = fit_parallax(predicted[matched][others], observed[others], up, cfg.parallax_sigma_match,
                                         cfg.parallax_sigma).apply(predicted[k])[0]
-        al.placements = place_annotations(R, src, cands, cfg, geo, al.v_tol, predicted=corrected)
+        post = cfg
+        if cfg.parallax_gate_sigmas > 0:
+            al.parallax_gate_px = self._parallax_gate(corrected[matched], observed)
+            post = replace(cfg, placement_px=al.parallax_gate_px)
+        al.placements = place_annotations(R, src, cands, post, geo, al.v_tol, predicted=corrected)
         al.parallax = model
-        self._guide_all(al.placements, ids, corrected, al.v_tol)
+        self._guide_all(al.placements, ids, corrected, al.v_tol, post)
+
+    def _parallax_gate(self, predicted: Array, observed: Array) -> float:
+        """Placement gate after the parallax model (``parallax_gate_sigmas``): that many robust
+        standard deviations (1.4826 x median absolute) of the horizontal distances between the
+        matches and their leave-one-out predictions, clipped to [inlier_px, placement_px]."""
+        cfg, geo = self.config, self.geometry
+        pu, _ = geo.project(predicted)
+        ou, _ = geo.project(observed)
+        W = geo.width
+        du = np.abs((np.asarray(pu) - ou + W / 2) % W - W / 2)
+        scale = 1.4826 * float(np.median(du))
+        return float(np.clip(cfg.parallax_gate_sigmas * scale, cfg.inlier_px, cfg.placement_px))
 
     def _guide_all(self, placements: list[Placement], ids: list[int], predicted: Array | None,
-                   v_tol: float | None) -> None:
+                   v_tol: float | None, config: MatchConfig | None = None) -> None:
         """Placement indices from the group's (local) to the annotations' (``ids``), then the
         guided re-detection (``guided_search``) of inferred placements and, with ``guided_all``,
-        of matched ones around their ``predicted`` direction (local order)."""
+        of matched ones around their ``predicted`` direction (local order); ``config`` (default
+        the detector's) sets the window."""
+        cfg = config or self.config
         for p in placements:
             local = p.index
             p.index = ids[local]
-            if not self.config.guided_search:
+            if not cfg.guided_search:
                 continue
             if p.status == 'inferred':
-                self._guided(p, v_tol=v_tol)
-            elif self.config.guided_all and predicted is not None:
+                self._guided(p, v_tol=v_tol, config=cfg)
+            elif cfg.guided_all and predicted is not None:
                 u, v = self.geometry.project(predicted[local])
-                self._guided(p, (float(u), float(v)), v_tol)
+                self._guided(p, (float(u), float(v)), v_tol, cfg)
 
     def _up(self) -> Array | None:
         """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
@@ -967,7 +1000,10 @@ class ReDetector:
         for g in dict.fromkeys(self.groups):
             ids = [i for i, gi in enumerate(self.groups) if gi == g]
             cands = [self.candidates[i].items for i in ids]
-            score = float(np.mean([c[0].ncc if c else 0.0 for c in cands]))
+            shown = [c for i, c in zip(ids, cands) if not self.landmark[i]]
+            if not shown:
+                continue
+            score = float(np.mean([c[0].ncc if c else 0.0 for c in shown]))
             if score <= best[0]:
                 continue
             if self.config.ransac:
@@ -978,6 +1014,8 @@ class ReDetector:
             else:
                 al = Alignment(None, best_candidate_placements(cands, self.geometry))
             self._finish(al, ids, cands)
+            al.landmarks = [p for p in al.placements if self.landmark[p.index]]
+            al.placements = [p for p in al.placements if not self.landmark[p.index]]
             best = (score, g, al)
         self._cache = (best[1], best[2])
         return self._cache

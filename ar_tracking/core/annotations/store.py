@@ -6,26 +6,36 @@ panorama frame (sec. 4.3, Fig. 5), the GPS position where it was authored, the s
 id, the author and the creation time. Optionally the source panorama's orientation in the world
 (ENU), which the sensor prior of sec. 4.2 needs to predict where an annotation appears.
 
+A landmark (:class:`Landmark`, about 300 bytes) is a distinctive textured patch of a source
+panorama with its unit direction, but no text, position or author: it is never shown. The
+re-detector matches landmarks like annotations to get more correspondences between the source and
+the current panorama, for the global rotation and the parallax fit. They are stored per source
+panorama and read back with the annotations' panorama ids.
+
 A browsing device asks for "everything within 50 m of this fix" (sec. 4.3). :class:`AnnotationStore`
 is the interface; :class:`SqliteAnnotationStore` implements it on one SQLite file: WAL journal
 (readers never block the writer), every write in one transaction, and an R-tree (sqlite's rtree
 module) over latitude/longitude so the radius query is an index query followed by an exact
-great-circle check. A PostgreSQL/PostGIS backend would implement the same four methods
-(``add``, ``near``, ``all``, ``close``) with ``ST_DWithin`` on a geography column.
+great-circle check; landmarks live in their own table, indexed by panorama id. A
+PostgreSQL/PostGIS backend would implement the same six methods (``add``, ``near``, ``all``,
+``add_landmarks``, ``landmarks``, ``close``) with ``ST_DWithin`` on a geography column.
 
 Errors are :class:`StoreError` with one line (missing, locked or corrupt files); an existing file
 is never overwritten or re-initialised. Bad records (wrong patch size, NaN or zero vector, ...)
-are skipped and reported, never stored.
+are skipped and reported, never stored. Schema version 2 added the landmarks table: a version-1
+file opens as it is (it has no landmarks) and gets the table, in the same transaction, on its
+first ``add_landmarks``.
 """
 from __future__ import annotations
 
 import abc
+import contextlib
 import logging
 import math
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,7 +48,9 @@ PATCH_SIDES = (8, 16, 24, 32)
 DEFAULT_RADIUS_M = 50.0
 EARTH_RADIUS_M = 6_371_008.8
 SCHEMA = 'ar_tracking.annotations'
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: The schema version that added the landmarks table.
+LANDMARKS_VERSION = 2
 
 
 class StoreError(Exception):
@@ -75,19 +87,48 @@ class Annotation:
         return q.shape == (4,) and bool(np.all(np.isfinite(q))) and abs(np.linalg.norm(q) - 1) < 1e-3
 
 
-def validate_annotation(a: Annotation) -> str | None:
-    """None if the record can be stored, else the reason (one line)."""
-    patch = np.asarray(a.patch)
+@dataclass(frozen=True)
+class Landmark:
+    """A distinctive patch of a source panorama that is not an annotation (see the module docstring).
+
+    The re-detector matches it like an annotation, to get more correspondences for the global
+    rotation and the parallax fit, but it is never shown. ``patch`` is a textured square uint8
+    image of a side in :data:`PATCH_SIDES`; ``direction`` is the unit 3-vector to its centre in
+    the source panorama frame (as :attr:`Annotation.direction`)."""
+
+    panorama_id: str
+    patch: NDArray[np.uint8]
+    direction: NDArray[np.float64]
+    id: int | None = None
+
+    @property
+    def patch_side(self) -> int:
+        return int(self.patch.shape[0])
+
+
+def _patch_and_direction_problem(patch: NDArray[np.uint8], direction: NDArray[np.float64]) -> str | None:
+    """None if ``patch`` is a textured square uint8 image of a side in :data:`PATCH_SIDES` and
+    ``direction`` a finite unit 3-vector, else the reason (one line). Shared by annotations and
+    landmarks."""
+    patch = np.asarray(patch)
     if patch.dtype != np.uint8 or patch.ndim != 2 or patch.shape[0] != patch.shape[1] \
             or patch.shape[0] not in PATCH_SIDES:
         return f'patch must be a square uint8 image of side {PATCH_SIDES}, got {patch.dtype} {patch.shape}'
     if float(patch.std()) < 1.0:
         return 'patch has no texture'
-    d = np.asarray(a.direction, float)
+    d = np.asarray(direction, float)
     if d.shape != (3,) or not np.all(np.isfinite(d)):
         return f'direction must be a finite 3-vector, got {d.tolist()}'
     if abs(np.linalg.norm(d) - 1.0) > 1e-3:
         return f'direction must be a unit vector (norm {np.linalg.norm(d):.3g})'
+    return None
+
+
+def validate_annotation(a: Annotation) -> str | None:
+    """None if the record can be stored, else the reason (one line)."""
+    reason = _patch_and_direction_problem(a.patch, a.direction)
+    if reason is not None:
+        return reason
     if not (math.isfinite(a.latitude_deg) and -90 <= a.latitude_deg <= 90
             and math.isfinite(a.longitude_deg) and -180 <= a.longitude_deg <= 180):
         return f'position ({a.latitude_deg}, {a.longitude_deg}) is not a valid latitude/longitude'
@@ -96,6 +137,18 @@ def validate_annotation(a: Annotation) -> str | None:
     if not a.text.strip():
         return 'text is empty'
     if not a.panorama_id:
+        return 'panorama_id is empty'
+    return None
+
+
+def validate_landmark(lm: Landmark) -> str | None:
+    """None if the landmark can be stored, else the reason (one line)."""
+    if not isinstance(lm, Landmark):
+        return f'not a Landmark ({type(lm).__name__})'
+    reason = _patch_and_direction_problem(lm.patch, lm.direction)
+    if reason is not None:
+        return reason
+    if not lm.panorama_id:
         return 'panorama_id is empty'
     return None
 
@@ -110,7 +163,8 @@ def distance_m(lat1: float, lon1: float, lat2: NDArray | float, lon2: NDArray | 
 
 @dataclass
 class AddReport:
-    """Outcome of :meth:`AnnotationStore.add`: ids of the stored records, reasons of the skipped."""
+    """Outcome of :meth:`AnnotationStore.add` and :meth:`AnnotationStore.add_landmarks`: ids of
+    the stored records, reasons of the skipped."""
 
     ids: list[int] = field(default_factory=list)
     skipped: list[tuple[int, str]] = field(default_factory=list)  # (index in the input, reason)
@@ -136,6 +190,15 @@ class AnnotationStore(abc.ABC):
         """Every record (used when GPS is poor)."""
 
     @abc.abstractmethod
+    def add_landmarks(self, landmarks: Iterable[Landmark]) -> AddReport:
+        """Store the valid landmarks in one transaction; skip, report and log the others."""
+
+    @abc.abstractmethod
+    def landmarks(self, panorama_ids: Iterable[str]) -> list[Landmark]:
+        """Every stored landmark of these source panoramas, ordered by id. Landmarks that cannot
+        be read back are skipped and listed in :attr:`skipped`."""
+
+    @abc.abstractmethod
     def close(self) -> None:
         """Release the connection."""
 
@@ -147,6 +210,16 @@ class AnnotationStore(abc.ABC):
 
 
 _SQLITE_MAGIC = b'SQLite format 3\x00'
+#: The landmarks table and its index; idempotent, so they also upgrade a version-1 file.
+_LANDMARKS_DDL = (
+    'CREATE TABLE IF NOT EXISTS landmarks (id INTEGER PRIMARY KEY, panorama_id TEXT NOT NULL, '
+    'patch BLOB NOT NULL, patch_side INTEGER NOT NULL, dx REAL NOT NULL, dy REAL NOT NULL, '
+    'dz REAL NOT NULL)',
+    'CREATE INDEX IF NOT EXISTS landmarks_panorama_id ON landmarks (panorama_id)',
+)
+#: Panorama ids per landmark query (below sqlite's limit on bound parameters).
+_IDS_PER_QUERY = 500
+_T = TypeVar('_T')
 
 
 class SqliteAnnotationStore(AnnotationStore):
@@ -210,6 +283,8 @@ class SqliteAnnotationStore(AnnotationStore):
                 pano_qx REAL, pano_qy REAL, pano_qz REAL, pano_qw REAL)''')
             db.execute('CREATE VIRTUAL TABLE annotations_rtree USING rtree('
                        'id, min_lat, max_lat, min_lon, max_lon)')
+            for sql in _LANDMARKS_DDL:
+                db.execute(sql)
             db.execute('COMMIT')
         except BaseException:
             db.execute('ROLLBACK')
@@ -254,27 +329,51 @@ class SqliteAnnotationStore(AnnotationStore):
                          int(a.created_ns), *q))
         if not rows:
             return report
-        db = self._db
-        try:
-            db.execute('BEGIN IMMEDIATE')
-            try:
-                for row in rows:
-                    cur = db.execute('INSERT INTO annotations (text, patch, patch_side, dx, dy, dz, '
-                                     'latitude, longitude, altitude, panorama_id, author, created_ns, '
-                                     'pano_qx, pano_qy, pano_qz, pano_qw) '
-                                     'VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)', row)
-                    rid = int(cur.lastrowid)
-                    db.execute('INSERT INTO annotations_rtree VALUES (?, ?, ?, ?, ?)',
-                               (rid, row[6], row[6], row[7], row[7]))
-                    report.ids.append(rid)
-                db.execute('COMMIT')
-            except BaseException:
-                report.ids.clear()
-                db.execute('ROLLBACK')
-                raise
-        except sqlite3.Error as exc:
-            raise self._error(exc, 'cannot write') from exc
+        ids = []
+        with self._write_transaction() as db:
+            for row in rows:
+                cur = db.execute('INSERT INTO annotations (text, patch, patch_side, dx, dy, dz, '
+                                 'latitude, longitude, altitude, panorama_id, author, created_ns, '
+                                 'pano_qx, pano_qy, pano_qz, pano_qw) '
+                                 'VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)', row)
+                rid = int(cur.lastrowid)
+                db.execute('INSERT INTO annotations_rtree VALUES (?, ?, ?, ?, ?)',
+                           (rid, row[6], row[6], row[7], row[7]))
+                ids.append(rid)
+        report.ids = ids
         return report
+
+    def add_landmarks(self, landmarks: Iterable[Landmark]) -> AddReport:
+        report = AddReport()
+        rows = []
+        for i, lm in enumerate(landmarks):
+            reason = validate_landmark(lm)
+            if reason is not None:
+                report.skipped.append((i, reason))
+                logger.warning('landmark %d (panorama %r) skipped: %s', i,
+                               getattr(lm, 'panorama_id', ''), reason)
+                continue
+            d = np.asarray(lm.direction, float)
+            rows.append((lm.panorama_id, np.ascontiguousarray(lm.patch).tobytes(), lm.patch_side,
+                         float(d[0]), float(d[1]), float(d[2])))
+        if not rows:
+            return report
+        ids = []
+        with self._write_transaction() as db:
+            self._ensure_landmarks_table(db)
+            for row in rows:
+                cur = db.execute('INSERT INTO landmarks (panorama_id, patch, patch_side, dx, dy, dz) '
+                                 'VALUES (?, ?, ?, ?, ?, ?)', row)
+                ids.append(int(cur.lastrowid))
+        report.ids = ids
+        return report
+
+    def landmarks(self, panorama_ids: Iterable[str]) -> list[Landmark]:
+        if isinstance(panorama_ids, str):
+            raise TypeError('panorama_ids must be an iterable of panorama ids, not one string')
+        ids = list(dict.fromkeys(panorama_ids))
+        rows = self._landmark_rows(ids) if ids else []
+        return self._collect(sorted(rows, key=lambda row: row[0]), self._landmark_from_row, 'landmark')
 
     def near(self, latitude_deg: float, longitude_deg: float,
              radius_m: float = DEFAULT_RADIUS_M) -> list[Annotation]:
@@ -318,6 +417,34 @@ class SqliteAnnotationStore(AnnotationStore):
             db.close()
             self._db = None  # type: ignore[assignment]
 
+    # -- writing ---------------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def _write_transaction(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction (BEGIN IMMEDIATE ... COMMIT, rolled back on any error); sqlite
+        errors become a one-line StoreError."""
+        db = self._db
+        try:
+            db.execute('BEGIN IMMEDIATE')
+            try:
+                yield db
+                db.execute('COMMIT')
+            except BaseException:
+                if db.in_transaction:
+                    db.execute('ROLLBACK')
+                raise
+        except sqlite3.Error as exc:
+            raise self._error(exc, 'cannot write') from exc
+
+    @staticmethod
+    def _ensure_landmarks_table(db: sqlite3.Connection) -> None:
+        """Inside the caller's write transaction: create the landmarks table and index if missing
+        (a version-1 file) and record the version that has them. A no-op on newer files."""
+        for sql in _LANDMARKS_DDL:
+            db.execute(sql)
+        db.execute("UPDATE meta SET value = ? WHERE key = 'version' AND CAST(value AS INTEGER) < ?",
+                   (str(LANDMARKS_VERSION), LANDMARKS_VERSION))
+
     # -- reading ---------------------------------------------------------------------------
 
     def _query(self, sql: str, args: Sequence[object]) -> list[Annotation]:
@@ -325,27 +452,76 @@ class SqliteAnnotationStore(AnnotationStore):
             rows = self._db.execute(sql, args).fetchall()
         except sqlite3.Error as exc:
             raise self._error(exc, 'cannot read') from exc
+        return self._collect(rows, self._from_row, 'record')
+
+    def _landmark_rows(self, panorama_ids: Sequence[str]) -> list[tuple]:
+        """The landmark rows of these panoramas, from one read snapshot; none on a version-1 file
+        (no landmarks table)."""
+        db = self._db
+        rows: list[tuple] = []
+        try:
+            db.execute('BEGIN')  # one snapshot for every chunk
+            try:
+                if db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'landmarks'"
+                              ).fetchone() is None:
+                    return []
+                for k in range(0, len(panorama_ids), _IDS_PER_QUERY):
+                    chunk = panorama_ids[k:k + _IDS_PER_QUERY]
+                    marks = ', '.join('?' * len(chunk))
+                    rows += db.execute('SELECT id, panorama_id, patch, patch_side, dx, dy, dz '
+                                       f'FROM landmarks WHERE panorama_id IN ({marks})', chunk).fetchall()
+            finally:
+                if db.in_transaction:
+                    db.execute('ROLLBACK')
+        except sqlite3.Error as exc:
+            raise self._error(exc, 'cannot read') from exc
+        return rows
+
+    def _collect(self, rows: Iterable[tuple], from_row: Callable[[tuple], tuple[_T | None, str]],
+                 kind: str) -> list[_T]:
+        """The records ``from_row`` can read back; the others are listed in :attr:`skipped`."""
         self.skipped = []
         out = []
         for row in rows:
-            a, reason = self._from_row(row)
-            if a is None:
-                self.skipped.append(f'record {row[0]}: {reason}')
-                logger.warning('%s: record %s skipped: %s', self.path, row[0], reason)
+            item, reason = from_row(row)
+            if item is None:
+                self.skipped.append(f'{kind} {row[0]}: {reason}')
+                logger.warning('%s: %s %s skipped: %s', self.path, kind, row[0], reason)
             else:
-                out.append(a)
+                out.append(item)
         return out
 
     @staticmethod
-    def _from_row(row: tuple) -> tuple[Annotation | None, str]:
+    def _patch_from_blob(blob: bytes, side: int) -> tuple[NDArray[np.uint8] | None, str]:
+        patch = np.frombuffer(blob, np.uint8)
+        if patch.size != side * side:
+            return None, f'patch has {patch.size} bytes, expected {side}x{side}'
+        return patch.reshape(side, side).copy(), ''
+
+    @classmethod
+    def _landmark_from_row(cls, row: tuple) -> tuple[Landmark | None, str]:
+        rid, pano, blob, side, dx, dy, dz = row
+        try:
+            patch, reason = cls._patch_from_blob(blob, side)
+            if patch is None:
+                return None, reason
+            lm = Landmark(panorama_id=pano, patch=patch, direction=np.array([dx, dy, dz], float),
+                          id=int(rid))
+        except (TypeError, ValueError) as exc:
+            return None, str(exc)
+        reason = validate_landmark(lm)
+        return (None, reason) if reason else (lm, '')
+
+    @classmethod
+    def _from_row(cls, row: tuple) -> tuple[Annotation | None, str]:
         (rid, text, blob, side, dx, dy, dz, lat, lon, alt, pano, author, created,
          qx, qy, qz, qw) = row
         try:
-            patch = np.frombuffer(blob, np.uint8)
-            if patch.size != side * side:
-                return None, f'patch has {patch.size} bytes, expected {side}x{side}'
+            patch, reason = cls._patch_from_blob(blob, side)
+            if patch is None:
+                return None, reason
             q = np.array([np.nan] * 4 if qw is None else [qx, qy, qz, qw], float)
-            a = Annotation(text=text, patch=patch.reshape(side, side).copy(),
+            a = Annotation(text=text, patch=patch,
                            direction=np.array([dx, dy, dz], float), latitude_deg=float(lat),
                            longitude_deg=float(lon), altitude_m=float(alt), panorama_id=pano,
                            author=author, created_ns=int(created), panorama_in_world_quat_xyzw=q,
