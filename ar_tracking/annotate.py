@@ -8,6 +8,11 @@ simulated bags, taken from ``/ground_truth/annotations``: an anchor at ENU direc
 the panorama frame at ``R_pano_enu @ d``, with R_enu_pano the ground-truth camera orientation at
 the panorama's first frame (the panorama frame is that frame's camera frame).
 
+With the annotations, up to ``landmarks`` (24) distinctive patches of the same panorama are
+stored (:mod:`ar_tracking.core.annotations.landmarks`): never shown, they give the re-detector
+more matches to align the browsing panorama with. Above the horizon only when the panorama's
+orientation is known (the ground is near, its parallax large).
+
 The source panorama's orientation in the world (for the sensor prior of sec. 4.2 when the
 annotations are browsed) is stored with each record when known: from the ground truth for
 simulated bags (``world_orientation='ground_truth'``), otherwise not (``'none'``).
@@ -17,15 +22,16 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 
+from .core.annotations.landmarks import LandmarkConfig, select_landmarks
 from .core.annotations.patches import cut_patch
-from .core.annotations.store import (Annotation, AddReport, SqliteAnnotationStore,
+from .core.annotations.store import (Annotation, AddReport, Landmark, SqliteAnnotationStore,
                                      validate_annotation)
 from .core.panorama import MapConfig, MapperConfig, PanoramaMapper
 from .core.panorama.cylinder import CylinderGeometry
@@ -50,6 +56,7 @@ class AnnotateReport:
     skipped: list[tuple[str, str]] = field(default_factory=list)  # (text, reason)
     latitude_deg: float = float('nan')
     longitude_deg: float = float('nan')
+    landmarks: int = 0  # landmarks stored with the annotations
 
 
 def _interp_rotation(stamps: np.ndarray, rots: np.ndarray, t: int) -> np.ndarray | None:
@@ -69,9 +76,11 @@ def _interp_rotation(stamps: np.ndarray, rots: np.ndarray, t: int) -> np.ndarray
 def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Sequence[tuple[str, float, float]] | None = None,
                  patch_px: int = 16, author: str = '', panorama_id: str | None = None,
                  edr: bool = True, world_orientation: str = 'ground_truth', create: bool = True,
+                 landmarks: int = LandmarkConfig.count,
                  progress: Callable[[float], None] | None = None) -> AnnotateReport:
     """Author annotations from an authoring bag into the store at ``store_path`` (see module
-    docstring). Raises BagError / StoreError (one line) for unusable bags / stores."""
+    docstring), and up to ``landmarks`` landmarks of the panorama (0: none). Raises BagError /
+    StoreError (one line) for unusable bags / stores."""
     from .ros.conversions import ConversionError, compressed_to_array, image_to_array
 
     bag = Path(bag)
@@ -184,6 +193,12 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Sequence
         added: AddReport = store.add(records)
         report.stored = added.ids
         report.skipped += [(texts[i], r) for i, r in added.skipped]
+        if report.stored and landmarks > 0:
+            up = R_enu_pano[2] if R_enu_pano is not None else None
+            found = select_landmarks(gray, mapper.map.mapped, geo, up, replace(LandmarkConfig(), count=landmarks),
+                                     avoid=np.array([a.direction for a in records]))
+            report.landmarks = len(store.add_landmarks(
+                Landmark(pid, lm.patch, lm.direction) for lm in found).ids)
         return report
     finally:
         store.close()

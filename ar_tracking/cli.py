@@ -74,13 +74,15 @@ def cmd_annotate(args: argparse.Namespace) -> int:
     try:
         report = annotate_bag(args.bag, args.store, positions=positions, patch_px=args.patch_px,
                               author=args.author, panorama_id=args.panorama_id, edr=not args.no_edr,
-                              world_orientation=args.world_orientation, progress=progress)
+                              world_orientation=args.world_orientation, landmarks=args.landmarks,
+                              progress=progress)
     finally:
         close()
     for text, reason in report.skipped:
         print(f'skipped {text!r}: {reason}', file=sys.stderr)
     print(json.dumps({'panorama_id': report.panorama_id, 'stored': len(report.stored),
-                      'skipped': len(report.skipped), 'latitude_deg': report.latitude_deg,
+                      'skipped': len(report.skipped), 'landmarks': report.landmarks,
+                      'latitude_deg': report.latitude_deg,
                       'longitude_deg': report.longitude_deg}))
     return 0 if report.stored else 1
 
@@ -227,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--panorama-id', default=None)
     p.add_argument('--no-edr', action='store_true', help='8-bit map instead of the EDR map')
     p.add_argument('--world-orientation', default='ground_truth', choices=['ground_truth', 'none'])
+    p.add_argument('--landmarks', type=int, default=24, metavar='N',
+                   help='also store up to N landmarks of the panorama (distinctive patches that help '
+                        'align it when browsing; never shown); 0: none (default 24)')
     p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_annotate)
 

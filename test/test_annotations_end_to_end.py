@@ -11,6 +11,7 @@ import yaml
 from ar_tracking.annotate import annotate_bag
 from ar_tracking.core.annotations.store import SqliteAnnotationStore, StoreError
 from ar_tracking.core.panorama.cylinder import CylinderGeometry
+from ar_tracking.core.rotations import quat_xyzw_to_matrix
 from ar_tracking.eval.annotation_metrics import evaluate_annotations
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
@@ -38,6 +39,14 @@ def test_annotate_stores_every_ground_truth_anchor(authored):
         u, v = geo.project(a.direction)
         assert 0 <= u < 2048 and 0 <= v < 512
     assert len({a.panorama_id for a in recs}) == 1
+    # Landmarks of the same panorama: the requested number, above the horizon, none at an anchor.
+    with SqliteAnnotationStore(store) as s:
+        lms = s.landmarks([recs[0].panorama_id])
+    assert report.landmarks == len(lms) == 24
+    R_enu_pano = quat_xyzw_to_matrix(recs[0].panorama_in_world_quat_xyzw)
+    dirs = np.array([lm.direction for lm in lms])
+    assert np.all(dirs @ R_enu_pano[2] > 0)
+    assert np.max(dirs @ np.array([a.direction for a in recs]).T) < np.cos(np.radians(2.0))
 
 
 def test_annotate_refuses_a_corrupt_store_without_touching_it(tmp_path):

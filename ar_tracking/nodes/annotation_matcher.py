@@ -12,7 +12,8 @@ work queue; every map and orientation message (the frame clock) drains it within
 runs stay reproducible. Publishes ``annotations/markers`` (MarkerArray, one TEXT marker per
 placed annotation in the panorama frame, ns ``matched`` or ``inferred``) and
 ``annotations/alignment`` (TransformStamped panorama <- source panorama, child_frame_id = the
-source panorama id). The algorithm is :mod:`ar_tracking.core.annotations`; this node converts.
+source panorama id). With ``landmarks`` the source panoramas' landmarks (stored by
+``ar-tracking annotate``) are matched and aligned with the annotations but never published. The algorithm is :mod:`ar_tracking.core.annotations`; this node converts.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from sensor_msgs.msg import Image, Imu, NavSatFix, NavSatStatus
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.annotations.matching import MatchConfig, ReDetector
-from ..core.annotations.store import Annotation, SqliteAnnotationStore, StoreError
+from ..core.annotations.store import Annotation, Landmark, SqliteAnnotationStore, StoreError
 from ..core.panorama.cylinder import CylinderGeometry
 from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
 from ..ros.conversions import ConversionError, image_to_array, rotation_from_quaternion, set_quaternion, stamp_ns, to_stamp
@@ -75,6 +76,8 @@ class AnnotationMatcherNode(TrackingNode):
         gravity = p('gravity_alignment', True, 'With prior_alignment: the alignment turns the prior rotation about the vertical only (gravity fixes the tilt of both panoramas); candidates more than gravity_v_px above or below are not matches')
         gravity_v_px = p('gravity_v_px', 4.0, 'Vertical tolerance of a match after the gravity-constrained alignment, map pixels', min_value=0.5, max_value=100.0)
         parallax = p('parallax_model', True, 'With gravity_alignment: fit the heading residuals of the matches with the parallax of a displaced standing point and place again (extension of sec. 4.3)')
+        gate_sigmas = p('parallax_gate_sigmas', 3.0, 'After the parallax model, matches must lie within this many robust standard deviations of its leave-one-out residuals (between inlier_px and placement_px); 0: off', min_value=0.0, max_value=100.0)
+        self.use_landmarks = p('landmarks', True, "Load the source panoramas' landmarks with their annotations: matched and aligned like annotations, never shown")
         min_ncc = p('min_ncc', 0.55, 'Smallest NCC of a candidate match', min_value=-1.0, max_value=1.0)
         walsh_min = p('walsh_min', 0.5, 'Walsh pre-check threshold (sec. 3.2): positions below it get no NCC', min_value=-1.0, max_value=1.0)
         self.marker_distance_m = p('marker_distance_m', 10.0, 'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0)
@@ -88,9 +91,11 @@ class AnnotationMatcherNode(TrackingNode):
             min_inlier_ratio=ratio, min_ncc=min_ncc, walsh_min=walsh_min,
             placement_px=placement_px, guided_search=guided, placement_penalty=placement_penalty,
             consensus_score=consensus, guided_all=guided_all, prior_alignment=prior_alignment,
-            gravity_alignment=gravity, gravity_v_px=gravity_v_px, parallax_model=parallax)
+            gravity_alignment=gravity, gravity_v_px=gravity_v_px, parallax_model=parallax,
+            parallax_gate_sigmas=gate_sigmas)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
+        self.landmarks: list[Landmark] = []
         self.detector: ReDetector | None = None
         self.gray: np.ndarray | None = None
         self.mapped: np.ndarray | None = None
@@ -140,6 +145,10 @@ class AnnotationMatcherNode(TrackingNode):
             with SqliteAnnotationStore(self.store_path, read_only=True) as store:
                 found = store.all() if poor else store.near(lat, lon, self.radius_m)
                 skipped = list(store.skipped)
+                landmarks: list[Landmark] = []
+                if found and self.use_landmarks:
+                    landmarks = store.landmarks({a.panorama_id for a in found})
+                    skipped += store.skipped
         except StoreError as exc:
             self.warn_throttled(f'annotation store: {exc}')
             return
@@ -149,16 +158,27 @@ class AnnotationMatcherNode(TrackingNode):
             self.warn_throttled(f'no annotations within {self.radius_m:g} m of ({lat:.6f}, {lon:.6f})' if not poor
                                 else 'GPS is poor and the annotation store is empty')
             return
-        self.set_annotations(found)
-        self.get_logger().info(f'{len(found)} annotations of {len({a.panorama_id for a in found})} source panorama(s) loaded'
+        self.set_annotations(found, landmarks)
+        self.get_logger().info(f'{len(found)} annotations and {len(landmarks)} landmarks of '
+                               f'{len({a.panorama_id for a in found})} source panorama(s) loaded'
                                f'{" (GPS poor: all of them)" if poor else ""}')
 
-    def set_annotations(self, annotations: list[Annotation]) -> None:
+    def set_annotations(self, annotations: list[Annotation], landmarks: list[Landmark] | None = None) -> None:
+        """A new detector for these annotations and landmarks (None: keep the current ones);
+        landmarks follow the annotations, so placement indices are annotation indices."""
         self.annotations = list(annotations)
+        if landmarks is not None:
+            pids = {a.panorama_id for a in self.annotations}
+            self.landmarks = [lm for lm in landmarks if lm.panorama_id in pids]
         R_src = [quat_xyzw_to_matrix(np.asarray(a.panorama_in_world_quat_xyzw)) if a.has_world_orientation() else None
                  for a in self.annotations]
-        self.detector = ReDetector([a.patch for a in self.annotations], np.array([a.direction for a in self.annotations]),
-                                   [a.panorama_id for a in self.annotations], self.match_config, self.geometry, R_src)
+        R_pano = {a.panorama_id: R for a, R in zip(self.annotations, R_src) if R is not None}
+        R_src += [R_pano.get(lm.panorama_id) for lm in self.landmarks]  # their panorama's orientation
+        items = [(a.patch, a.direction, a.panorama_id) for a in self.annotations] + \
+                [(lm.patch, lm.direction, lm.panorama_id) for lm in self.landmarks]
+        self.detector = ReDetector([x[0] for x in items], np.array([x[1] for x in items]), [x[2] for x in items],
+                                   self.match_config, self.geometry, R_src,
+                                   landmark=[False] * len(self.annotations) + [True] * len(self.landmarks))
         if self.R_enu_pano is not None:
             self.detector.set_orientation(self.R_enu_pano)
 

@@ -95,6 +95,43 @@ def test_matches_store_annotations_in_the_map(ros_context, tmp_path):
     assert np.degrees(np.arccos(np.clip((np.trace(R.T @ case.R_target_source) - 1) / 2, -1, 1))) < 0.2
 
 
+def test_landmarks_are_loaded_matched_and_never_published(ros_context, tmp_path):
+    from ar_tracking.core.annotations.store import Landmark
+
+    case = make_case(seed=15, n=10)  # 4 annotations and 6 landmarks of panorama p1
+    store = tmp_path / 'a.db'
+    with SqliteAnnotationStore(store, create=True) as s:
+        s.add([annotation(p, d, text=f'label {i}', lat=LAT, lon=LON)
+               for i, (p, d) in enumerate(zip(case.patches[:4], case.dirs[:4]))])
+        s.add_landmarks([Landmark('p1', p, d) for p, d in zip(case.patches[4:], case.dirs[4:])]
+                        + [Landmark('other', case.patches[4], case.dirs[4])])  # not loaded
+    h = Harness(ros_context, {'store_path': str(store), 'budget_ms': 1000.0})
+    h.fix(T0)
+    det = h.node.detector
+    assert det is not None and det.n == 10 and list(det.landmark) == [False] * 4 + [True] * 6
+    h.map(T0 + 1, case.target, case.mapped)
+    assert spin_until(h.ex, lambda: det.tiles_done == int((tiles_of(case.mapped) > 0).sum()) and h.markers, 10.0)
+    spin_until(h.ex, lambda: False, 0.2)
+    texts = sorted(m.text for m in h.markers[-1].markers if m.action == 0)
+    assert texts == [f'label {i}' for i in range(4)]
+    _, al = det.result()
+    assert sorted(p.index for p in al.landmarks) == list(range(4, 10))
+    # Switched off, the node loads the annotations alone.
+    off = AnnotationMatcherNode(context=ros_context, parameter_overrides=[
+        Parameter('store_path', value=str(store)), Parameter('landmarks', value=False)])
+    try:
+        msg = NavSatFix()
+        msg.header.stamp = to_stamp(T0)
+        msg.status.status = NavSatStatus.STATUS_FIX
+        msg.latitude, msg.longitude = LAT, LON
+        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN
+        msg.position_covariance = [9.0, 0.0, 0.0, 0.0, 9.0, 0.0, 0.0, 0.0, 9.0]
+        off.on_fix(msg)
+        assert off.detector is not None and off.detector.n == 4 and not off.detector.landmark.any()
+    finally:
+        off.destroy_node()
+
+
 def test_budget_spreads_the_work_over_frames(ros_context, tmp_path):
     case = make_case(seed=12)
     store = make_store(tmp_path / 'a.db', case)
@@ -162,11 +199,13 @@ def test_config_file_equals_declared_defaults(ros_context):
 
 
 def test_alignment_parameters_reach_the_match_config(ros_context):
-    overrides = {'gravity_alignment': False, 'gravity_v_px': 6.5, 'parallax_model': False, 'prior_alignment': False}
+    overrides = {'gravity_alignment': False, 'gravity_v_px': 6.5, 'parallax_model': False, 'prior_alignment': False,
+                 'parallax_gate_sigmas': 0.0}
     node = AnnotationMatcherNode(context=ros_context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
     try:
         cfg = node.match_config
-        assert (cfg.gravity_alignment, cfg.gravity_v_px, cfg.parallax_model, cfg.prior_alignment) == (False, 6.5, False, False)
+        assert (cfg.gravity_alignment, cfg.gravity_v_px, cfg.parallax_model, cfg.prior_alignment,
+                cfg.parallax_gate_sigmas) == (False, 6.5, False, False, 0.0)
     finally:
         node.destroy_node()
     node = AnnotationMatcherNode(context=ros_context)
