@@ -76,6 +76,7 @@ class AnnotationMatcherNode(TrackingNode):
         gravity = p('gravity_alignment', True, 'With prior_alignment: the alignment turns the prior rotation about the vertical only (gravity fixes the tilt of both panoramas); candidates more than gravity_v_px above or below are not matches')
         gravity_v_px = p('gravity_v_px', 4.0, 'Vertical tolerance of a match after the gravity-constrained alignment, map pixels', min_value=0.5, max_value=100.0)
         parallax = p('parallax_model', True, 'With gravity_alignment: fit the heading residuals of the matches with the parallax of a displaced standing point and place again (extension of sec. 4.3)')
+        trim_sigmas = p('parallax_trim_sigmas', 3.0, 'Refit the parallax model once without the matches beyond this many robust standard deviations of its residuals (landmarks much nearer than the anchors); 0: off', min_value=0.0, max_value=100.0)
         gate_sigmas = p('parallax_gate_sigmas', 3.0, 'After the parallax model, matches must lie within this many robust standard deviations of its leave-one-out residuals (between inlier_px and placement_px); 0: off', min_value=0.0, max_value=100.0)
         self.use_landmarks = p('landmarks', True, "Load the source panoramas' landmarks with their annotations: matched and aligned like annotations, never shown")
         min_ncc = p('min_ncc', 0.55, 'Smallest NCC of a candidate match', min_value=-1.0, max_value=1.0)
@@ -92,7 +93,7 @@ class AnnotationMatcherNode(TrackingNode):
             placement_px=placement_px, guided_search=guided, placement_penalty=placement_penalty,
             consensus_score=consensus, guided_all=guided_all, prior_alignment=prior_alignment,
             gravity_alignment=gravity, gravity_v_px=gravity_v_px, parallax_model=parallax,
-            parallax_gate_sigmas=gate_sigmas)
+            parallax_trim_sigmas=trim_sigmas, parallax_gate_sigmas=gate_sigmas)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []

@@ -379,6 +379,21 @@ def test_fit_parallax_recovers_a_displacement_at_a_common_depth():
     assert heading_err(predicted).max() > 1.0 and heading_err(fixed).max() < 0.05
 
 
+def test_trimmed_parallax_fit_ignores_near_points():
+    from ar_tracking.core.annotations.parallax import fit_parallax
+
+    # Twenty points: sixteen at 50 m, four trees at 15 m (three times the parallax).
+    t = np.array([1.0, 0.8, 0.0])
+    depths = np.array([15.0, 50.0, 50.0, 50.0, 50.0] * 4)
+    case, truth, _ = displaced_spot_case(35, t, depths)
+    predicted = case.dirs @ case.R_target_source.T
+    far = np.linalg.norm(t) / 50.0
+    plain = fit_parallax(predicted, truth, UP, sigma_parallax=1.0)
+    trimmed = fit_parallax(predicted, truth, UP, sigma_parallax=1.0, trim_sigmas=3.0)
+    assert abs(plain.amplitude - far) > 0.2 * far
+    assert trimmed.amplitude == pytest.approx(far, rel=0.05)
+
+
 def test_parallax_model_moves_the_inferred_annotation_of_a_displaced_spot():
     t = np.array([1.5, 0.5, 0.0])
     depths = np.array([30.0, 45.0, 35.0, 50.0, 40.0, 38.0])

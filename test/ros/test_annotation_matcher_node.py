@@ -200,12 +200,12 @@ def test_config_file_equals_declared_defaults(ros_context):
 
 def test_alignment_parameters_reach_the_match_config(ros_context):
     overrides = {'gravity_alignment': False, 'gravity_v_px': 6.5, 'parallax_model': False, 'prior_alignment': False,
-                 'parallax_gate_sigmas': 0.0}
+                 'parallax_gate_sigmas': 0.0, 'parallax_trim_sigmas': 1.5}
     node = AnnotationMatcherNode(context=ros_context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
     try:
         cfg = node.match_config
         assert (cfg.gravity_alignment, cfg.gravity_v_px, cfg.parallax_model, cfg.prior_alignment,
-                cfg.parallax_gate_sigmas) == (False, 6.5, False, False, 0.0)
+                cfg.parallax_gate_sigmas, cfg.parallax_trim_sigmas) == (False, 6.5, False, False, 0.0, 1.5)
     finally:
         node.destroy_node()
     node = AnnotationMatcherNode(context=ros_context)

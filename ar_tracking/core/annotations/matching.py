@@ -147,6 +147,9 @@ class MatchConfig:
     parallax_min_matches: int = 3
     parallax_sigma_match: float = 0.01
     parallax_sigma: float = 0.02
+    #: One refit of the model without the matches beyond this many robust standard deviations
+    #: of its residuals (landmarks far nearer than the anchors); 0: plain least squares.
+    parallax_trim_sigmas: float = 3.0
     #: After the parallax model, matches must lie within this many robust standard deviations
     #: of the model's leave-one-out residuals of the matches (horizontal; between inlier_px and
     #: placement_px): fitted on tens of landmark matches the model predicts to a pixel or two,
@@ -933,14 +936,16 @@ class ReDetector:
             return
         found = {p.index: p.direction for p in al.placements}
         observed = np.array([found[ids[k]] for k in matched])
-        model = fit_parallax(predicted[matched], observed, up, cfg.parallax_sigma_match, cfg.parallax_sigma)
+        def fit(rows: Array | slice) -> ParallaxModel:
+            return fit_parallax(predicted[matched][rows], observed[rows], up, cfg.parallax_sigma_match,
+                                cfg.parallax_sigma, cfg.parallax_trim_sigmas)
+
+        model = fit(slice(None))
         corrected = model.apply(predicted)
         # A matched annotation's own position comes from the others only (leave-one-out): a
         # look-alike match must not pull the prediction it is judged against towards itself.
         for r, k in enumerate(matched):
-            others = np.arange(len(matched)) != r
-            corrected[k] = fit_parallax(predicted[matched][others], observed[others], up, cfg.parallax_sigma_match,
-                                        cfg.parallax_sigma).apply(predicted[k])[0]
+            corrected[k] = fit(np.arange(len(matched)) != r).apply(predicted[k])[0]
         post = cfg
         if cfg.parallax_gate_sigmas > 0:
             al.parallax_gate_px = self._parallax_gate(corrected[matched], observed)

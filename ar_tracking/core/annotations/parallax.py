@@ -72,17 +72,29 @@ class ParallaxModel:
 
 
 def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: float = 0.01,
-                 sigma_parallax: float = 0.02) -> ParallaxModel:
-    """The model from (n, 3) directions where the rotation puts the matched annotations
-    (``predicted``) and where they were found (``observed``), n >= 1: weighted least squares of
-    the heading residuals (``sigma_match``: a match's localisation plus the depth differences
-    the common depth ignores), ``a`` and ``b`` pulled to 0 with ``sigma_parallax``; ``c`` free."""
+                 sigma_parallax: float = 0.02, trim_sigmas: float = 0.0) -> ParallaxModel:
+    """The model from (n, 3) directions where the rotation puts the matches (``predicted``) and
+    where they were found (``observed``), n >= 1: weighted least squares of the heading
+    residuals (``sigma_match``: a match's localisation plus the depth differences the common
+    depth ignores), ``a`` and ``b`` pulled to 0 with ``sigma_parallax``; ``c`` free.
+
+    ``trim_sigmas`` > 0: one refit without the matches whose residual exceeds that many robust
+    standard deviations (1.4826 x median absolute residual; never less than sigma_match / 5) of
+    the first fit. Among the landmarks of a panorama (:mod:`.landmarks`) some are much nearer
+    than the anchors - trees, poles - and turn two or three times as far: outliers of the common
+    depth, which would otherwise set the amplitude for the far anchors."""
     k = np.asarray(up, float) / np.linalg.norm(up)
     model = ParallaxModel(k, 0.0, 0.0, 0.0)
     th = model.azimuth(predicted)
     r = (model.azimuth(observed) - th + math.pi) % (2 * math.pi) - math.pi
-    A = np.vstack([np.stack([np.ones_like(th), np.cos(th), np.sin(th)], axis=1) / sigma_match,
-                   np.diag([0.0, 1.0, 1.0])[1:] / sigma_parallax])
-    y = np.concatenate([r / sigma_match, [0.0, 0.0]])
-    c, a, b = np.linalg.lstsq(A, y, rcond=None)[0]
+    X = np.stack([np.ones_like(th), np.cos(th), np.sin(th)], axis=1)
+    prior = np.diag([0.0, 1.0, 1.0])[1:] / sigma_parallax
+    keep = np.ones(th.size, bool)
+    for _ in range(2 if trim_sigmas > 0 else 1):
+        A = np.vstack([X[keep] / sigma_match, prior])
+        y = np.concatenate([r[keep] / sigma_match, [0.0, 0.0]])
+        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+        res = np.abs(r - X @ coef)
+        keep = res <= max(trim_sigmas * 1.4826 * float(np.median(res)), sigma_match / 5)
+    c, a, b = coef
     return ParallaxModel(k, float(c), float(a), float(b))
