@@ -42,8 +42,13 @@
     degree of freedom, hypotheses from single matches and pairs), and a match must lie within
     ``gravity_v_px`` of the predicted elevation;
   - ``parallax_model``: the heading residuals of the matches are fitted with the parallax of a
-    displaced standing point (:mod:`.parallax`), each match judged against the fit of the
-    others, and the annotations are placed again around the corrected positions.
+    displaced standing point (:mod:`.parallax`; one trimmed refit, ``parallax_trim_sigmas``),
+    each match judged against the fit of the others, and the annotations are placed again
+    around the corrected positions, within a gate of ``parallax_gate_sigmas`` robust standard
+    deviations of those leave-one-out residuals;
+  - landmarks (:mod:`.landmarks`): distinctive patches of the source panorama stored with its
+    annotations, matched and aligned like them but never placed for the user, so the rotation
+    and the parallax are fitted on tens of matches instead of a handful.
 * :class:`ReDetector` ties them together with the work queue of sec. 3.2 (finished tiles are
   queued and processed under a budget per frame) and the choice between several source
   panoramas near one GPS fix (sec. 6.1: the one whose annotations score best).
@@ -936,6 +941,7 @@ class ReDetector:
             return
         found = {p.index: p.direction for p in al.placements}
         observed = np.array([found[ids[k]] for k in matched])
+
         def fit(rows: Array | slice) -> ParallaxModel:
             return fit_parallax(predicted[matched][rows], observed[rows], up, cfg.parallax_sigma_match,
                                 cfg.parallax_sigma, cfg.parallax_trim_sigmas)
