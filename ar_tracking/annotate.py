@@ -22,7 +22,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -195,7 +195,7 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Sequence
         report.skipped += [(texts[i], r) for i, r in added.skipped]
         if report.stored and landmarks > 0:
             up = R_enu_pano[2] if R_enu_pano is not None else None
-            found = select_landmarks(gray, mapper.map.mapped, geo, up, replace(LandmarkConfig(), count=landmarks),
+            found = select_landmarks(gray, mapper.map.mapped, geo, up, LandmarkConfig(count=landmarks),
                                      avoid=np.array([a.direction for a in records]))
             report.landmarks = len(store.add_landmarks(
                 Landmark(pid, lm.patch, lm.direction) for lm in found).ids)

@@ -168,50 +168,60 @@ def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) 
     return out
 
 
+def _authored(auth: dict[str, Any], edr: bool, geo: CylinderGeometry) -> dict[str, Any] | None:
+    """What authoring stores from one source map: patches at the anchors whose support area
+    it covers (the others could not have been annotated), their directions, the anchors, and
+    the map's landmarks; None without the map's orientation."""
+    src = auth[edr]
+    if src['R_enu_pano'] is None:
+        return None
+    patches, dirs, labels = [], [], []
+    for a in auth['anchors']:
+        u, v = geo.project(src['R_enu_pano'].T @ a.direction)
+        patch, d, _ = cut_patch(src['gray'], src['mapped'], float(u), float(v), 16, geo)
+        if patch is not None:
+            patches.append(patch)
+            dirs.append(d)
+            labels.append(a)
+    landmarks = (select_landmarks(src['gray'], src['mapped'], geo, src['R_enu_pano'][2], avoid=np.array(dirs))
+                 if patches else [])
+    return {'patches': patches, 'dirs': dirs, 'labels': labels, 'landmarks': landmarks}
+
+
 def fig7_spot(seed: int, duration_s: float = 30.0) -> dict[str, dict[str, list[float]]]:
     """Per row and column, the placement error (deg, inf when not placed) of every annotation of
-    one spot: the anchors whose support area the authoring panorama covers (the others could
-    not have been annotated)."""
+    one spot that could be authored (:func:`_authored`)."""
     geo = CylinderGeometry()
     auth = _session_maps(seed, 'authoring', 'authoring', duration_s)
     browse = {col: _session_maps(seed, 'browsing', light, duration_s) for col, light in COLUMNS.items()}
+    authored = {edr: _authored(auth, edr, geo) for edr in (True, False)}
     out: dict[str, dict[str, list[float]]] = {}
     for row, opts in ROWS.items():
         edr = opts['edr']
-        src = auth[edr]
-        if src['R_enu_pano'] is None:
+        stored = authored[edr]
+        if stored is None:
             continue
-        patches, dirs, labels = [], [], []
-        for a in auth['anchors']:
-            u, v = geo.project(src['R_enu_pano'].T @ a.direction)
-            patch, d, _ = cut_patch(src['gray'], src['mapped'], float(u), float(v), 16, geo)
-            if patch is not None:
-                patches.append(patch)
-                dirs.append(d)
-                labels.append(a)
-        landmarks = []
-        if patches and opts.get('landmarks', True):
-            landmarks = select_landmarks(src['gray'], src['mapped'], geo, src['R_enu_pano'][2],
-                                         avoid=np.array(dirs))
+        patches, labels = stored['patches'], stored['labels']
+        landmarks = stored['landmarks'] if opts.get('landmarks', True) else []
         all_patches = patches + [lm.patch for lm in landmarks]
-        all_dirs = np.array(dirs + [lm.direction for lm in landmarks]).reshape(-1, 3)
+        all_dirs = np.array(stored['dirs'] + [lm.direction for lm in landmarks]).reshape(-1, 3)
         flags = [False] * len(patches) + [True] * len(landmarks)
+        R_enu_source = auth[edr]['R_enu_pano']
         out[row] = {}
         for col in COLUMNS:
             tgt = browse[col][edr]
-            errors = [math.inf] * len(labels)  # the annotations that could be authored
+            errors = [math.inf] * len(labels)
             if patches and tgt['R_enu_pano'] is not None:
                 cfg = MatchConfig(sensor_prior=opts['sensor_prior'], ransac=opts['ransac'])
                 det = ReDetector(all_patches, all_dirs, ['p'] * len(all_patches), cfg, geo,
-                                 [src['R_enu_pano']] * len(all_patches), landmark=flags)
+                                 [R_enu_source] * len(all_patches), landmark=flags)
                 det.set_orientation(tgt['R_enu_pano_sensor'])
                 det.add_finished_tiles(tgt['tiles'])
                 det.step(tgt['gray'], tgt['mapped'])
                 _, al = det.result()
                 spot = browse[col]['spot']
                 for p in al.placements:
-                    a = labels[p.index]
-                    d = a.position_enu - spot
+                    d = labels[p.index].position_enu - spot
                     truth = tgt['R_enu_pano'].T @ (d / np.linalg.norm(d))
                     errors[p.index] = float(np.degrees(math.acos(np.clip(p.direction @ truth, -1, 1))))
             out[row][col] = errors

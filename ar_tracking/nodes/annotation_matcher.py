@@ -175,11 +175,10 @@ class AnnotationMatcherNode(TrackingNode):
                  for a in self.annotations]
         R_pano = {a.panorama_id: R for a, R in zip(self.annotations, R_src) if R is not None}
         R_src += [R_pano.get(lm.panorama_id) for lm in self.landmarks]  # their panorama's orientation
-        items = [(a.patch, a.direction, a.panorama_id) for a in self.annotations] + \
-                [(lm.patch, lm.direction, lm.panorama_id) for lm in self.landmarks]
-        self.detector = ReDetector([x[0] for x in items], np.array([x[1] for x in items]), [x[2] for x in items],
-                                   self.match_config, self.geometry, R_src,
-                                   landmark=[False] * len(self.annotations) + [True] * len(self.landmarks))
+        records: list[Annotation | Landmark] = [*self.annotations, *self.landmarks]
+        self.detector = ReDetector([r.patch for r in records], np.array([r.direction for r in records]),
+                                   [r.panorama_id for r in records], self.match_config, self.geometry, R_src,
+                                   landmark=[isinstance(r, Landmark) for r in records])
         if self.R_enu_pano is not None:
             self.detector.set_orientation(self.R_enu_pano)
 

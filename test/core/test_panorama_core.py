@@ -48,6 +48,14 @@ def test_cylinder_scale_and_axis():
     assert v1[0] == pytest.approx(100.0)
 
 
+def test_cylinder_distances_go_the_short_way_across_the_wrap():
+    geo = CylinderGeometry()
+    assert geo.column_distance(2040.0, 8.0) == pytest.approx(16.0)
+    assert geo.column_distance(8.0, 2040.0) == pytest.approx(16.0)
+    assert geo.column_distance(np.array([0.0, 1024.0]), 1000.0) == pytest.approx([1000.0, 24.0])
+    assert geo.map_distance(2046.0, 10.0, 2.0, 13.0) == pytest.approx(5.0)
+
+
 def test_kabsch_recovers_rotation():
     rng = np.random.default_rng(0)
     R = rot('y', 33) @ rot('x', -7) @ rot('z', 4)

@@ -34,6 +34,16 @@ def make_store(path: Path, case) -> Path:
     return path
 
 
+def fix_msg(t, lat=LAT, lon=LON, status=NavSatStatus.STATUS_FIX, sigma=3.0) -> NavSatFix:
+    msg = NavSatFix()
+    msg.header.stamp = to_stamp(t)
+    msg.status.status = status
+    msg.latitude, msg.longitude, msg.altitude = lat, lon, 350.0
+    msg.position_covariance = [sigma ** 2, 0.0, 0.0, 0.0, sigma ** 2, 0.0, 0.0, 0.0, sigma ** 2]
+    msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN
+    return msg
+
+
 class Harness:
     def __init__(self, context, params):
         overrides = [Parameter(k, value=v) for k, v in params.items()]
@@ -52,13 +62,7 @@ class Harness:
         assert spin_until(self.ex, lambda: all(p.get_subscription_count() > 0 for p in (self.pub_map, self.pub_tiles, self.pub_fix)))
 
     def fix(self, t, lat=LAT, lon=LON, status=NavSatStatus.STATUS_FIX, sigma=3.0):
-        msg = NavSatFix()
-        msg.header.stamp = to_stamp(t)
-        msg.status.status = status
-        msg.latitude, msg.longitude, msg.altitude = lat, lon, 350.0
-        msg.position_covariance = [sigma ** 2, 0.0, 0.0, 0.0, sigma ** 2, 0.0, 0.0, 0.0, sigma ** 2]
-        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN
-        self.pub_fix.publish(msg)
+        self.pub_fix.publish(fix_msg(t, lat, lon, status, sigma))
         spin_until(self.ex, lambda: False, 0.05)
 
     def map(self, t, gray, mapped, encoding='mono16'):
@@ -120,13 +124,7 @@ def test_landmarks_are_loaded_matched_and_never_published(ros_context, tmp_path)
     off = AnnotationMatcherNode(context=ros_context, parameter_overrides=[
         Parameter('store_path', value=str(store)), Parameter('landmarks', value=False)])
     try:
-        msg = NavSatFix()
-        msg.header.stamp = to_stamp(T0)
-        msg.status.status = NavSatStatus.STATUS_FIX
-        msg.latitude, msg.longitude = LAT, LON
-        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN
-        msg.position_covariance = [9.0, 0.0, 0.0, 0.0, 9.0, 0.0, 0.0, 0.0, 9.0]
-        off.on_fix(msg)
+        off.on_fix(fix_msg(T0))
         assert off.detector is not None and off.detector.n == 4 and not off.detector.landmark.any()
     finally:
         off.destroy_node()

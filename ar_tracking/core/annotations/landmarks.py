@@ -102,7 +102,6 @@ def select_landmarks(gray: NDArray, mapped: NDArray[np.bool_], geometry: Cylinde
     cfg = config or LandmarkConfig()
     if cfg.count <= 0:
         return []
-    H, W = gray.shape
     P = cfg.patch_px
     margin = cv2.erode(np.asarray(mapped, np.uint8), np.ones((P + 9, P + 9), np.uint8))
     pts = cv2.goodFeaturesToTrack(np.asarray(gray, np.float32), maxCorners=cfg.max_corners,
@@ -121,7 +120,7 @@ def select_landmarks(gray: NDArray, mapped: NDArray[np.bool_], geometry: Cylinde
         if s <= cfg.max_self_similarity:
             found.append(LandmarkPatch(u, v, patch, d, s))
     found.sort(key=lambda lm: lm.self_similarity)
-    sep = cfg.min_separation_px or W / (2.0 * cfg.count)
+    sep = cfg.min_separation_px or geometry.width / (2.0 * cfg.count)
     taken_u: list[float] = []
     taken_v: list[float] = []
     if avoid is not None and len(avoid):
@@ -129,10 +128,8 @@ def select_landmarks(gray: NDArray, mapped: NDArray[np.bool_], geometry: Cylinde
         taken_u, taken_v = list(np.atleast_1d(au)), list(np.atleast_1d(av))
     chosen: list[LandmarkPatch] = []
     for lm in found:
-        if taken_u:
-            du = np.abs((np.asarray(taken_u) - lm.u + W / 2) % W - W / 2)
-            if np.min(np.hypot(du, np.asarray(taken_v) - lm.v)) < sep:
-                continue
+        if taken_u and np.min(geometry.map_distance(np.asarray(taken_u), np.asarray(taken_v), lm.u, lm.v)) < sep:
+            continue
         chosen.append(lm)
         taken_u.append(lm.u)
         taken_v.append(lm.v)

@@ -290,7 +290,6 @@ class TileMatcher:
         ``tile``, for the annotations ``active`` (default all). ``expected_uv`` (n, 2): the
         sensor prior's expected positions (NaN rows: no prior for that annotation)."""
         cfg, P, T = self.config, self.P, self.config.tile_size
-        W = self.geometry.width
         idx = list(range(len(self.patches))) if active is None else list(active)
         out: dict[int, list[Candidate]] = {}
         if not idx:
@@ -310,7 +309,7 @@ class TileMatcher:
                 if not (np.isfinite(eu) and np.isfinite(ev)):
                     keep.append(i)
                     continue
-                du = np.abs((us - eu + W / 2) % W - W / 2)
+                du = self.geometry.column_distance(us, eu)
                 dv = np.abs(vs - ev)
                 if du.min() > outer or dv.min() > outer:
                     continue
@@ -430,12 +429,6 @@ class Alignment:
     parallax_gate_px: float = float('nan')
     #: Placements of the landmarks (:mod:`.landmarks`; not in ``placements``).
     landmarks: list[Placement] = field(default_factory=list)
-
-
-def _map_dist(geometry: CylinderGeometry, u1: Array, v1: Array, u2: Array, v2: Array) -> Array:
-    W = geometry.width
-    du = np.abs((np.asarray(u1) - u2 + W / 2) % W - W / 2)
-    return np.hypot(du, np.asarray(v1) - v2)
 
 
 def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
@@ -680,8 +673,7 @@ class _CandidateArrays:
     def distances_from(self, dirs: Array, geo: CylinderGeometry) -> Array:
         """(H, n_c, k) map distances from predicted directions (H, n_c, 3) to the candidates."""
         pu, pv = geo.project(dirs)
-        W = geo.width
-        du = np.abs((pu[:, :, None] - self.U[None] + W / 2) % W - W / 2)
+        du = geo.column_distance(pu[:, :, None], self.U[None])
         dv = pv[:, :, None] - self.V[None]
         dist = np.hypot(du, dv)
         if self.v_tol is not None:
@@ -746,7 +738,7 @@ def _consistent(R: Array, a: Array, cands: Sequence[Candidate], cu: Array, cv_: 
     between the two standing points shifts the prediction by a few pixels, so the nearest
     candidate is not always the right one, nor is the best-scoring one (repeated facades)."""
     pu, pv = geo.project(R @ a)
-    dist = _map_dist(geo, cu, cv_, pu, pv)
+    dist = geo.map_distance(cu, cv_, pu, pv)
     near = np.flatnonzero(dist < inlier_px)
     if near.size == 0:
         return int(np.argmin(dist))
@@ -767,7 +759,7 @@ def _score(R: Array, src: Array, with_c: list[int], cu: list[Array], cv_: list[A
     pu, pv = geo.project(src[with_c] @ R.T)
     inl, err = [], 0.0
     for k, i in enumerate(with_c):
-        dmin = float(np.min(_map_dist(geo, cu[i], cv_[i], pu[k], pv[k])))
+        dmin = float(np.min(geo.map_distance(cu[i], cv_[i], pu[k], pv[k])))
         if dmin < inlier_px:
             inl.append(i)
             err += dmin
@@ -916,7 +908,7 @@ class ReDetector:
         if res[y, x] < cfg.guided_min_ncc:
             return
         if p.status == 'matched':
-            d_now = float(_map_dist(geo, np.array(p.u), np.array(p.v), cu, cv_))
+            d_now = float(geo.map_distance(np.array(p.u), np.array(p.v), cu, cv_))
             if score[y, x] <= p.score - cfg.guided_penalty * d_now / cfg.placement_px + 1e-6:
                 return
         p.u = float((x0 + x + c) % geo.width)
@@ -965,10 +957,7 @@ class ReDetector:
         standard deviations (1.4826 x median absolute) of the horizontal distances between the
         matches and their leave-one-out predictions, clipped to [inlier_px, placement_px]."""
         cfg, geo = self.config, self.geometry
-        pu, _ = geo.project(predicted)
-        ou, _ = geo.project(observed)
-        W = geo.width
-        du = np.abs((np.asarray(pu) - ou + W / 2) % W - W / 2)
+        du = geo.column_distance(geo.project(predicted)[0], geo.project(observed)[0])
         scale = 1.4826 * float(np.median(du))
         return float(np.clip(cfg.parallax_gate_sigmas * scale, cfg.inlier_px, cfg.placement_px))
 

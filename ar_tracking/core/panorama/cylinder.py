@@ -41,6 +41,15 @@ class CylinderGeometry:
         v = y / rho * self.f + self.height / 2.0
         return u, v
 
+    def column_distance(self, u1: Array, u2: Array) -> Array:
+        """|u1 - u2| in columns the short way round the cylinder (the map wraps at W)."""
+        W = self.width
+        return np.abs((np.asarray(u1) - u2 + W / 2) % W - W / 2)
+
+    def map_distance(self, u1: Array, v1: Array, u2: Array, v2: Array) -> Array:
+        """Euclidean map distance (pixels) between (u1, v1) and (u2, v2) across the wrap."""
+        return np.hypot(self.column_distance(u1, u2), np.asarray(v1) - v2)
+
     def unproject(self, u: Array, v: Array) -> Array:
         """Unit directions (..., 3) of map coordinates ``u``, ``v`` (inverse of :meth:`project`)."""
         theta = (np.asarray(u, float) - self.width / 2.0) / self.f
