@@ -16,16 +16,18 @@ camera frames without an orientation.
 
 Seam error (sec. 4.1): the output bag has no per-pixel frame contributions, so the core is
 run offline on the camera images - from ``source_bag`` (the runner's input bag) or from the
-bag itself when it has images - with EDR, with the plain 8-bit map, and with the paper's
-literal EDR (each frame's own offset, unsmoothed: ``edr_paper``), and
+bag itself when it has images - with EDR (the configured correction, by default the overlap
+fit), with the plain 8-bit map, with the keypoint-pair offset filtered over frames
+(``edr_keypoints``) and with the paper's literal EDR (each frame's own keypoint offset,
+unsmoothed: ``edr_paper``), and
 :func:`ar_tracking.core.panorama.map.seam_error` is taken on the grey maps (8-bit units
 relative to the first frame). Keys of ``seam_error``:
 
-* ``edr``, ``8bit``, ``edr_paper``: the seam error proper - the intensity STEP between frame
+* ``edr``, ``8bit``, ``edr_keypoints``, ``edr_paper``: the seam error proper - the intensity STEP between frame
   contributions: per boundary segment (the pixel pairs shared by one pair of contributions) the
   mean jump across it, on flat surroundings only, freed of the estimation noise, as the RMS
   over the boundary length (map.py explains why). ``ratio`` = edr / 8bit (target <= 0.5),
-  ``ratio_paper`` = edr_paper / 8bit;
+  ``ratio_keypoints`` = edr_keypoints / 8bit, ``ratio_paper`` = edr_paper / 8bit;
 * ``mean_abs_*`` (``ratio_mean_abs``): the length-weighted mean |step| of the same segments;
 * ``pixelwise_*`` (``ratio_pixelwise``): the naive figure, the mean |difference| of all
   adjacent pixel pairs across boundaries, texture included;
@@ -116,21 +118,23 @@ def run_core(frames: Any, config: MapperConfig | None = None) -> tuple[PanoramaM
     return mapper, out
 
 
-#: The maps compared by :func:`seam_errors`: name -> (edr, smoothed EDR offset).
-SEAM_VARIANTS = {'edr': (True, True), '8bit': (False, True), 'edr_paper': (True, False)}
+#: The maps compared by :func:`seam_errors`: name -> (edr, EDR correction, smoothed keypoint offset).
+SEAM_VARIANTS = {'edr': (True, None, True), '8bit': (False, None, True),
+                 'edr_keypoints': (True, 'offset', True), 'edr_paper': (True, 'offset', False)}
 
 
 def seam_errors(bag_path: str | Path, max_frames: int | None = None,
                 config: MapperConfig | None = None) -> dict[str, float] | None:
     """Seam error of the map built with EDR and with the plain 8-bit map on the same frames
-    (module docstring), and of the paper's literal EDR (unsmoothed per-frame offset)."""
+    (module docstring), and of the keypoint-pair EDR versions (filtered, and the paper's literal
+    unsmoothed per-frame offset)."""
     base = config or MapperConfig()
     frames = list(camera_frames(bag_path, max_frames))
     if not frames:
         return None
     result: dict[str, float] = {}
-    for name, (edr, smooth) in SEAM_VARIANTS.items():
-        cfg = replace(base, map=replace(base.map, edr=edr),
+    for name, (edr, correction, smooth) in SEAM_VARIANTS.items():
+        cfg = replace(base, map=replace(base.map, edr=edr), edr_correction=correction or base.edr_correction,
                       offset_exposure=replace(base.offset_exposure, smooth=smooth and base.offset_exposure.smooth))
         mapper, _ = run_core(frames, cfg)
         s = mapper.seam_error()
@@ -141,6 +145,7 @@ def seam_errors(bag_path: str | Path, max_frames: int | None = None,
         result[f'{name}_revisit'] = round(r['step'], 4)
         result[f'{name}_revisit_pairs'] = r['pairs']
     for num, den, key in (('edr', '8bit', 'ratio'), ('edr_paper', '8bit', 'ratio_paper'),
+                          ('edr_keypoints', '8bit', 'ratio_keypoints'),
                           ('mean_abs_edr', 'mean_abs_8bit', 'ratio_mean_abs'),
                           ('pixelwise_edr', 'pixelwise_8bit', 'ratio_pixelwise'),
                           ('edr_revisit', '8bit_revisit', 'ratio_revisit')):

@@ -22,7 +22,7 @@ import numpy as np
 from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-from ..core.panorama import MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
+from ..core.panorama import EDR_CORRECTIONS, MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
 from ..core.panorama.exposure import OFFSET_EXPOSURE
 from ..core.stamp_pairing import NearestStampPairer
 from ..ros.conversions import (
@@ -78,6 +78,7 @@ class PanoramaMapperNode(TrackingNode):
         p = self.param
         edr = p('edr', True, 'Extended dynamic range map (Langlotz sec. 4.1): 16-bit map, frames corrected by the mean intensity difference of their matches; false: plain 8-bit map', read_only=True)
         smooth = p('edr_smooth', True, 'EDR offsets filtered over frames (per-frame estimation noise would be a small step at every frame boundary); false: each frame its own offset, as sec. 4.1 literally says', read_only=True)
+        correction = p('edr_correction', 'overlap', 'EDR correction of each frame before it is mapped: overlap (gain and offset fitted on every mapped pixel the frame overlaps, weighted towards its new pixels), offset (mean intensity difference of the matched keypoint pairs, sec. 4.1) or gain (the same mean of log intensities)', read_only=True, validate=lambda v: None if v in EDR_CORRECTIONS else f"must be one of {', '.join(EDR_CORRECTIONS)}")
         color = p('color', False, 'Map colour (rgb16) instead of grey (mono16)', read_only=True)
         tile = p('tile_size_px', 64, 'Side of a map tile, pixels (divides 2048 and 512); a tile whose pixels are all mapped is finished', min_value=8, max_value=256, read_only=True, validate=lambda v: None if 512 % v == 0 else 'must divide 512')
         fast = p('fast_threshold', 12, 'FAST threshold for the keypoints of finished tiles, 8-bit grey levels', min_value=1, max_value=255, read_only=True)
@@ -101,7 +102,7 @@ class PanoramaMapperNode(TrackingNode):
             map=MapConfig(tile_size=tile, edr=edr, channels=3 if color else 1, fast_threshold=fast, keypoints_per_tile=per_tile),
             tracker=TrackerConfig(search_radius_px=radius, max_features=feats, min_inliers=min_inl, min_inlier_ratio=ratio, inlier_px=inl_px, min_ncc=min_ncc),
             wide_radius_px=wide, background_tiles=budget,
-            offset_exposure=replace(OFFSET_EXPOSURE, smooth=smooth),
+            offset_exposure=replace(OFFSET_EXPOSURE, smooth=smooth), edr_correction=correction,
         )
         self.core = PanoramaMapper(self.config)
         self.color = color

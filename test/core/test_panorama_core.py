@@ -166,20 +166,29 @@ def test_translating_camera_is_reported_lost():
     assert statuses[-5:] == ['lost'] * 5  # parallax: no rotation explains the matches
 
 
-def test_edr_corrects_exposure_steps(world):
+@pytest.mark.parametrize('correction', ['overlap', 'offset'])
+def test_edr_corrects_exposure_steps(world, correction):
     # 360+ degrees with an exposure jump (gain 1.35) half-way: the revisited part of the map
     # meets the first frames' contribution, where the 8-bit map shows the step.
     Rs = sweep(200, 2.0, seed=5)
     gains = [1.0 if k < 100 else 1.35 for k in range(200)]
     results = {}
     for edr in (True, False):
-        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr)))
+        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), edr_correction=correction))
         res = run(mapper, world, Rs, gains=gains)
         assert all(r.R_pano_cam is not None for r in res)
         results[edr] = mapper.seam_error(min_gap=30, flat_max=np.inf)['step']
-        if edr:
+        if edr and correction == 'offset':
             offs = [r.intensity_offset for r in res]
             assert abs(np.mean(offs[10:90])) < 2.0 and np.mean(offs[120:]) < -20
+        if edr and correction == 'overlap':
+            # Gain and offset together map each frame that adds pixels back to the first
+            # frame's levels.
+            levels = np.array([60.0, 120.0, 180.0])
+            mapping = [(r, g) for r, g in zip(res[10:], gains[10:]) if r.mapped_pixels > 0]
+            assert len(mapping) > 150
+            for r, g in mapping:
+                np.testing.assert_allclose(r.intensity_gain * levels * g + r.intensity_offset, levels, atol=2.0)
     assert results[True] < 0.5 * results[False]
 
 

@@ -115,7 +115,8 @@ def test_smoothed_offset_leaves_smaller_seams_than_the_paper_version():
     gains = [1.0 if k < 100 else 1.35 for k in range(200)]
     steps, diffs, offs = {}, {}, {}
     for smooth in (True, False):
-        cfg = MapperConfig(offset_exposure=ExposureConfig(**{**OFFSET_EXPOSURE.__dict__, 'smooth': smooth}))
+        cfg = MapperConfig(edr_correction='offset',
+                           offset_exposure=ExposureConfig(**{**OFFSET_EXPOSURE.__dict__, 'smooth': smooth}))
         mapper = PanoramaMapper(cfg)
         o = []
         for k, R in enumerate(Rs):

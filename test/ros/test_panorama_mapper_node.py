@@ -175,3 +175,18 @@ def test_fallback_intrinsics_without_camera_info(ros_context, world):
         assert angle_deg(rotation_from_quaternion(h.out[-1].transform.rotation), Rs[0].T @ Rs[-1]) < 0.3
     finally:
         h.close()
+
+
+def test_edr_correction_parameter_reaches_the_core(ros_context):
+    node = PanoramaMapperNode(context=ros_context)
+    try:
+        assert node.core.config.edr_correction == 'overlap'
+    finally:
+        node.destroy_node()
+    node = PanoramaMapperNode(context=ros_context, parameter_overrides=[Parameter('edr_correction', value='offset')])
+    try:
+        assert node.core.config.edr_correction == 'offset'
+    finally:
+        node.destroy_node()
+    with pytest.raises(ValueError, match='edr_correction'):
+        PanoramaMapperNode(context=ros_context, parameter_overrides=[Parameter('edr_correction', value='affine')])

@@ -83,8 +83,21 @@ def sample_points(img: NDArray, x: NDArray, y: NDArray) -> NDArray:
     return out.reshape(rows * cols, -1)[:n] if out.ndim == 3 else out.reshape(-1)[:n]
 
 
+@dataclass(frozen=True)
+class NewPixels:
+    """Map pixels (uu, vv) a frame will write and where they fall in the frame (x, y)."""
+
+    uu: NDArray[np.int64]
+    vv: NDArray[np.int64]
+    x: NDArray[np.float32]
+    y: NDArray[np.float32]
+
+
 class PanoramaMap:
     """State of the map (see the module docstring). Not thread-safe; one caller."""
+
+    #: How far outside the frame its outline in the map is drawn, frame pixels.
+    OUTLINE_MARGIN_PX = 3.0
 
     def __init__(self, config: MapConfig | None = None) -> None:
         self.config = cfg = config or MapConfig()
@@ -111,6 +124,8 @@ class PanoramaMap:
         self._col_sin, self._col_cos = self.geometry.column_terms(np.arange(W, dtype=float))
         self._row_h = self.geometry.row_terms(np.arange(H, dtype=float))
         self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
+        self._footprint: tuple[tuple[bytes, bytes, tuple[int, ...]],
+                               tuple[tuple[int, int, int, int], NDArray[np.int32] | None]] | None = None
 
     # -- queries -----------------------------------------------------------------------------
 
@@ -167,11 +182,39 @@ class PanoramaMap:
     def footprint(self, K: Array, R_pano_cam: Array, size: tuple[int, int]) -> tuple[int, int, int, int]:
         """Bounding box (u0, u1, v0, v1) of the frame in the map, u unwrapped around the optical
         axis (u1 - u0 <= W; u may be negative or >= W), v clipped to the map."""
+        return self._footprint_of(K, R_pano_cam, size)[0]
+
+    def footprint_mask(self, K: Array, R_pano_cam: Array, size: tuple[int, int]
+                       ) -> tuple[tuple[int, int, int, int], NDArray[np.bool_]]:
+        """The bounding box and a (v1 - v0, u1 - u0) mask of the pixels in it that the frame may
+        see: the frame's outline (32 points, a few pixels outside the frame) projected into the
+        map and filled. A frame seen at a slant covers a small part of its
+        box; mapping tests only the pixels in the mask. All True when the outline spans the
+        whole turn (a pole in view)."""
+        box, ring = self._footprint_of(K, R_pano_cam, size)
+        u0, u1, v0, v1 = box
+        if ring is None or v1 <= v0:
+            return box, np.ones((max(v1 - v0, 0), u1 - u0), bool)
+        mask = np.zeros((v1 - v0, u1 - u0), np.uint8)
+        cv2.fillPoly(mask, [ring], 1)
+        return box, mask.view(bool)
+
+    def _footprint_of(self, K: Array, R_pano_cam: Array, size: tuple[int, int]
+                      ) -> tuple[tuple[int, int, int, int], NDArray[np.int32] | None]:
+        """Box and outline (int32 (N, 1, 2) u - u0, v - v0; None across a pole) of the frame.
+        The last one is kept: a frame's correction and its mapping ask for the same."""
+        key = (K.tobytes(), np.asarray(R_pano_cam, float).tobytes(), tuple(size))
+        if self._footprint is not None and self._footprint[0] == key:
+            return self._footprint[1]
         h, w = size
-        xs = np.linspace(0, w - 1, 9)
-        ys = np.linspace(0, h - 1, 7)
-        bx = np.concatenate([xs, xs, np.zeros_like(ys), np.full_like(ys, w - 1)])
-        by = np.concatenate([np.zeros_like(xs), np.full_like(xs, h - 1), ys, ys])
+        # The outline runs MARGIN pixels outside the frame: its chords cut the curved edges
+        # by well under a pixel, so no pixel of the frame falls outside the mask.
+        m = self.OUTLINE_MARGIN_PX
+        xs = np.linspace(-m, w - 1 + m, 9)
+        ys = np.linspace(-m, h - 1 + m, 7)[1:-1]
+        # The border as a ring: top left to right, right side down, bottom back, left side up.
+        bx = np.concatenate([xs, np.full_like(ys, w - 1 + m), xs[::-1], np.full_like(ys, -m)])
+        by = np.concatenate([np.full_like(xs, -m), ys, np.full_like(xs, h - 1 + m), ys[::-1]])
         Kinv = np.linalg.inv(K)
         rays = np.stack([bx, by, np.ones_like(bx)], -1) @ Kinv.T
         d = rays @ R_pano_cam.T
@@ -181,37 +224,67 @@ class PanoramaMap:
         du = np.mod(u - uc + W / 2, W) - W / 2
         u0 = int(np.floor(uc + du.min())) - 1
         u1 = int(np.ceil(uc + du.max())) + 2
+        ring: NDArray[np.int32] | None = None
         if u1 - u0 > W:
             u0, u1 = int(uc) - W // 2, int(uc) - W // 2 + W
+        else:
+            ring = np.rint(np.stack([uc + du - u0, v], -1)).astype(np.int32).reshape(-1, 1, 2)
         v0 = max(0, int(np.floor(v.min())) - 1)
         v1 = min(self.config.height, int(np.ceil(v.max())) + 2)
-        return u0, u1, v0, v1
+        if ring is not None:
+            ring[:, 0, 1] -= v0
+        out = ((u0, u1, v0, v1), ring)
+        self._footprint = (key, out)
+        return out
 
-    def map_frame(self, frame: NDArray[np.uint8], K: Array, R_pano_cam: Array, frame_index: int,
-                  offset: float = 0.0, frame_gray: NDArray[np.uint8] | None = None,
-                  gain: float = 1.0) -> int:
-        """Write the not-yet-mapped map pixels that the frame sees; returns how many.
+    def _columns(self, a: NDArray, u0: int, u1: int, v0: int, v1: int) -> NDArray:
+        """Rows v0:v1, columns u0:u1 of a map-sized array, columns wrapped (0 < u1 - u0 <= W):
+        a view, or two slices joined when the range crosses u = 0 (no fancy indexing)."""
+        W = self.config.width
+        start, n = u0 % W, u1 - u0
+        rows = a[v0:v1]
+        if start + n <= W:
+            return rows[:, start:start + n]
+        return np.concatenate([rows[:, start:], rows[:, :start + n - W]], axis=1)
 
-        ``frame`` is grey (H, W) or RGB (H, W, 3) uint8 (channels as configured); the EDR
-        correction maps a frame value I to ``gain * I + offset`` (8-bit units; both ignored
-        when EDR is off); ``frame_gray`` the grey version of an RGB frame (computed when not
-        given).
-        """
-        cfg = self.config
-        h, w = frame.shape[:2]
-        if frame.ndim == 3 and frame_gray is None:
-            frame_gray = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
-        gray_src = frame if frame.ndim == 2 else frame_gray
-        u0, u1, v0, v1 = self.footprint(K, R_pano_cam, (h, w))
+    def overlap_pairs(self, gray: NDArray[np.uint8], K: Array, R_pano_cam: Array, step: int = 6
+                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]] | None:
+        """(map values, frame values) at the already-mapped pixels the frame sees, on a grid of
+        ``step`` map pixels: what the frame's photometric correction is fitted on
+        (:func:`.exposure.fit_overlap_exposure`). None when the frame sees no mapped pixel;
+        border pixels as in :meth:`map_frame`."""
+        h, w = gray.shape[:2]
+        (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, (h, w))
         if v1 <= v0:
-            return 0
-        W = cfg.width
-        cols = np.arange(u0, u1) % W
-        sub = self.mapped[v0:v1][:, cols]
-        vv, ii = np.nonzero(~sub)
+            return None
+        W = self.config.width
+        grid = self._columns(self.mapped, u0, u1, v0, v1)[::step, ::step] & seen[::step, ::step]
+        ri, ci = np.nonzero(grid)
+        if ri.size == 0:
+            return None
+        uu, vv = (u0 + ci * step) % W, v0 + ri * step
+        Rt = R_pano_cam.T
+        s, c, hh = self._col_sin[uu], self._col_cos[uu], self._row_h[vv]
+        p = np.stack([Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c for k in range(3)], -1)
+        x, y, front = project_to_image(K, p)
+        b = self.config.frame_border_px
+        ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
+        if not ok.any():
+            return None
+        f = sample_points(gray, x[ok].astype(np.float32), y[ok].astype(np.float32)).astype(np.float32)
+        return self.gray[vv[ok], uu[ok]], f
+
+    def new_pixels(self, K: Array, R_pano_cam: Array, size: tuple[int, int]) -> NewPixels | None:
+        """The not-yet-mapped map pixels a frame of ``size`` (h, w) at R_pano_cam sees (frame
+        border excluded), None when there are none: what :meth:`map_frame` writes."""
+        h, w = size
+        (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, (h, w))
+        if v1 <= v0:
+            return None
+        vv, ii = np.nonzero(seen & ~self._columns(self.mapped, u0, u1, v0, v1))
         if vv.size == 0:
-            return 0
-        uu = cols[ii]
+            return None
+        uu = (ii + u0) % self.config.width
         vv = vv + v0
         # Separable direction (sin t, h, cos t): camera coordinates are R^T d.
         Rt = R_pano_cam.T
@@ -220,11 +293,31 @@ class PanoramaMap:
         for k in range(3):
             p[:, k] = Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c
         x, y, front = project_to_image(K, p)
-        b = cfg.frame_border_px
+        b = self.config.frame_border_px
         ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
         if not ok.any():
+            return None
+        return NewPixels(uu[ok], vv[ok], x[ok].astype(np.float32), y[ok].astype(np.float32))
+
+    def map_frame(self, frame: NDArray[np.uint8], K: Array, R_pano_cam: Array, frame_index: int,
+                  offset: float = 0.0, frame_gray: NDArray[np.uint8] | None = None,
+                  gain: float = 1.0, pixels: NewPixels | None = None) -> int:
+        """Write the not-yet-mapped map pixels that the frame sees; returns how many.
+
+        ``frame`` is grey (H, W) or RGB (H, W, 3) uint8 (channels as configured); the EDR
+        correction maps a frame value I to ``gain * I + offset`` (8-bit units; both ignored
+        when EDR is off); ``frame_gray`` the grey version of an RGB frame (computed when not
+        given); ``pixels`` the frame's :meth:`new_pixels` when the caller has them already.
+        """
+        cfg = self.config
+        if frame.ndim == 3 and frame_gray is None:
+            frame_gray = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        gray_src = frame if frame.ndim == 2 else frame_gray
+        if pixels is None:
+            pixels = self.new_pixels(K, R_pano_cam, frame.shape[:2])
+        if pixels is None:
             return 0
-        uu, vv, x, y = uu[ok], vv[ok], x[ok].astype(np.float32), y[ok].astype(np.float32)
+        uu, vv, x, y = pixels.uu, pixels.vv, pixels.x, pixels.y
         g = sample_points(gray_src, x, y).astype(np.float32)
         if cfg.channels == 3:
             src = frame if frame.ndim == 3 else cv2.cvtColor(frame, cv2.COLOR_GRAY2RGB)

@@ -159,20 +159,16 @@ class ActiveSearchTracker:
         Tz = T - t_mean[:, None, None]
         t_norm = np.sqrt(np.einsum('nij,nij->n', Tz, Tz))
         # 3. Search windows in the frame and NCC at every offset within the radius.
-        S = P + 2 * r
         off = np.arange(-half - r, half + r + 1)
-        Wn = frame[(yr[:, None] + off[None, :])[:, :, None], (xr[:, None] + off[None, :])[:, None, :]].astype(np.float64)
+        Wn = frame[(yr[:, None] + off[None, :])[:, :, None], (xr[:, None] + off[None, :])[:, None, :]].astype(np.float32)
         # Cross-correlation of each template with every window position as one batched
         # matrix product (float32: exact enough for 8-bit pixels, and about twice as fast).
         side = 2 * r + 1
-        views = sliding_window_view(Wn.astype(np.float32), (P, P), axis=(1, 2)).reshape(n, side * side, P * P)
+        views = sliding_window_view(Wn, (P, P), axis=(1, 2)).reshape(n, side * side, P * P)
         num = np.matmul(views, Tz.astype(np.float32).reshape(n, P * P, 1)).reshape(n, side, side).astype(np.float64)
-        ii = np.zeros((n, S + 1, S + 1))
-        ii[:, 1:, 1:] = Wn.cumsum(1).cumsum(2)
-        ii2 = np.zeros((n, S + 1, S + 1))
-        ii2[:, 1:, 1:] = (Wn * Wn).cumsum(1).cumsum(2)
-        box = ii[:, P:, P:] - ii[:, :-P, P:] - ii[:, P:, :-P] + ii[:, :-P, :-P]
-        box2 = ii2[:, P:, P:] - ii2[:, :-P, P:] - ii2[:, P:, :-P] + ii2[:, :-P, :-P]
+        # Window sums of the values and their squares (integers below 2^24: exact in float32).
+        box = views.sum(axis=2, dtype=np.float64).reshape(n, side, side)
+        box2 = np.einsum('nkp,nkp->nk', views, views).astype(np.float64).reshape(n, side, side)
         var = np.maximum(box2 - box * box / (P * P), 0.0)
         denom = np.sqrt(var) * t_norm[:, None, None]
         ncc = np.where(denom > 1e-6 * P * P, num / np.maximum(denom, 1e-12), -1.0)
