@@ -2,12 +2,13 @@
 
 ``bench_panorama(workdir)`` returns (DESIGN sec. 8, area ``panorama``)::
 
-    {"fps_320x240", "fps_640x480", "frames", "stitcher_time_ratio", "stitcher_ok",
+    {"fps_320x240", "fps_320x240_median", "fps_640x480", "frames", "stitcher_time_ratio", "stitcher_ok",
      "stitcher_s", "core_s_same_span", "stitcher_frames", "photos": {name: {...}}}
 
 * fps: frames per second of PanoramaMapper.process + background (mapping, tracking and the
-  finished tiles' FAST), one thread, on the committed sample bag's 320x240 frames, and on the
-  same frames upscaled to 640x480 (the simulator renders 320x240 only; K scaled with them).
+  finished tiles' FAST), one thread, on the committed sample bag's 320x240 frames (the fastest
+  of ``FPS_PASSES`` passes, and their median), and on the same frames upscaled to 640x480 (the
+  simulator renders 320x240 only; K scaled with them).
 * Stitcher: cv2.Stitcher PANORAMA on every ``STITCH_STEP``-th frame of the first
   ``STITCH_SPAN`` frames, against the core on all frames of that span (the core needs the video;
   both produce the panorama of the same span). ratio = stitcher time / core time.
@@ -39,6 +40,10 @@ SAMPLE_BAG = Path(__file__).resolve().parents[2] / 'bags' / 'rotation_sweep_auth
 PHOTO_SETS = {'parrington': 'prtn', 'grail': 'grail'}
 STITCH_SPAN = 120
 STITCH_STEP = 10
+#: Passes over the sample bag's frames at 320x240; fps_320x240 is the fastest (the time a pass
+#: takes only grows with what else the machine does: its speed here varies by +-15 % between
+#: minutes), fps_320x240_median the median.
+FPS_PASSES = 3
 
 
 def _time_core(frames: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple[float, PanoramaMapper]:
@@ -177,8 +182,12 @@ def bench_panorama(workdir: Path, bag: Path | None = None) -> dict[str, Any]:
     if not frames:
         return out
     gray = [(s, cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img, K) for s, img, K in frames]
-    t, mapper = _time_core(gray)
-    out['fps_320x240'] = round(len(gray) / t, 1)
+    times = []
+    for _ in range(FPS_PASSES):
+        t, mapper = _time_core(gray)
+        times.append(t)
+    out['fps_320x240'] = round(len(gray) / min(times), 1)
+    out['fps_320x240_median'] = round(len(gray) / float(np.median(times)), 1)
     out['lost_320x240'] = mapper.lost_frames
     S = np.diag([2.0, 2.0, 1.0])
     big = []

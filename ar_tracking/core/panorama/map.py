@@ -126,6 +126,7 @@ class PanoramaMap:
         self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
         self._footprint: tuple[tuple[bytes, bytes, tuple[int, ...]],
                                tuple[tuple[int, int, int, int], NDArray[np.int32] | None]] | None = None
+        self._mask: tuple[object, NDArray[np.bool_]] | None = None
 
     # -- queries -----------------------------------------------------------------------------
 
@@ -191,13 +192,20 @@ class PanoramaMap:
         map and filled. A frame seen at a slant covers a small part of its
         box; mapping tests only the pixels in the mask. All True when the outline spans the
         whole turn (a pole in view)."""
-        box, ring = self._footprint_of(K, R_pano_cam, size)
+        outline = self._footprint_of(K, R_pano_cam, size)
+        box, ring = outline
+        if self._mask is not None and self._mask[0] is outline:  # the same frame as last time
+            return box, self._mask[1]
         u0, u1, v0, v1 = box
         if ring is None or v1 <= v0:
-            return box, np.ones((max(v1 - v0, 0), u1 - u0), bool)
-        mask = np.zeros((v1 - v0, u1 - u0), np.uint8)
-        cv2.fillPoly(mask, [ring], 1)
-        return box, mask.view(bool)
+            mask = np.ones((max(v1 - v0, 0), u1 - u0), bool)
+        else:
+            filled = np.zeros((v1 - v0, u1 - u0), np.uint8)
+            cv2.fillPoly(filled, [ring], 1)
+            mask = filled.view(bool)
+        mask.flags.writeable = False
+        self._mask = (outline, mask)
+        return box, mask
 
     def _footprint_of(self, K: Array, R_pano_cam: Array, size: tuple[int, int]
                       ) -> tuple[tuple[int, int, int, int], NDArray[np.int32] | None]:

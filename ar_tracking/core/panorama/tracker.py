@@ -150,7 +150,9 @@ class ActiveSearchTracker:
         gx = xr[:, None, None] + self._grid[None, None, :]
         gy = yr[:, None, None] + self._grid[None, :, None]
         gx, gy = np.broadcast_arrays(gx, gy)
-        rays = camera_rays(K, gx, gy)
+        # Unnormalised rays: the cylinder projection only needs their directions.
+        yn = (gy - K[1, 2]) / K[1, 1]
+        rays = np.stack([(gx - K[0, 2] - K[0, 1] * yn) / K[0, 0], yn, np.ones(yn.shape)], axis=-1)
         u, v = pano.geometry.project(rays @ R_pred.T)
         T = cv2.remap(pano.gray, u.reshape(n * P, P).astype(np.float32),
                       v.reshape(n * P, P).astype(np.float32), cv2.INTER_LINEAR,
@@ -196,7 +198,9 @@ class ActiveSearchTracker:
         d = dirs[idx[k]]
         # 5. Robust rotation: RANSAC over 2-point Kabsch, then Kabsch on the inliers.
         f = float(K[0, 0])
-        thr = cfg.inlier_px / f
+        # The threshold in frame pixels, but never finer than a map pixel: a frame sharper than
+        # the map (more pixels per degree) cannot be matched more precisely than the map's grid.
+        thr = cfg.inlier_px / min(f, pano.geometry.f)
         nk = k.size
         pairs = self._rng.integers(0, nk, size=(cfg.ransac_iterations, 2))
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
