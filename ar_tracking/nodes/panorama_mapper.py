@@ -76,7 +76,7 @@ class PanoramaMapperNode(TrackingNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('panorama_mapper', **kwargs)
         p = self.param
-        edr = p('edr', True, 'Extended dynamic range map (Langlotz sec. 4.1): 16-bit map, frames corrected by the mean intensity difference of their matches; false: plain 8-bit map', read_only=True)
+        edr = p('edr', True, 'Extended dynamic range map (Langlotz sec. 4.1): 16-bit map, each frame corrected for exposure before it is mapped (edr_correction); false: plain 8-bit map', read_only=True)
         smooth = p('edr_smooth', True, 'EDR offsets filtered over frames (per-frame estimation noise would be a small step at every frame boundary); false: each frame its own offset, as sec. 4.1 literally says', read_only=True)
         correction = p('edr_correction', 'overlap', 'EDR correction of each frame before it is mapped: overlap (gain and offset fitted on every mapped pixel the frame overlaps, weighted towards its new pixels), offset (mean intensity difference of the matched keypoint pairs, sec. 4.1) or gain (the same mean of log intensities)', read_only=True, validate=lambda v: None if v in EDR_CORRECTIONS else f"must be one of {', '.join(EDR_CORRECTIONS)}")
         color = p('color', False, 'Map colour (rgb16) instead of grey (mono16)', read_only=True)

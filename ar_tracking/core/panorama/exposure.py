@@ -1,4 +1,6 @@
-"""Exposure correction of the EDR map (Langlotz 2011 sec. 4.1) as a filtered log gain.
+"""Exposure correction of the EDR map (Langlotz 2011 sec. 4.1): the keypoint-pair estimates
+filtered over frames (:class:`ExposureFilter`), and the fit of a gain and an offset on the
+frame's whole overlap with the map (:func:`fit_overlap_exposure`, the mapper's default).
 
 Sec. 4.1 corrects each frame by "the average difference" of the intensities of its matched
 keypoint pairs (map minus frame). Auto-exposure is a gain on the encoded values (for a power-

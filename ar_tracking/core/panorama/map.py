@@ -8,9 +8,9 @@ caller drains with a budget after each frame (:meth:`PanoramaMap.process_queue`)
 lockstep run stays deterministic.
 
 Sec. 4.1 (extended dynamic range, EDR): the map holds 16 bits per channel; the first frame's
-intensities are the baseline and each later frame is shifted by an intensity offset (the mean
-difference of its matched keypoint pairs, computed by the tracker) or scaled by a gain (the
-same mean in the log domain, exposure.py) before it is mapped, so the
+intensities are the baseline and each later frame is corrected by a gain and an offset before
+it is mapped (fitted on its overlap with the map, :meth:`PanoramaMap.overlap_pairs`, or the
+paper's mean difference of its matched keypoint pairs; exposure.py), so the
 map can hold values above 255 and below 0 of the 8-bit scale without clipping. Storage:
 ``stored = round(64 * (value + 256))``: values from -256 to 767.98 in steps of 1/64. It is
 shown through a linear tone-mapping (:meth:`PanoramaMap.tone_mapped`). With ``edr=False`` the

@@ -6,11 +6,13 @@
 2. later frames: constant-motion prediction (the last inter-frame rotation, scaled by the
    stamp ratio), active-search tracking against the map keypoints; if that fails, a wider
    search, then re-localisation against the finished tiles;
-3. a tracked frame is mapped (only its not-yet-mapped pixels), corrected by the EDR intensity
-   offset of its matches, filtered over frames (``offset_exposure``; unfiltered with
-   ``offset_exposure.smooth=False``, the paper's literal version), or, with
-   ``edr_correction='gain'``, by the filtered log-domain gain (exposure.py); a frame that is not
-   tracked is neither mapped nor reported (lost).
+3. a tracked frame is mapped (only its not-yet-mapped pixels), corrected for exposure (EDR,
+   ``edr_correction``): by default with a gain and offset fitted on its whole overlap with the
+   map (exposure.fit_overlap_exposure), or by the paper's intensity offset of its matched
+   keypoints, filtered over frames (``offset_exposure``; unfiltered with
+   ``offset_exposure.smooth=False``, the paper's literal version), or by the filtered log-domain
+   gain of the same pairs (exposure.py); a frame that is not tracked is neither mapped nor
+   reported (lost).
 
 The keypoints of newly finished tiles are computed by :meth:`PanoramaMapper.background`, which
 the caller runs after it has used the frame's result (off the critical path, deterministic).
@@ -60,9 +62,9 @@ class MapperConfig:
     #: Frames with a grey-level standard deviation below this are textureless (lost).
     min_texture_std: float = 3.0
     #: EDR correction model (sec. 4.1): 'overlap' - gain and offset fitted on every mapped
-    #: pixel the frame overlaps, weighted towards its new pixels (exposure.fit_overlap_exposure;
-    #: an extension: on the 60 s rotation_sweep bags it leaves less than half the seams of the
-    #: keypoint versions, docs/panorama.md); 'offset' - the mean difference of intensities of
+    #: pixel the frame overlaps (exposure.fit_overlap_exposure; an extension: on the 60 s
+    #: rotation_sweep bags it leaves about half the seams of the keypoint versions,
+    #: docs/panorama.md); 'offset' - the mean difference of intensities of
     #: the matched keypoint pairs added to every pixel (the paper's reading), filtered over
     #: frames (``offset_exposure``); 'gain' - the mean difference of log intensities of the
     #: pairs, filtered (``exposure``). 'overlap' falls back to 'offset' for a frame whose overlap
