@@ -5,6 +5,7 @@ Synthetic, seeded frames of a textured cylinder (exact truth) from test/panorama
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -51,10 +52,16 @@ def test_fit_refuses_what_it_cannot_determine():
     assert fit_overlap_exposure(np.full_like(mapv, np.nan), frame) is None  # nothing mapped
 
 
-def _mapped_after(world: CylinderWorld, Rs: list[np.ndarray]) -> PanoramaMap:
+def _mapped_after(world: CylinderWorld, Rs: list[np.ndarray], scale: int = 1) -> PanoramaMap:
+    """A map of the frames at Rs; ``scale`` 2: the frames upscaled to 640 x 480 (K with them)."""
     pano = PanoramaMap(MapConfig())
+    Ks = np.diag([scale, scale, 1.0]) @ K
+    Ks[:2, 2] += (scale - 1) / 2
     for k, R in enumerate(Rs):
-        pano.map_frame(world.render(R, rng=np.random.default_rng(k)), K, R, k + 1)
+        img = world.render(R, rng=np.random.default_rng(k))
+        if scale != 1:
+            img = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_LINEAR)
+        pano.map_frame(img, Ks, R, k + 1)
     return pano
 
 
@@ -75,13 +82,15 @@ def test_overlap_pairs_are_the_frame_and_map_values_of_the_overlap(world):
     assert pano.overlap_pairs(gray, K, rot('y', 180.0)) is None
 
 
-def test_the_outline_mask_loses_no_pixel_of_the_frame(world, monkeypatch):
+@pytest.mark.parametrize('scale', [1, 2])
+def test_the_outline_mask_loses_no_pixel_of_the_frame(world, monkeypatch, scale):
     # Mapping tests only the pixels inside the frame's projected outline. With pitch, roll and
-    # the wrap (the map's u = 0 column) the masked mapping must write exactly what testing every
-    # pixel of the bounding box writes.
+    # the wrap (the map's u = 0 column), at 320 x 240 and at 640 x 480 (frame pixels finer than
+    # the map's), the masked mapping must write exactly what testing every pixel of the
+    # bounding box writes.
     views = [rot('y', 0.0), rot('y', 183.0) @ rot('x', 25.0) @ rot('z', 12.0),
              rot('y', 179.0) @ rot('x', -40.0), rot('y', 90.0) @ rot('z', 45.0), rot('x', 80.0)]
-    masked = _mapped_after(world, views)
+    masked = _mapped_after(world, views, scale)
     # The outline really narrows the search: a rolled, pitched frame fills little of its box.
     box, mask = PanoramaMap().footprint_mask(K, views[1], (240, 320))
     assert 0.3 < mask.mean() < 0.9
@@ -91,7 +100,7 @@ def test_the_outline_mask_loses_no_pixel_of_the_frame(world, monkeypatch):
         return box, np.ones((max(box[3] - box[2], 0), box[1] - box[0]), bool)
 
     monkeypatch.setattr(PanoramaMap, 'footprint_mask', everything)
-    full = _mapped_after(world, views)
+    full = _mapped_after(world, views, scale)
     assert np.array_equal(masked.mapped, full.mapped)
     assert np.array_equal(masked.contribution, full.contribution)
     np.testing.assert_array_equal(masked.gray, full.gray)
