@@ -92,9 +92,12 @@ class FrameResult:
     status: str  # 'initialised', 'tracked', 'relocalised', 'lost'
     track: TrackResult | None = None
     mapped_pixels: int = 0
+    #: EDR additive correction of the frame, 8-bit units (its pixels were mapped as
+    #: ``intensity_gain * I + intensity_offset``; 0 without EDR).
     intensity_offset: float = 0.0
     reason: str = ''
-    #: EDR multiplicative correction applied to the frame (1 without EDR or in 'offset' mode).
+    #: EDR multiplicative correction of the frame (1 without EDR, in 'offset' mode, and for a
+    #: frame the overlap fit left to the keypoint offset).
     intensity_gain: float = 1.0
 
 
