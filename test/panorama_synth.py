@@ -59,6 +59,22 @@ class CylinderWorld:
         return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
+#: Frame interval of the synthetic sequences, ns (30 Hz).
+DT = 33_333_333
+
+
+def run(mapper, world: CylinderWorld, Rs: list[np.ndarray], gains=None, offsets=None) -> list:
+    """Feed the views Rs of ``world`` (frame k with ``gains[k]``, ``offsets[k]`` and noise seeded
+    by k) through a PanoramaMapper at 30 Hz, background step after each; its FrameResults."""
+    out = []
+    for k, R in enumerate(Rs):
+        img = world.render(R, gain=1.0 if gains is None else float(gains[k]),
+                           offset=0.0 if offsets is None else float(offsets[k]), rng=np.random.default_rng(k))
+        out.append(mapper.process(img, K, (k + 1) * DT))
+        mapper.background()
+    return out
+
+
 def sweep(n: int, step_deg: float, seed: int = 0) -> list[np.ndarray]:
     """R_world_cam of a pan about the vertical with a gentle pitch / roll wobble."""
     rng = np.random.default_rng(seed)

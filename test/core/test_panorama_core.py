@@ -13,9 +13,7 @@ from hypothesis import given, settings, strategies as st
 from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMap, PanoramaMapper
 from ar_tracking.core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
 from ar_tracking.core.panorama.tracker import kabsch
-from panorama_synth import H, K, W, CylinderWorld, angle_deg, rot, sweep, two_plane_frame
-
-DT = 33_333_333
+from panorama_synth import DT, H, K, W, CylinderWorld, angle_deg, rot, run, sweep, two_plane_frame
 
 
 @pytest.fixture(scope='module')
@@ -111,17 +109,6 @@ def test_edr_map_stores_offsets_without_clipping(world):
 
 
 # -- tracking --------------------------------------------------------------------------------
-
-def run(mapper, world, Rs, gains=None, offsets=None):
-    out = []
-    for k, R in enumerate(Rs):
-        img = world.render(R, gain=1.0 if gains is None else gains[k],
-                           offset=0.0 if offsets is None else offsets[k], rng=np.random.default_rng(k))
-        res = mapper.process(img, K, (k + 1) * DT)
-        mapper.background()
-        out.append(res)
-    return out
-
 
 def test_tracks_a_full_turn_through_the_wrap(world):
     Rs = sweep(200, 2.0)  # 400 degrees about the vertical, with pitch / roll wobble

@@ -11,9 +11,7 @@ import pytest
 
 from ar_tracking.core.panorama import (MapConfig, MapperConfig, OverlapExposureConfig, PanoramaMap,
                                        PanoramaMapper, fit_overlap_exposure)
-from panorama_synth import K, CylinderWorld, rot, sweep
-
-DT = 33_333_333
+from panorama_synth import K, CylinderWorld, rot, run, sweep
 
 
 @pytest.fixture(scope='module')
@@ -114,17 +112,12 @@ def test_overlap_correction_follows_gain_and_offset_changes(world):
     gains = np.where(np.arange(200) < 70, 1.0, np.where(np.arange(200) < 140, 1.3, 0.8))
     offsets = np.where(np.arange(200) < 100, 0.0, 12.0)
     steps = {}
-    for correction in ('overlap', 'offset'):
-        mapper = PanoramaMapper(MapperConfig(edr_correction=correction))
-        for k, R in enumerate(Rs):
-            img = world.render(R, gain=float(gains[k]), offset=float(offsets[k]), rng=np.random.default_rng(k))
-            assert mapper.process(img, K, (k + 1) * DT).R_pano_cam is not None
-            mapper.background()
-        steps[correction] = mapper.seam_error(flat_max=np.inf)['step']
-    mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=False)))
-    for k, R in enumerate(Rs):
-        mapper.process(world.render(R, gain=float(gains[k]), offset=float(offsets[k]),
-                                    rng=np.random.default_rng(k)), K, (k + 1) * DT)
-        mapper.background()
-    steps['8bit'] = mapper.seam_error(flat_max=np.inf)['step']
+    for name, cfg in (('overlap', MapperConfig(edr_correction='overlap')),
+                      ('offset', MapperConfig(edr_correction='offset')),
+                      ('8bit', MapperConfig(map=MapConfig(edr=False)))):
+        mapper = PanoramaMapper(cfg)
+        res = run(mapper, world, Rs, gains, offsets)
+        if name != '8bit':
+            assert all(r.R_pano_cam is not None for r in res)
+        steps[name] = mapper.seam_error(flat_max=np.inf)['step']
     assert steps['overlap'] < 0.5 * steps['offset'] < 0.5 * steps['8bit']

@@ -75,13 +75,15 @@ def rotation_about_axis_y(angle_rad: float) -> Array:
     return rot_y(angle_rad)
 
 
-def camera_rays(K: Array, x: Array, y: Array) -> Array:
-    """Unit bearing vectors (..., 3) in camera_optical of pixel coordinates (x, y)."""
+def camera_rays(K: Array, x: Array, y: Array, unit: bool = True) -> Array:
+    """Bearing vectors (..., 3) in camera_optical of pixel coordinates (x, y): unit vectors, or
+    with ``unit=False`` the rays (xn, yn, 1) (enough where only the direction matters, e.g.
+    :meth:`CylinderGeometry.project`)."""
     fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
     yn = (np.asarray(y, float) - cy) / fy
     xn = (np.asarray(x, float) - cx - skew * yn) / fx
     r = np.stack(np.broadcast_arrays(xn, yn, np.ones_like(xn)), axis=-1)
-    return r / np.linalg.norm(r, axis=-1, keepdims=True)
+    return r / np.linalg.norm(r, axis=-1, keepdims=True) if unit else r
 
 
 def project_to_image(K: Array, p_cam: Array) -> tuple[Array, Array, NDArray[np.bool_]]:

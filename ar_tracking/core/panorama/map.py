@@ -85,7 +85,8 @@ def sample_points(img: NDArray, x: NDArray, y: NDArray) -> NDArray:
 
 @dataclass(frozen=True)
 class NewPixels:
-    """Map pixels (uu, vv) a frame will write and where they fall in the frame (x, y)."""
+    """Map pixels (uu, vv) and where they fall in a frame (x, y): the pixels a frame will write
+    (:meth:`PanoramaMap.new_pixels`), or the mapped ones it overlaps."""
 
     uu: NDArray[np.int64]
     vv: NDArray[np.int64]
@@ -255,45 +256,11 @@ class PanoramaMap:
             return rows[:, start:start + n]
         return np.concatenate([rows[:, start:], rows[:, :start + n - W]], axis=1)
 
-    def overlap_pairs(self, gray: NDArray[np.uint8], K: Array, R_pano_cam: Array, step: int = 6
-                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]] | None:
-        """(map values, frame values) at the already-mapped pixels the frame sees, on a grid of
-        ``step`` map pixels: what the frame's photometric correction is fitted on
-        (:func:`.exposure.fit_overlap_exposure`). None when the frame sees no mapped pixel;
-        border pixels as in :meth:`map_frame`."""
-        h, w = gray.shape[:2]
-        (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, (h, w))
-        if v1 <= v0:
-            return None
-        W = self.config.width
-        grid = self._columns(self.mapped, u0, u1, v0, v1)[::step, ::step] & seen[::step, ::step]
-        ri, ci = np.nonzero(grid)
-        if ri.size == 0:
-            return None
-        uu, vv = (u0 + ci * step) % W, v0 + ri * step
-        Rt = R_pano_cam.T
-        s, c, hh = self._col_sin[uu], self._col_cos[uu], self._row_h[vv]
-        p = np.stack([Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c for k in range(3)], -1)
-        x, y, front = project_to_image(K, p)
-        b = self.config.frame_border_px
-        ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
-        if not ok.any():
-            return None
-        f = sample_points(gray, x[ok].astype(np.float32), y[ok].astype(np.float32)).astype(np.float32)
-        return self.gray[vv[ok], uu[ok]], f
-
-    def new_pixels(self, K: Array, R_pano_cam: Array, size: tuple[int, int]) -> NewPixels | None:
-        """The not-yet-mapped map pixels a frame of ``size`` (h, w) at R_pano_cam sees (frame
-        border excluded), None when there are none: what :meth:`map_frame` writes."""
+    def _in_frame(self, K: Array, R_pano_cam: Array, size: tuple[int, int], uu: NDArray[np.int64],
+                  vv: NDArray[np.int64]) -> NewPixels | None:
+        """The map pixels (uu, vv) that a frame of ``size`` (h, w) at R_pano_cam sees outside its
+        ``frame_border_px``, with their frame coordinates; None when it sees none of them."""
         h, w = size
-        (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, (h, w))
-        if v1 <= v0:
-            return None
-        vv, ii = np.nonzero(seen & ~self._columns(self.mapped, u0, u1, v0, v1))
-        if vv.size == 0:
-            return None
-        uu = (ii + u0) % self.config.width
-        vv = vv + v0
         # Separable direction (sin t, h, cos t): camera coordinates are R^T d.
         Rt = R_pano_cam.T
         s, c, hh = self._col_sin[uu], self._col_cos[uu], self._row_h[vv]
@@ -306,6 +273,34 @@ class PanoramaMap:
         if not ok.any():
             return None
         return NewPixels(uu[ok], vv[ok], x[ok].astype(np.float32), y[ok].astype(np.float32))
+
+    def overlap_pairs(self, gray: NDArray[np.uint8], K: Array, R_pano_cam: Array, step: int = 6
+                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]] | None:
+        """(map values, frame values) at the already-mapped pixels the frame sees, on a grid of
+        ``step`` map pixels: what the frame's photometric correction is fitted on
+        (:func:`.exposure.fit_overlap_exposure`). None when the frame sees no mapped pixel;
+        border pixels as in :meth:`map_frame`."""
+        (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, gray.shape[:2])
+        if v1 <= v0:
+            return None
+        ri, ci = np.nonzero(self._columns(self.mapped, u0, u1, v0, v1)[::step, ::step] & seen[::step, ::step])
+        if ri.size == 0:
+            return None
+        old = self._in_frame(K, R_pano_cam, gray.shape[:2], (u0 + ci * step) % self.config.width, v0 + ri * step)
+        if old is None:
+            return None
+        return self.gray[old.vv, old.uu], sample_points(gray, old.x, old.y).astype(np.float32)
+
+    def new_pixels(self, K: Array, R_pano_cam: Array, size: tuple[int, int]) -> NewPixels | None:
+        """The not-yet-mapped map pixels a frame of ``size`` (h, w) at R_pano_cam sees (frame
+        border excluded), None when there are none: what :meth:`map_frame` writes."""
+        (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, size)
+        if v1 <= v0:
+            return None
+        vv, ii = np.nonzero(seen & ~self._columns(self.mapped, u0, u1, v0, v1))
+        if vv.size == 0:
+            return None
+        return self._in_frame(K, R_pano_cam, size, (ii + u0) % self.config.width, vv + v0)
 
     def map_frame(self, frame: NDArray[np.uint8], K: Array, R_pano_cam: Array, frame_index: int,
                   offset: float = 0.0, frame_gray: NDArray[np.uint8] | None = None,

@@ -150,10 +150,7 @@ class ActiveSearchTracker:
         gx = xr[:, None, None] + self._grid[None, None, :]
         gy = yr[:, None, None] + self._grid[None, :, None]
         gx, gy = np.broadcast_arrays(gx, gy)
-        # Unnormalised rays: the cylinder projection only needs their directions.
-        yn = (gy - K[1, 2]) / K[1, 1]
-        rays = np.stack([(gx - K[0, 2] - K[0, 1] * yn) / K[0, 0], yn, np.ones(yn.shape)], axis=-1)
-        u, v = pano.geometry.project(rays @ R_pred.T)
+        u, v = pano.geometry.project(camera_rays(K, gx, gy, unit=False) @ R_pred.T)
         T = cv2.remap(pano.gray, u.reshape(n * P, P).astype(np.float32),
                       v.reshape(n * P, P).astype(np.float32), cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_WRAP).reshape(n, P, P).astype(np.float64)
