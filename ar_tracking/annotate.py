@@ -77,10 +77,12 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Sequence
                  patch_px: int = 16, author: str = '', panorama_id: str | None = None,
                  edr: bool = True, world_orientation: str = 'ground_truth', create: bool = True,
                  landmarks: int = LandmarkConfig.count,
+                 support_landmarks: int = LandmarkConfig.support_count,
                  progress: Callable[[float], None] | None = None) -> AnnotateReport:
     """Author annotations from an authoring bag into the store at ``store_path`` (see module
-    docstring), and up to ``landmarks`` landmarks of the panorama (0: none). Raises BagError /
-    StoreError (one line) for unusable bags / stores."""
+    docstring), and up to ``landmarks`` landmarks of the panorama (0: none) plus up to
+    ``support_landmarks`` next to each annotation (:mod:`.core.annotations.landmarks`). Raises
+    BagError / StoreError (one line) for unusable bags / stores."""
     from .ros.conversions import ConversionError, compressed_to_array, image_to_array
 
     bag = Path(bag)
@@ -195,7 +197,8 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Sequence
         report.skipped += [(texts[i], r) for i, r in added.skipped]
         if report.stored and landmarks > 0:
             up = R_enu_pano[2] if R_enu_pano is not None else None
-            found = select_landmarks(gray, mapper.map.mapped, geo, up, LandmarkConfig(count=landmarks),
+            cfg = LandmarkConfig(count=landmarks, support_count=support_landmarks)
+            found = select_landmarks(gray, mapper.map.mapped, geo, up, cfg,
                                      avoid=np.array([a.direction for a in records]))
             report.landmarks = len(store.add_landmarks(
                 Landmark(pid, lm.patch, lm.direction) for lm in found).ids)

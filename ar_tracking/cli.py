@@ -75,7 +75,7 @@ def cmd_annotate(args: argparse.Namespace) -> int:
         report = annotate_bag(args.bag, args.store, positions=positions, patch_px=args.patch_px,
                               author=args.author, panorama_id=args.panorama_id, edr=not args.no_edr,
                               world_orientation=args.world_orientation, landmarks=args.landmarks,
-                              progress=progress)
+                              support_landmarks=args.support_landmarks, progress=progress)
     finally:
         close()
     for text, reason in report.skipped:
@@ -232,6 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--landmarks', type=int, default=24, metavar='N',
                    help='also store up to N landmarks of the panorama (distinctive patches that help '
                         'align it when browsing; never shown); 0: none (default 24)')
+    p.add_argument('--support-landmarks', type=int, default=4, metavar='K',
+                   help='with landmarks, also up to K landmarks next to each annotation (they pin '
+                        'its parallax when browsing from another spot); 0: none (default 4)')
     p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_annotate)
 

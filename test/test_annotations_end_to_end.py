@@ -39,14 +39,20 @@ def test_annotate_stores_every_ground_truth_anchor(authored):
         u, v = geo.project(a.direction)
         assert 0 <= u < 2048 and 0 <= v < 512
     assert len({a.panorama_id for a in recs}) == 1
-    # Landmarks of the same panorama: the requested number, above the horizon, none at an anchor.
+    # Landmarks of the same panorama: the requested number above the horizon, none at an
+    # anchor, then the support landmarks, each next to an anchor.
     with SqliteAnnotationStore(store) as s:
         lms = s.landmarks([recs[0].panorama_id])
-    assert report.landmarks == len(lms) == 24
+    assert report.landmarks == len(lms) and 24 < len(lms) <= 24 + 4 * 6
     R_enu_pano = quat_xyzw_to_matrix(recs[0].panorama_in_world_quat_xyzw)
     dirs = np.array([lm.direction for lm in lms])
-    assert np.all(dirs @ R_enu_pano[2] > 0)
-    assert np.max(dirs @ np.array([a.direction for a in recs]).T) < np.cos(np.radians(2.0))
+    anchors = np.array([a.direction for a in recs])
+    assert np.all(dirs[:24] @ R_enu_pano[2] > 0)
+    assert np.max(dirs[:24] @ anchors.T) < np.cos(np.radians(2.0))
+    su, sv = geo.project(dirs[24:])
+    au, av = geo.project(anchors)
+    du = np.abs((su[:, None] - au[None] + 1024) % 2048 - 1024)
+    assert np.all(((du <= 40.5) & (np.abs(sv[:, None] - av[None]) <= 20.5)).any(axis=1))
 
 
 def test_annotate_refuses_a_corrupt_store_without_touching_it(tmp_path):

@@ -33,7 +33,7 @@ def test_select_landmarks_skips_repeated_texture_the_ground_and_neighbours():
         n_facade = int(np.sum((u > 600 + 48) & (u < 1000 - 48 - 16)))
         assert (n_facade == 0) if on_facade == 0 else (n_facade >= on_facade)
     avoid = GEO.unproject(np.array([1500.0]), np.array([200.0])).reshape(1, 3)
-    cfg = LandmarkConfig(count=30)
+    cfg = LandmarkConfig(count=30, support_count=0)
     lms = select_landmarks(gray, mapped, GEO, up=UP, config=cfg, avoid=avoid)
     assert len(lms) == 30
     u = np.array([lm.u for lm in lms])
@@ -53,6 +53,35 @@ def test_select_landmarks_skips_repeated_texture_the_ground_and_neighbours():
     # Without an up direction the lower half of the map is used too.
     both = select_landmarks(gray, mapped, GEO, up=None, config=cfg)
     assert any(lm.v > GEO.height / 2 + 20 for lm in both)
+
+
+def test_support_landmarks_surround_each_anchor_and_skip_its_look_alikes():
+    gray, mapped = _source_map()
+    # Anchor 0 on plain texture, anchor 1 on a facade repeating one 14 px strip (columns
+    # 600..1000): every corner there has look-alikes within the search radius.
+    strip = gray[:, 600:614].copy()
+    for x in range(600, 1000, 14):
+        gray[:, x:x + 14] = strip[:, :14]
+    anchors_uv = np.array([[1500.0, 300.0], [800.0, 200.0]])
+    avoid = GEO.unproject(anchors_uv[:, 0], anchors_uv[:, 1])
+    cfg = LandmarkConfig(count=20)
+    lms = select_landmarks(gray, mapped, GEO, up=UP, config=cfg, avoid=avoid)
+    general, support = lms[:cfg.count], lms[cfg.count:]
+    assert len(general) == cfg.count and len(support) == cfg.support_count  # anchor 0's only
+    u = np.array([lm.u for lm in support])
+    v = np.array([lm.v for lm in support])
+    du = np.abs((u - 1500.0 + 1024) % 2048 - 1024)
+    assert np.all(du <= cfg.support_u_px) and np.all(np.abs(v - 300.0) <= cfg.support_v_px)
+    assert np.all(np.hypot(du, v - 300.0) >= cfg.support_exclude_px)
+    # Below the horizon too (the anchor is), apart from each other and from the others.
+    assert np.any(v > GEO.height / 2)
+    uu = np.array([lm.u for lm in lms])
+    vv = np.array([lm.v for lm in lms])
+    d = np.hypot(np.abs((uu[:, None] - uu[None] + 1024) % 2048 - 1024), vv[:, None] - vv[None])
+    assert (d + np.eye(len(lms)) * 1e9)[cfg.count:].min() >= cfg.support_separation_px
+    assert max(lm.self_similarity for lm in support) <= cfg.max_self_similarity
+    alone = select_landmarks(gray, mapped, GEO, up=UP, config=LandmarkConfig(count=20, support_count=0), avoid=avoid)
+    assert [(lm.u, lm.v) for lm in alone] == [(lm.u, lm.v) for lm in general]
 
 
 def test_select_landmarks_on_an_untextured_map_finds_none():
@@ -142,3 +171,47 @@ def test_parallax_gate_rejects_a_look_alike_the_wide_gate_keeps():
         placed[sigmas] = (p0.u - c.u, al.parallax_gate_px)
     assert placed[0.0][0] == pytest.approx(-14.0) and np.isnan(placed[0.0][1])
     assert placed[3.0][0] == pytest.approx(0.0) and placed[3.0][1] < 14.0
+
+
+def _sector_spot(t_enu: np.ndarray, supports: bool) -> tuple[ReDetector, np.ndarray]:
+    """An anchor (index 0, unmatched) 70 m away with no other match within 60 deg; three
+    matched anchors and six landmarks 70-75 m away on one side, ten landmarks 32 m away on the
+    other; with ``supports``, four matched landmarks around anchor 0 at its depth."""
+    # (u, v in the source map, depth m, landmark, matched)
+    points = [(1000, 250, 70, False, False), (1900, 200, 70, False, True), (200, 260, 70, False, True),
+              (420, 230, 70, False, True)]
+    points += [(u, 180, 32, True, True) for u in np.linspace(1350, 1800, 10)]
+    points += [(u, 170, 75, True, True) for u in np.linspace(60, 560, 6)]
+    if supports:
+        points += [(1000 + du, 250 + dv, 70, True, True) for du, dv in ((-30, -8), (-14, 12), (16, -10), (33, 6))]
+    u, v, depth = (np.array([p[k] for p in points], float) for k in range(3))
+    R = rotated_by(np.eye(3), np.degrees(300 / GEO.f), axis=(0.0, 1.0, 0.0))
+    dirs = GEO.unproject(u, v)
+    seen = (dirs @ R.T) @ M_ENU_PANO.T * depth[:, None] - t_enu
+    truth = (seen / np.linalg.norm(seen, axis=1, keepdims=True)) @ M_ENU_PANO
+    tu, tv = GEO.project(truth)
+    n = len(points)
+    R_enu_source = M_ENU_PANO @ rotated_by(R, 1.5, axis=-UP)  # compass 1.5 deg off
+    det = ReDetector([np.zeros((16, 16), np.uint8)] * n, dirs, ['p'] * n, MatchConfig(),
+                     R_enu_source=[R_enu_source] * n, landmark=[p[3] for p in points])
+    det.set_orientation(M_ENU_PANO)
+    for i, p in enumerate(points):
+        if p[4]:
+            det.candidates[i].items = [Candidate(float(tu[i]), float(tv[i]), 0.85, 0.85)]
+    det.dirty = True
+    return det, truth
+
+
+def test_support_landmarks_pin_the_parallax_fit_at_an_unmatched_anchor():
+    # The common-depth sinusoid fitted on matches 32 m away on one side and 70-75 m on the
+    # other is an extrapolation at the unmatched anchor, more than a degree off; four support
+    # landmarks around it bring it within half a degree.
+    t = np.array([0.5, 1.2, 0.0])
+    errs = []
+    for supports in (False, True):
+        det, truth = _sector_spot(t, supports)
+        _, al = det.result()
+        p = al.placements[0]
+        assert p.index == 0 and p.status == 'inferred'
+        errs.append(float(np.degrees(np.arccos(np.clip(p.direction @ truth[0], -1, 1)))))
+    assert errs[0] > 1.0 and errs[1] < 0.5

@@ -469,7 +469,7 @@ class SqliteAnnotationStore(AnnotationStore):
                     chunk = panorama_ids[k:k + _IDS_PER_QUERY]
                     marks = ', '.join('?' * len(chunk))
                     rows += db.execute('SELECT id, panorama_id, patch, patch_side, dx, dy, dz '
-                                       f'FROM landmarks WHERE panorama_id IN ({marks})', chunk).fetchall()
+                                       f'FROM landmarks WHERE panorama_id IN ({marks}) ORDER BY id', chunk).fetchall()
             finally:
                 if db.in_transaction:
                     db.execute('ROLLBACK')
