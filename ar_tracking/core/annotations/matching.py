@@ -580,7 +580,8 @@ def _heading_hypotheses(src: Array, with_c: list[int], cd: list[Array], R_prior:
     """(H, 3, 3) gravity-constrained hypotheses ``R(up, psi) @ R_prior``: psi from every single
     match and the least-squares psi of every pair of matches of two annotations. A match whose
     elevation differs from the prior's prediction by more than ``tol_rad`` makes none (the tilt
-    is known), nor does a psi beyond the compass error ``prior_tol``."""
+    is known), nor does a psi beyond the compass error ``prior_tol``; headings are merged on a
+    grid of ``tol_rad`` / 100."""
     rows = [(i, k) for i in with_c for k in range(len(cd[i]))]
     a = src[[i for i, _ in rows]] @ R_prior.T
     b = np.array([cd[i][k] for i, k in rows])
@@ -596,6 +597,11 @@ def _heading_hypotheses(src: Array, with_c: list[int], cd: list[Array], R_prior:
     psi = np.concatenate([np.arctan2(sin_p, cos_p),
                           np.arctan2(sin_p[r1[two]] + sin_p[r2[two]], cos_p[r1[two]] + cos_p[r2[two]])])
     psi = psi[np.abs(psi) <= prior_tol]
+    # Headings closer than a hundredth of the inlier tolerance (0.1 px) are one hypothesis: with
+    # landmarks (tens of matches, hundreds of pairs) most pairs repeat another's heading, and
+    # the winner is refined by least squares anyway.
+    step = tol_rad / 100.0
+    psi = np.unique(np.round(psi / step)) * step
     return rotations_about_axis(up, psi) @ R_prior
 
 
