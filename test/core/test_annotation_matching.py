@@ -13,6 +13,7 @@ from annotation_synth import GEO, M_ENU_PANO, UP, displaced_spot_case, make_case
 from ar_tracking.core.annotations.matching import (Candidate, CandidateList, MatchConfig, ReDetector,
                                                    TileMatcher, _walsh_basis, absolute_orientation,
                                                    place_annotations, ransac_alignment)
+from ar_tracking.core.rotations import trace_angle
 
 
 def tile_of(u: float, v: float, side: int = 16, T: int = 64) -> int:
@@ -362,6 +363,23 @@ def test_gravity_alignment_turns_about_the_vertical_and_rejects_look_alikes_abov
     # Switched off, the up direction is ignored.
     off = ransac_alignment(case.dirs, cands, MatchConfig(gravity_alignment=False), R_prior=R_prior, up=UP)
     assert off.v_tol is None and off.placements[0].v == pytest.approx(v0 - 8.0)
+
+
+def test_gravity_alignment_merges_repeated_headings():
+    # Twenty-four matches, each with its true candidate and two look-alikes 15 px to either
+    # side: 72 single and ~2500 pair headings, most of them repeats of a few true or
+    # one-repetition-off headings. Merged on a 0.1 px grid they are a few hundred hypotheses,
+    # and the alignment is still the true one.
+    case = make_case(seed=36, n=24)
+    cands = [[Candidate(float(u), float(v), 0.85, 0.85), Candidate(float(u) + 15.0, float(v), 0.8, 0.8),
+              Candidate(float(u) - 15.0, float(v), 0.8, 0.8)] for u, v in case.truth_uv]
+    R_prior = rotated_by(case.R_target_source, 2.0, axis=-UP)
+    al = ransac_alignment(case.dirs, cands, MatchConfig(), R_prior=R_prior, up=UP)
+    n_rows = 3 * 24
+    assert al.hypotheses < (n_rows + n_rows * (n_rows - 3) // 2) // 5
+    assert all(p.status == 'matched' for p in al.placements)
+    np.testing.assert_allclose([p.u for p in al.placements], case.truth_uv[:, 0], atol=1e-6)
+    assert np.degrees(trace_angle(al.R_target_source.T @ case.R_target_source)) < 0.05
 
 
 def test_fit_parallax_recovers_a_displacement_at_a_common_depth():
