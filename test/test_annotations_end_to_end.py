@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from ar_tracking.annotate import annotate_bag
+from ar_tracking.core.annotations.landmarks import LandmarkConfig
 from ar_tracking.core.annotations.store import SqliteAnnotationStore, StoreError
 from ar_tracking.core.panorama.cylinder import CylinderGeometry
 from ar_tracking.core.rotations import quat_xyzw_to_matrix
@@ -43,7 +44,7 @@ def test_annotate_stores_every_ground_truth_anchor(authored):
     # anchor, then the support landmarks, each next to an anchor.
     with SqliteAnnotationStore(store) as s:
         lms = s.landmarks([recs[0].panorama_id])
-    assert report.landmarks == len(lms) and 24 < len(lms) <= 24 + 4 * 6
+    assert report.landmarks == len(lms) and 24 < len(lms) <= 24 + LandmarkConfig.support_count * 6
     R_enu_pano = quat_xyzw_to_matrix(recs[0].panorama_in_world_quat_xyzw)
     dirs = np.array([lm.direction for lm in lms])
     anchors = np.array([a.direction for a in recs])
@@ -52,7 +53,8 @@ def test_annotate_stores_every_ground_truth_anchor(authored):
     su, sv = geo.project(dirs[24:])
     au, av = geo.project(anchors)
     du = np.abs((su[:, None] - au[None] + 1024) % 2048 - 1024)
-    assert np.all(((du <= 40.5) & (np.abs(sv[:, None] - av[None]) <= 20.5)).any(axis=1))
+    cfg = LandmarkConfig()
+    assert np.all(((du <= cfg.support_u_px + 0.5) & (np.abs(sv[:, None] - av[None]) <= cfg.support_v_px + 0.5)).any(axis=1))
 
 
 def test_annotate_refuses_a_corrupt_store_without_touching_it(tmp_path):
