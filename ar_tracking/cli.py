@@ -88,8 +88,9 @@ def cmd_annotate(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .ros.runner import GraphRunner
+    from .ros.runner import GraphRunner, check_rate
 
+    check_rate(args.rate, lockstep=True)
     bag = Path(args.bag)
     out = Path(args.out) if args.out else Path('out') / (bag.name.split('.')[0] + '.out.mcap')
     params = list(args.params_file or [])
@@ -179,6 +180,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """Play a bag on its topics (the bag_replay node with command-line options)."""
+    from .ros.runner import check_rate
+
+    args.rate = check_rate(args.rate, lockstep=False)
     from .nodes.bag_replay import main as replay_main
 
     ros_args = ['--ros-args', '-p', f'bag_path:={args.bag}', '-p', f'rate:={float(args.rate)}',
@@ -242,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('bag')
     p.add_argument('--out', '-o', help='output bag (default out/<bag>.out.mcap)')
     p.add_argument('--rate', type=float, default=0.0,
-                   help='0 (default): lockstep, reproducible; R > 0: realtime at R x bag speed with /clock')
+                   help='0 (default): lockstep, reproducible; R > 0 (finite): realtime at R x bag speed with /clock')
     p.add_argument('--params-file', action='append', help='ROS 2 params file (repeatable; later wins)')
     p.add_argument('--no-sidecar', action='store_true', help='ignore <bag>.params.yaml next to the bag')
     p.add_argument('--nodes', nargs='+', help='only these nodes')
@@ -275,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('replay', help='publish a bag on its topics (like ros2 bag play)')
     p.add_argument('bag')
-    p.add_argument('--rate', type=float, default=1.0)
+    p.add_argument('--rate', type=float, default=1.0, help='playback speed factor, finite and > 0 (default 1)')
     p.add_argument('--start-offset', type=float, default=0.0, help='seconds to skip')
     p.add_argument('--loop', action='store_true')
     p.add_argument('--topics', nargs='+', help='only these bag topics')

@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 import itertools
 import logging
+import math
 import os
 import signal
 import threading
@@ -56,6 +57,26 @@ IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
 
 class RunError(Exception):
     """The graph cannot run on this bag: one line for the user."""
+
+
+def check_rate(rate: float, *, lockstep: bool) -> float:
+    """The playback rate as a float, or :class:`RunError` with one line saying why not.
+
+    ``run`` takes a finite rate >= 0 (0 = lockstep); ``replay`` (``lockstep=False``) a finite
+    rate > 0. ``inf`` would publish the whole bag at once and lose most outputs, ``nan``
+    compares false with everything and would slip through any range check after it.
+    """
+    try:
+        value = float(rate)
+    except (TypeError, ValueError):
+        raise RunError(f'--rate must be a number, not {rate!r}') from None
+    if not math.isfinite(value):
+        raise RunError(f'--rate must be a finite number, not {value!r}')
+    if lockstep and value < 0:
+        raise RunError(f'--rate must be >= 0 (0 = lockstep), not {value:g}')
+    if not lockstep and value <= 0:
+        raise RunError(f'--rate must be > 0, not {value:g}')
+    return value
 
 
 @dataclass
@@ -248,8 +269,7 @@ class GraphRunner:
         import rclpy
         from rclpy.context import Context
 
-        if self.rate < 0:
-            raise RunError('rate must be >= 0 (0 = lockstep)')
+        self.rate = check_rate(self.rate, lockstep=True)
         reader = BagReader(self.bag_path)
         reader.open()
         try:

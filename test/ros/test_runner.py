@@ -182,3 +182,22 @@ def test_plan_skips_nodes_without_their_required_parameters():
     assert {'imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter'} <= set(names)
     names, _ = plan_nodes(topics, params=lambda name: {'marker_map': 'markers: []'} if name == 'marker_tracker' else {})
     assert {'marker_tracker', 'visual_inertial_filter'} <= set(names)
+
+
+@pytest.mark.parametrize('rate', [float('inf'), float('nan'), -1.0])
+def test_runner_rejects_a_rate_that_is_not_finite_and_non_negative(tmp_path, rate):
+    with pytest.raises(RunError, match='--rate'):
+        GraphRunner(tmp_path / 'unused.mcap', tmp_path / 'out.mcap', rate=rate).run()
+    assert not (tmp_path / 'out.mcap').exists()
+
+
+@pytest.mark.parametrize('command, rate', [('run', 'inf'), ('run', 'nan'), ('run', '-1'),
+                                           ('replay', 'inf'), ('replay', '0'), ('replay', '-2')])
+def test_cli_bad_rate_is_one_line_and_exit_1(tmp_path, command, rate):
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)
+    args = [command, str(bag), f'--rate={rate}'] + (['-o', str(tmp_path / 'out.mcap')] if command == 'run' else [])
+    proc = run_cli(*args, timeout=60)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and '--rate' in proc.stderr
+    assert 'Traceback' not in proc.stderr
+    assert not (tmp_path / 'out.mcap').exists()
