@@ -48,13 +48,15 @@ setup(
         'matplotlib>=3.7',
         'tqdm>=4.60',
         'PyYAML>=6.0',
+        # The AHRS engine of imu_magnetometer (Laidig & Seel 2023; MIT).
+        'vqf>=2.0',
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI, for machines without a ROS install.
         'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
         'test': ['pytest>=7', 'hypothesis>=6'],
         # Peer estimators compared in `ar-tracking bench` only (never imported at runtime).
-        'bench': ['vqf>=2.0', 'imufusion>=1.2'],
+        'bench': ['imufusion>=1.2', 'ahrs>=0.3.1'],
     },
     zip_safe=True,
     maintainer='ar_tracking developers',

@@ -1,9 +1,23 @@
-"""imu_magnetometer: absolute orientation from gravity and the magnetic field (Langlotz 2011 sec. 5).
+"""imu_magnetometer: the sensor-only orientation of the IMU, a drop-in for imu_filter_madgwick.
 
 Live mode (default): subscribes ``imu/data_raw`` (sensor_msgs/Imu) and ``imu/mag``
-(sensor_msgs/MagneticField) from a driver and publishes ``imu/data`` with the orientation of
-the IMU body in the world frame (eq. 3-4), its covariance, and the calibrated rates and
-accelerations - the same topics as imu_filter_madgwick, so it drops into graphs built for it.
+(sensor_msgs/MagneticField) from a driver and publishes ``imu/data``: the orientation of the IMU
+body in the world frame with its covariance (REP-145), and the calibrated rates and
+accelerations - the same topics and the parameters users already set for imu_filter_madgwick
+(``use_mag``, ``world_frame``, ``publish_tf``, ``fixed_frame``, ``declination``, ``mag_bias_*``,
+``orientation_stddev``, ``constant_dt``).
+
+Two methods (parameter ``method``):
+
+* ``vqf`` (default): a gyro-aided AHRS (:mod:`ar_tracking.core.ahrs`, VQF with rest and
+  magnetic-disturbance handling); without a magnetometer (``use_mag: false``, or none within
+  ``max_mag_age_s``) it runs 6D and the heading covariance grows.
+* ``compass``: the per-sample tilt-compass of Langlotz 2011 eq. 3-4
+  (:mod:`ar_tracking.core.imu_orientation`), the paper's sensor-only baseline of Fig. 8.
+
+Each IMU sample is processed when it arrives, with the newest field sample that is at most
+``max_mag_age_s`` from it: no sample waits for the other stream, so a magnetometer that returns
+after a dropout releases no burst downstream.
 
 Replay mode (parameter ``bag_path``): reads those topics from a bag itself and also publishes the
 calibrated ``imu/data_raw`` and ``imu/mag``.
@@ -13,9 +27,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
-from ..core.stamp_pairing import NearestStampPairer
+from ..core.ahrs import Ahrs, AhrsConfig, AhrsError
 from ..core.imu_orientation import FieldModel, GravityFieldOrientation, ImuCalibration
 from ..io.replay import ReplayOptions, ScheduledMessage
 from ..ros.conversions import (
@@ -31,6 +46,8 @@ from ..ros.frames import WORLD_FROM_ENU, check_world_frame
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 
+METHODS = ('vqf', 'compass')
+
 
 def _length(n: int) -> Any:
     return lambda v: None if len(v) == n else f'needs {n} values, got {len(v)}'
@@ -44,43 +61,89 @@ def _matrix(v: Any) -> str | None:
     return None
 
 
+def _tf_message_class() -> Any:
+    """tf2_msgs/TFMessage when this ROS install has it (not on the pip-only path)."""
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        return None
+    return TFMessage
+
+
 class ImuMagnetometerNode(TrackingNode):
     INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu', 'imu/mag': 'sensor_msgs/msg/MagneticField'}
+    #: The magnetometer is optional (6D without it).
+    REQUIRED_INPUTS = ['imu/data_raw']
     OUTPUTS = {'imu/data': 'sensor_msgs/msg/Imu'}
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('imu_magnetometer', **kwargs)
         p = self.param
+        d = AhrsConfig()
+        self.method: str = p('method', 'vqf', 'Orientation method: vqf (gyro-aided AHRS with rest and magnetic-disturbance handling) or compass (per-sample tilt-compass, Langlotz eq. 3-4, the paper\'s sensor-only baseline)',
+                             read_only=True, validate=lambda v: None if v in METHODS else f'must be one of {", ".join(METHODS)}')
+        hard_iron = np.asarray(p('hard_iron_offset', [0.0, 0.0, 0.0], 'Hard-iron offset subtracted from the raw field, tesla', validate=_length(3)), dtype=float)
+        mag_bias = np.array([p(f'mag_bias_{axis}', 0.0, f'imu_filter_madgwick name: field bias along {axis}, tesla (added to hard_iron_offset)', min_value=-1e-3, max_value=1e-3) for axis in 'xyz'])
         calibration = ImuCalibration(
             gyro_bias=p('gyro_bias', [0.0, 0.0, 0.0], 'Gyro bias subtracted from angular_velocity, rad/s (x, y, z)', validate=_length(3)),
             accel_bias=p('accel_bias', [0.0, 0.0, 0.0], 'Accelerometer bias subtracted from linear_acceleration, m/s^2', validate=_length(3)),
-            hard_iron_offset=p('hard_iron_offset', [0.0, 0.0, 0.0], 'Hard-iron offset subtracted from the raw field, tesla', validate=_length(3)),
+            hard_iron_offset=hard_iron + mag_bias,
             soft_iron_matrix=p('soft_iron_matrix', [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], 'Soft-iron correction, row-major 3x3: field = M (raw - hard_iron_offset)', validate=_matrix),
         )
+        declination = p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north', min_value=-3.1416, max_value=3.1416)
+        declination += p('declination', 0.0, 'imu_filter_madgwick name of the declination, rad (added to declination_rad)', min_value=-3.1416, max_value=3.1416)
         model = FieldModel(
             gravity_m_s2=p('gravity_m_s2', 9.80665, 'Local gravity, m/s^2', min_value=9.7, max_value=9.9),
-            field_t=p('expected_field_t', 0.0, 'Local magnetic field strength, tesla (0: learn it online)', min_value=0.0, max_value=1e-4),
-            dip_rad=p('expected_dip_rad', 0.0, 'Local inclination of the field, rad, positive down (used when expected_field_t > 0)', min_value=-1.5708, max_value=1.5708),
-            declination_rad=p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north', min_value=-3.1416, max_value=3.1416),
-            accel_noise_m_s2=p('accel_noise_m_s2', 0.05, 'Accelerometer white noise, 1-sigma per axis, m/s^2 (covariance floor)', min_value=1e-6, max_value=10.0),
-            mag_noise_t=p('mag_noise_t', 3e-7, 'Magnetometer white noise, 1-sigma per axis, tesla (covariance floor)', min_value=1e-12, max_value=1e-4),
+            field_t=p('expected_field_t', 0.0, 'Local magnetic field strength, tesla (0: learn it online; compass method)', min_value=0.0, max_value=1e-4),
+            dip_rad=p('expected_dip_rad', 0.0, 'Local inclination of the field, rad, positive down (compass method, used when expected_field_t > 0)', min_value=-1.5708, max_value=1.5708),
+            declination_rad=declination,
+            accel_noise_m_s2=p('accel_noise_m_s2', 0.05, 'Accelerometer white noise, 1-sigma per axis, m/s^2 (compass covariance floor)', min_value=1e-6, max_value=10.0),
+            mag_noise_t=p('mag_noise_t', 3e-7, 'Magnetometer white noise, 1-sigma per axis, tesla (compass covariance floor)', min_value=1e-12, max_value=1e-4),
         )
+        self.use_mag: bool = p('use_mag', True, 'Use the magnetometer for heading (false: 6D, heading from the gyro only, arbitrary origin)', read_only=True)
+        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample (stamp difference to the IMU sample) still used; older: 6D update', min_value=0.0, max_value=10.0))
+        try:
+            config = AhrsConfig(
+                sample_period_s=p('constant_dt', 0.0, 'IMU sample period, s (imu_filter_madgwick name; 0: measured from the stamps)', min_value=0.0, max_value=1.0, read_only=True),
+                use_mag=self.use_mag,
+                max_mag_age_s=self.max_mag_age_ns * 1e-9,
+                tau_acc_s=p('tau_acc_s', d.tau_acc_s, 'VQF accelerometer time constant, s (larger: less tilt from hand acceleration, slower)', min_value=0.05, max_value=100.0, read_only=True),
+                tau_mag_s=p('tau_mag_s', d.tau_mag_s, 'VQF magnetometer time constant, s', min_value=0.05, max_value=1000.0, read_only=True),
+                mag_disturbance_rejection=p('mag_disturbance_rejection', True, 'VQF magnetic disturbance rejection (field norm/dip against a learnt reference)', read_only=True),
+                bias_estimation=p('gyro_bias_estimation', True, 'VQF gyro bias estimation at rest and in motion', read_only=True),
+                declination_rad=declination,
+                gravity_m_s2=model.gravity_m_s2,
+                constant_sigma_rad=p('orientation_stddev', 0.0, 'Constant orientation 1-sigma, rad (imu_filter_madgwick name; 0: the covariance model)', min_value=0.0, max_value=3.2),
+            )
+        except AhrsError as exc:
+            raise ValueError(str(exc)) from exc
         self.world_frame: str = p('world_frame', 'enu', 'World frame of the published orientation: enu, ned or nwu', validate=check_world_frame)
-        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Largest stamp difference between an IMU sample and the field sample paired with it, s', min_value=0.0, max_value=10.0))
         self.frame_id: str = p('frame_id', '', 'Body frame id of the output (empty: the input frame_id)')
+        self.publish_tf: bool = p('publish_tf', False, 'Also publish the orientation on /tf (fixed_frame -> body frame), like imu_filter_madgwick', read_only=True)
+        self.fixed_frame: str = p('fixed_frame', '', 'Parent frame of the published TF (empty: the world_frame name)') or self.world_frame
         reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
         bag_path: str = p('bag_path', '', 'Replay mode: read imu/data_raw and imu/mag from this bag instead of subscribing', read_only=True)
         rate = p('rate', 1.0, 'Replay mode: playback rate factor (0: as fast as possible)', min_value=0.0, max_value=1000.0, read_only=True)
         loop = p('loop', False, 'Replay mode: play the bag again when it ends', read_only=True)
 
-        self.core = GravityFieldOrientation(calibration, model)
+        self.calibration = calibration
+        self.ahrs = Ahrs(config, calibration) if self.method == 'vqf' else None
+        self.compass = GravityFieldOrientation(calibration, model) if self.method == 'compass' else None
         self.R_world_enu = WORLD_FROM_ENU[self.world_frame]
         self.imu_guard = StampGuard(reset_s)
         self.mag_guard = StampGuard(reset_s)
-        self.pairer: NearestStampPairer[tuple[np.ndarray, Imu], np.ndarray] = NearestStampPairer(self.max_mag_age_ns)
+        self.mag_raw: np.ndarray | None = None
+        self.mag_ns: int | None = None
         self.published = 0
 
         self.pub_data = self.advertise(Imu, 'imu/data', RELIABLE_QOS)
+        self.pub_tf = None
+        if self.publish_tf:
+            tf_type = _tf_message_class()
+            if tf_type is None:
+                self.get_logger().warning('publish_tf: tf2_msgs is not installed here (pip-only ROS); no TF is published')
+            else:
+                self.pub_tf = self.advertise(tf_type, '/tf', RELIABLE_QOS)
         self.player = None
         if bag_path:
             self.pub_raw = self.advertise(Imu, 'imu/data_raw', RELIABLE_QOS)
@@ -90,7 +153,8 @@ class ImuMagnetometerNode(TrackingNode):
             self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
             self.subscribe(MagneticField, 'imu/mag', self.on_mag, SENSOR_QOS)
         self.get_logger().info(
-            f'imu_magnetometer: {"replaying " + bag_path if bag_path else "listening on imu/data_raw, imu/mag"}'
+            f'imu_magnetometer ({self.method}{"" if self.use_mag else ", 6D"}): '
+            f'{"replaying " + bag_path if bag_path else "listening on imu/data_raw, imu/mag"}'
             f', world frame {self.world_frame}'
         )
 
@@ -127,8 +191,6 @@ class ImuMagnetometerNode(TrackingNode):
             else:
                 self.get_logger().info(f'replay of {path} finished ({self.published} orientations)')
 
-        from ..ros.player import BagPlayer
-
         self.player = BagPlayer(path, options, on_message, on_done)
         self.player.start()
 
@@ -138,21 +200,28 @@ class ImuMagnetometerNode(TrackingNode):
 
     # -- callbacks -------------------------------------------------------------------------
 
+    def _reset(self) -> None:
+        if self.ahrs is not None:
+            self.ahrs.reset()
+        if self.compass is not None:
+            self.compass.reset()
+        self.mag_raw = None
+        self.mag_ns = None
+
     def _stamp_ok(self, guard: StampGuard, msg: Any, what: str) -> bool:
         verdict = guard.check(stamp_ns(msg.header))
         if verdict is StampVerdict.OK:
             return True
         if verdict is StampVerdict.RESET:
             self.get_logger().warning(f'{what}: {verdict.value} (bag loop?), starting over')
-            self.core.reset()
-            self.pairer.reset()
+            self._reset()
             (self.mag_guard if guard is self.imu_guard else self.imu_guard).reset()
             return True
         self.warn_throttled(f'{what}: {verdict.value}, message dropped')
         return False
 
     def on_mag(self, msg: MagneticField) -> MagneticField | None:
-        """Store the calibrated field for pairing; returns the calibrated message (replay mode)."""
+        """Keep the newest raw field sample; returns the calibrated message (replay mode)."""
         try:
             raw = finite_vector3(msg.magnetic_field, 'imu/mag field')
         except ConversionError as exc:
@@ -160,11 +229,11 @@ class ImuMagnetometerNode(TrackingNode):
             return None
         if not self._stamp_ok(self.mag_guard, msg, 'imu/mag'):
             return None
-        for _, (accel, calibrated), mag in self.pairer.add_secondary(stamp_ns(msg.header), raw):
-            self._emit(accel, calibrated, mag)
+        self.mag_raw = raw
+        self.mag_ns = stamp_ns(msg.header)
         out = MagneticField()
         out.header = msg.header
-        set_vector3(out.magnetic_field, self.core.calibration.mag(raw))
+        set_vector3(out.magnetic_field, self.calibration.mag(raw))
         out.magnetic_field_covariance = msg.magnetic_field_covariance
         return out
 
@@ -184,40 +253,63 @@ class ImuMagnetometerNode(TrackingNode):
         calibrated.header = msg.header
         if self.frame_id:
             calibrated.header.frame_id = self.frame_id
-        set_vector3(calibrated.angular_velocity, self.core.calibration.gyro(gyro))
-        set_vector3(calibrated.linear_acceleration, self.core.calibration.accel(accel))
+        set_vector3(calibrated.angular_velocity, self.calibration.gyro(gyro))
+        set_vector3(calibrated.linear_acceleration, self.calibration.accel(accel))
         calibrated.angular_velocity_covariance = msg.angular_velocity_covariance
         calibrated.linear_acceleration_covariance = msg.linear_acceleration_covariance
         set_covariance(calibrated.orientation_covariance, None)
-
-        # Pair with the field sample nearest in stamp, whatever order the two streams arrive in.
-        for _, (sample_accel, sample_msg), mag in self.pairer.add_primary(stamp_ns(msg.header), (accel, calibrated)):
-            self._emit(sample_accel, sample_msg, mag)
+        t_ns = stamp_ns(msg.header)
+        mag = None
+        if self.use_mag and self.mag_ns is not None and abs(t_ns - self.mag_ns) <= self.max_mag_age_ns:
+            mag = self.mag_raw
+        if self.ahrs is not None:
+            est = self.ahrs.update(t_ns, gyro, accel, mag, self.mag_ns)
+            if isinstance(est, str):
+                self.warn_throttled(f'imu/data_raw: {est}, message dropped')
+            elif est is not None:
+                if self.use_mag and not est.mag_used:
+                    self.warn_throttled('magnetometer missing, stale or disturbed: heading from the gyro, its covariance growing', 30.0)
+                self._publish(calibrated, est.R_enu_body, est.covariance)
+        else:
+            self._emit_compass(accel, calibrated, mag)
         return calibrated
 
-    def _emit(self, accel: np.ndarray, calibrated: Imu, mag: np.ndarray | None) -> None:
-        """Publish imu/data for one IMU sample and its paired raw field sample."""
+    def _emit_compass(self, accel: np.ndarray, calibrated: Imu, mag: np.ndarray | None) -> None:
+        """Eq. 3-4 for one IMU sample and the field sample paired with it."""
         if mag is None:
             self.warn_throttled(
                 f'no magnetometer sample within {self.max_mag_age_ns * 1e-9:.3g} s of the IMU; '
                 'imu/data not published'
             )
             return
-        estimate = self.core.estimate(accel, mag)
+        assert self.compass is not None
+        estimate = self.compass.estimate(accel, mag)
         if estimate is None:
             self.warn_throttled('gravity and field do not define an orientation (zero or parallel); skipped')
             return
+        self._publish(calibrated, estimate.R_enu_body, estimate.covariance)
+
+    def _publish(self, calibrated: Imu, R_enu_body: np.ndarray, cov_enu: np.ndarray) -> None:
         out = Imu()
         out.header = calibrated.header
         out.angular_velocity = calibrated.angular_velocity
         out.linear_acceleration = calibrated.linear_acceleration
         out.angular_velocity_covariance = calibrated.angular_velocity_covariance
         out.linear_acceleration_covariance = calibrated.linear_acceleration_covariance
-        R = self.R_world_enu @ estimate.R_enu_body
+        R = self.R_world_enu @ R_enu_body
         set_quaternion(out.orientation, R)
-        set_covariance(out.orientation_covariance, self.R_world_enu @ estimate.covariance @ self.R_world_enu.T)
+        set_covariance(out.orientation_covariance, self.R_world_enu @ cov_enu @ self.R_world_enu.T)
         self.pub_data.publish(out)
         self.published += 1
+        if self.pub_tf is not None:
+            tf = TransformStamped()
+            tf.header.stamp = out.header.stamp
+            tf.header.frame_id = self.fixed_frame
+            tf.child_frame_id = out.header.frame_id or 'imu'
+            tf.transform.rotation = out.orientation
+            msg = self.pub_tf.msg_type()
+            msg.transforms = [tf]
+            self.pub_tf.publish(msg)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -12,7 +12,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Imu, MagneticField  # noqa: E402
 
-from ar_tracking.core.rotations import rot_z  # noqa: E402
+from ar_tracking.core.rotations import rot_z, so3_log  # noqa: E402
 from ar_tracking.nodes.imu_magnetometer import ImuMagnetometerNode  # noqa: E402
 from ar_tracking.ros.conversions import quat_xyzw, rotation_from_quaternion, to_stamp  # noqa: E402
 from conftest import spin_until  # noqa: E402
@@ -68,14 +68,14 @@ def sample(R_enu_imu, field_enu=FIELD_ENU):
     return R_enu_imu.T @ np.array([0.0, 0.0, G]), R_enu_imu.T @ field_enu
 
 
-def test_orientation_matches_eq_3_4_and_pairs_by_stamp(ros_context):
-    h = Harness(ros_context)
+def test_compass_method_is_eq_3_4_with_the_newest_field_sample(ros_context):
+    h = Harness(ros_context, {'method': 'compass'})
     try:
         truths = []
         for i in range(6):
             R = rot_z(0.3 * i) @ np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # upright phone
             truths.append(R)
-            h.send(T0 + i * 10_000_000, *sample(R), mag_first=(i % 2 == 0))
+            h.send(T0 + i * 10_000_000, *sample(R), mag_first=True)
         assert h.wait(6)
         for msg, R in zip(h.out, truths):
             est = rotation_from_quaternion(msg.orientation)
@@ -89,12 +89,83 @@ def test_orientation_matches_eq_3_4_and_pairs_by_stamp(ros_context):
         h.close()
 
 
+def _turning(h, n, rate_rad_s=0.5, field_for=lambda i: FIELD_ENU, mag_every=1, t0=T0):
+    """n samples of an upright phone turning about up at a constant rate (gyro consistent)."""
+    R0 = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    truths = []
+    for i in range(n):
+        R = rot_z(rate_rad_s * i * 0.01) @ R0
+        truths.append(R)
+        f_enu = field_for(i)
+        accel, field = sample(R), (None if f_enu is None else R.T @ f_enu)
+        accel = accel[0]
+        gyro = R.T @ np.array([0.0, 0.0, rate_rad_s])
+        imu = Imu()
+        imu.header.stamp = to_stamp(t0 + i * 10_000_000)
+        imu.header.frame_id = 'imu'
+        imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z = map(float, gyro)
+        imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z = map(float, accel)
+        if i % mag_every == 0 and field is not None:
+            mag = MagneticField()
+            mag.header = imu.header
+            mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z = map(float, field)
+            h.pub_mag.publish(mag)
+            spin_until(h.ex, lambda: False, 0.005)
+        h.pub_imu.publish(imu)
+        spin_until(h.ex, lambda: len(h.out) >= i + 1, 0.5)
+    return truths
+
+
+def test_vqf_method_tracks_a_turning_phone_with_the_gyro(ros_context):
+    h = Harness(ros_context, {'constant_dt': 0.01})
+    try:
+        truths = _turning(h, 150)
+        assert h.wait(150)
+        err = [np.degrees(np.linalg.norm(so3_log(rotation_from_quaternion(m.orientation).T @ R)))
+               for m, R in zip(h.out, truths)]
+        assert max(err) < 1.0  # the first field sample sets the heading, the gyro carries it
+        cov = np.array(h.out[-1].orientation_covariance).reshape(3, 3)
+        assert 0 < cov[0, 0] < cov[2, 2] < 0.1
+    finally:
+        h.close()
+
+
+def test_without_magnetometer_runs_6d_with_growing_heading_covariance(ros_context):
+    h = Harness(ros_context, {'constant_dt': 0.01, 'use_mag': False})
+    try:
+        truths = _turning(h, 120, field_for=lambda i: None)
+        assert h.wait(120)
+        tilt = [np.degrees(math.acos(np.clip((rotation_from_quaternion(m.orientation) @ [0, 0, 1]) @ (R @ [0, 0, 1]), -1, 1)))
+                for m, R in zip(h.out, truths)]
+        assert max(tilt) < 0.5
+        heading_var = [m.orientation_covariance[8] for m in h.out]
+        assert heading_var[-1] > heading_var[10] > 0
+    finally:
+        h.close()
+
+
+def test_magnetometer_dropout_neither_stalls_nor_floods(ros_context):
+    """IMU samples are published one for one while the field is missing (6D, heading variance
+    growing) and when it comes back: nothing is held back and released as a burst."""
+    h = Harness(ros_context, {'constant_dt': 0.01})
+    try:
+        _turning(h, 200, field_for=lambda i: None if 60 <= i < 140 else FIELD_ENU)
+        assert h.wait(200)
+        spin_until(h.ex, lambda: False, 0.2)
+        assert len(h.out) == 200
+        var = [m.orientation_covariance[8] for m in h.out]
+        assert var[135] > var[100] > var[75]  # grows while the field is missing (older than max_mag_age_s)
+        assert var[199] < var[139]  # and shrinks once it is back
+    finally:
+        h.close()
+
+
 def test_world_frame_ned_and_declination(ros_context):
     decl = math.radians(10.0)
-    h = Harness(ros_context, {'world_frame': 'ned', 'declination_rad': decl})
+    h = Harness(ros_context, {'world_frame': 'ned', 'declination_rad': decl, 'method': 'compass'})
     try:
         R = np.eye(3)  # body axes = magnetic ENU axes
-        h.send(T0, *sample(R))
+        h.send(T0, *sample(R), mag_first=True)
         assert h.wait(1)
         R_ned_body = rotation_from_quaternion(h.out[0].orientation)
         # body y axis points to magnetic north = 10 deg east of true north: in NED (x north, y east)
@@ -105,13 +176,27 @@ def test_world_frame_ned_and_declination(ros_context):
         h.close()
 
 
+def test_madgwick_declination_and_mag_bias_names_are_honoured(ros_context):
+    bias = np.array([3e-6, -2e-6, 1e-6])
+    h = Harness(ros_context, {'method': 'compass', 'declination': math.radians(10.0),
+                              'mag_bias_x': bias[0], 'mag_bias_y': bias[1], 'mag_bias_z': bias[2]})
+    try:
+        accel, field = sample(np.eye(3))
+        h.send(T0, accel, field + bias, mag_first=True)
+        assert h.wait(1)
+        y_axis = rotation_from_quaternion(h.out[0].orientation)[:, 1]
+        assert math.degrees(math.atan2(y_axis[0], y_axis[1])) == pytest.approx(10.0, abs=1e-6)
+    finally:
+        h.close()
+
+
 def test_covariance_rises_under_magnetic_disturbance(ros_context):
-    h = Harness(ros_context, {'expected_field_t': 48e-6, 'expected_dip_rad': math.radians(64)})
+    h = Harness(ros_context, {'expected_field_t': 48e-6, 'expected_dip_rad': math.radians(64), 'method': 'compass'})
     try:
         R = np.eye(3)
-        h.send(T0, *sample(R))
+        h.send(T0, *sample(R), mag_first=True)
         disturbed = FIELD_ENU + np.array([8e-6, 0.0, 0.0])
-        h.send(T0 + 10_000_000, *sample(R, disturbed))
+        h.send(T0 + 10_000_000, *sample(R, disturbed), mag_first=True)
         assert h.wait(2)
         clean, bad = (np.array(m.orientation_covariance) for m in h.out)
         assert bad[8] > 4 * clean[8]  # heading variance
@@ -121,11 +206,11 @@ def test_covariance_rises_under_magnetic_disturbance(ros_context):
 
 @pytest.mark.parametrize('fault', ['nan_accel', 'inf_field', 'zero_field', 'zero_accel', 'older_stamp', 'zero_stamp'])
 def test_bad_messages_are_skipped_and_node_keeps_running(ros_context, fault, capfd):
-    h = Harness(ros_context)
+    h = Harness(ros_context, {'constant_dt': 0.01})
     try:
         R = np.eye(3)
         accel, field = sample(R)
-        h.send(T0 + 100_000_000, accel, field)
+        h.send(T0 + 100_000_000, accel, field, mag_first=True)
         assert h.wait(1)
         bad_accel, bad_field, t_bad = accel.copy(), field.copy(), T0 + 110_000_000
         if fault == 'nan_accel':
@@ -140,8 +225,8 @@ def test_bad_messages_are_skipped_and_node_keeps_running(ros_context, fault, cap
             t_bad = T0 + 50_000_000
         elif fault == 'zero_stamp':
             t_bad = 0
-        h.send(t_bad, bad_accel, bad_field)
-        h.send(T0 + 120_000_000, accel, field)
+        h.send(t_bad, bad_accel, bad_field, mag_first=True)
+        h.send(T0 + 120_000_000, accel, field, mag_first=True)
         # A bad field sample is dropped and the IMU sample pairs with a good one 10 ms away;
         # a bad IMU sample (or stamp) produces no output at all.
         expected = 3 if fault.endswith('_field') else 2
@@ -160,7 +245,7 @@ def test_bad_messages_are_skipped_and_node_keeps_running(ros_context, fault, cap
 
 
 def test_clock_jump_back_resets_and_goes_on(ros_context, capfd):
-    h = Harness(ros_context)
+    h = Harness(ros_context, {'constant_dt': 0.01})
     try:
         accel, field = sample(np.eye(3))
         for i in range(3):
