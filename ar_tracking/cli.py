@@ -131,6 +131,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from .eval.report import write_report
 
     metrics = evaluate_all(args.bag)
+    recovered = _recovered_line(Path(args.bag))
+    if recovered:
+        print(recovered, file=sys.stderr if args.json else sys.stdout)
     if args.json:
         print(json.dumps(metrics, indent=None if args.compact else 2, sort_keys=True))
         if not args.report:
@@ -141,6 +144,18 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         _print_metrics(metrics)
         print(f'report: {written}')
     return 0
+
+
+def _recovered_line(bag: Path) -> str | None:
+    """One line when the bag is an unfinished MCAP that was recovered (its writer was killed):
+    the metrics then cover only what reached the file."""
+    from .io.bags import is_unfinished_mcap, scan_unfinished_mcap
+
+    if not is_unfinished_mcap(bag):
+        return None
+    rec = scan_unfinished_mcap(bag)  # cached: the evaluation already scanned it
+    return (f'{bag}: recovered from an unfinished MCAP (the writer was killed): scored its '
+            f'{rec.message_count} complete messages, {(rec.end_ns - rec.start_ns) * 1e-9:.1f} s of bag time')
 
 
 def _print_metrics(metrics: dict[str, Any]) -> None:

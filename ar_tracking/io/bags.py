@@ -13,7 +13,10 @@ says which file and what is wrong; the CLI prints that line and exits non-zero.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import os
+import threading
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Literal
 
@@ -63,6 +66,151 @@ def deserialize(rawdata: bytes, msgtype: str) -> Any:
         raise BagError(f'cannot decode a {msgtype} message: {exc}') from exc
 
 
+#: The 8 bytes an MCAP file starts and (when its writer finished it) ends with.
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+
+
+def is_unfinished_mcap(path: str | Path) -> bool:
+    """True for a single ``.mcap`` file that starts like an MCAP but lacks the end magic: its
+    writer was killed (SIGKILL, out of memory, power loss) before writing the summary, so
+    index-based readers (rosbags, ``mcap.reader.make_reader`` over a seekable file) refuse it.
+    """
+    path = Path(path)
+    try:
+        if not path.is_file() or path.stat().st_size < 2 * len(MCAP_MAGIC):
+            return False
+        with open(path, 'rb') as f:
+            head = f.read(len(MCAP_MAGIC))
+            f.seek(-len(MCAP_MAGIC), os.SEEK_END)
+            tail = f.read(len(MCAP_MAGIC))
+    except OSError:
+        return False
+    return head == MCAP_MAGIC and tail != MCAP_MAGIC
+
+
+class _ExactReads:
+    """A file wrapper whose ``read(n)`` returns n bytes or raises EOFError, so that the mcap
+    stream reader stops at a record cut by the truncation instead of parsing a short read."""
+
+    def __init__(self, f: Any) -> None:
+        self._f = f
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._f.read(n)
+        if n is not None and n > 0 and len(data) < n:
+            raise EOFError('end of an unfinished MCAP')
+        return data
+
+
+@dataclass
+class RecoveredMcap:
+    """What a streaming read finds in an unfinished MCAP: every complete chunk's channels,
+    schemas and message counts, and the metadata records (see :func:`scan_unfinished_mcap`)."""
+
+    path: Path
+    #: channel id -> (topic, message type)
+    channels: dict[int, tuple[str, str]] = field(default_factory=dict)
+    #: channel id -> number of recoverable messages
+    counts: dict[int, int] = field(default_factory=dict)
+    start_ns: int = 0
+    end_ns: int = 0
+    #: True when the file holds the messages in non-decreasing log time (then reading streams).
+    ordered: bool = True
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    #: bytes of the file after the last complete record (what the kill cut off mid-write)
+    lost_tail_bytes: int = 0
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.counts.values())
+
+    def records(self) -> Iterator[Any]:
+        """The records of the complete part of the file, in file order (chunks opened, their
+        CRCs checked: a chunk cut by the kill yields nothing)."""
+        from mcap.stream_reader import StreamReader
+
+        with open(self.path, 'rb') as f:
+            reader = StreamReader(_ExactReads(f), validate_crcs=True)  # type: ignore[arg-type]
+            try:
+                yield from reader.records
+            except Exception as exc:  # the truncation (EOF, bad CRC, cut zstd frame)
+                logger.debug('%s: stream read stops: %s', self.path, exc)
+
+
+#: Scans of unfinished MCAPs by (path, size, mtime): evaluate opens one bag many times.
+_recovered_cache: dict[tuple[str, int, int], RecoveredMcap] = {}
+_recovered_lock = threading.Lock()
+
+
+def scan_unfinished_mcap(path: str | Path) -> RecoveredMcap:
+    """Stream through an unfinished MCAP and index what can be recovered.
+
+    Logs one warning per file (per process): 'recovered N messages from an unfinished MCAP (the
+    writer was killed)'. Raises :class:`BagError` when not one complete message is left.
+    """
+    from mcap.records import Channel, Chunk, Message, Metadata, Schema
+
+    path = Path(path)
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    with _recovered_lock:
+        cached = _recovered_cache.get(key)
+    if cached is not None:
+        return cached
+    rec = RecoveredMcap(path)
+    schemas: dict[int, str] = {}
+    pending_channels: dict[int, Any] = {}
+    last_time = None
+    end_of_good = 0
+    from mcap.stream_reader import StreamReader
+
+    with open(path, 'rb') as f:
+        reader = StreamReader(_ExactReads(f), validate_crcs=True, emit_chunks=True)  # type: ignore[arg-type]
+        from mcap.stream_reader import breakup_chunk
+
+        try:
+            for record in reader.records:
+                inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
+                for r in inner:
+                    if isinstance(r, Schema):
+                        schemas[r.id] = r.name
+                    elif isinstance(r, Channel):
+                        pending_channels[r.id] = r
+                    elif isinstance(r, Message):
+                        if r.channel_id not in rec.channels:
+                            ch = pending_channels.get(r.channel_id)
+                            if ch is None or ch.schema_id not in schemas:
+                                continue  # a message whose channel was lost: nothing to decode it with
+                            rec.channels[r.channel_id] = (ch.topic, schemas[ch.schema_id])
+                        t = int(r.log_time)
+                        rec.counts[r.channel_id] = rec.counts.get(r.channel_id, 0) + 1
+                        if last_time is None:
+                            rec.start_ns = rec.end_ns = t
+                        else:
+                            rec.ordered = rec.ordered and t >= last_time
+                            rec.start_ns = min(rec.start_ns, t)
+                            rec.end_ns = max(rec.end_ns, t)
+                        last_time = t
+                    elif isinstance(r, Metadata):
+                        rec.metadata[r.name] = dict(r.metadata)
+                end_of_good = f.tell()
+        except Exception as exc:  # the truncation: EOF inside a record, a cut chunk
+            logger.debug('%s: stream read stops after %d bytes: %s', path, end_of_good, exc)
+    rec.lost_tail_bytes = max(0, st.st_size - end_of_good)
+    if rec.message_count == 0:
+        raise BagError(
+            f'{path}: not a readable bag (an unfinished MCAP without one complete chunk: '
+            'its writer was killed before the first flush)'
+        )
+    logger.warning(
+        'recovered %d messages from an unfinished MCAP (the writer was killed): %s',
+        rec.message_count, path,
+    )
+    with _recovered_lock:
+        _recovered_cache[key] = rec
+    return rec
+
+
 class BagReader:
     """Sequential reader of any bag that rosbags understands.
 
@@ -76,6 +224,8 @@ class BagReader:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._reader: Any = None
+        #: Set when the bag is an unfinished MCAP read by streaming (see :attr:`recovered`).
+        self._recovered: RecoveredMcap | None = None
 
     def __enter__(self) -> 'BagReader':
         self.open()
@@ -90,6 +240,15 @@ class BagReader:
 
         if not self.path.exists():
             raise BagError(f'{self.path}: no such bag')
+        if is_unfinished_mcap(self.path):
+            try:
+                self._recovered = scan_unfinished_mcap(self.path)
+            except BagError:
+                raise
+            except Exception as exc:
+                raise BagError(f'{self.path}: not a readable bag ({_reason(exc)})') from exc
+            self._reader = self._recovered
+            return
         try:
             reader = AnyReader([self.path], default_typestore=TYPESTORE)
             reader.open()
@@ -98,11 +257,20 @@ class BagReader:
         self._reader = reader
 
     def close(self) -> None:
+        if self._recovered is not None:
+            self._recovered = self._reader = None
+            return
         if self._reader is not None:
             try:
                 self._reader.close()
             finally:
                 self._reader = None
+
+    @property
+    def recovered(self) -> RecoveredMcap | None:
+        """The streaming scan when this bag is an unfinished MCAP (its writer was killed), else
+        None: its messages are those of the complete chunks."""
+        return self._recovered
 
     @property
     def _r(self) -> Any:
@@ -113,21 +281,30 @@ class BagReader:
     @property
     def topics(self) -> dict[str, str]:
         """Topic name -> message type, for every topic in the bag."""
+        if self._recovered is not None:
+            return {topic: msgtype for topic, msgtype in self._recovered.channels.values()}
         return {name: info.msgtype for name, info in self._r.topics.items() if info.msgtype}
 
     def message_count(self, topics: Iterable[str] | None = None) -> int:
         """Number of messages on the given topics (all topics when None)."""
         wanted = None if topics is None else set(topics)
+        rec = self._recovered
+        if rec is not None:
+            return sum(n for cid, n in rec.counts.items() if wanted is None or rec.channels[cid][0] in wanted)
         return sum(
             c.msgcount for c in self._r.connections if wanted is None or c.topic in wanted
         )
 
     @property
     def start_ns(self) -> int:
+        if self._recovered is not None:
+            return self._recovered.start_ns
         return int(self._r.start_time)
 
     @property
     def end_ns(self) -> int:
+        if self._recovered is not None:
+            return self._recovered.end_ns
         return int(self._r.end_time)
 
     @property
@@ -146,6 +323,9 @@ class BagReader:
         after the messages that could be read.
         """
         wanted = None if topics is None else set(topics)
+        if self._recovered is not None:
+            yield from self._recovered_messages(wanted, start_ns, stop_ns)
+            return
         conns = [c for c in self._r.connections if wanted is None or c.topic in wanted]
         if not conns:
             return
@@ -176,6 +356,27 @@ class BagReader:
                 f'{self.path}: bag is damaged (only {count} of {expected} messages readable)'
             )
 
+    def _recovered_messages(
+        self, wanted: set[str] | None, start_ns: int | None, stop_ns: int | None
+    ) -> Iterator[BagMessage]:
+        """The complete messages of an unfinished MCAP, streamed (sorted in memory only if the
+        writer did not write them in log-time order). ``stop_ns`` is exclusive, like rosbags."""
+        from mcap.records import Message
+
+        rec = self._r
+        ids = {cid for cid, (topic, _) in rec.channels.items() if wanted is None or topic in wanted}
+        if not ids:
+            return
+        out: Iterator[BagMessage] = (
+            BagMessage(rec.channels[r.channel_id][0], rec.channels[r.channel_id][1], int(r.log_time), bytes(r.data))
+            for r in rec.records()
+            if isinstance(r, Message) and r.channel_id in ids
+            and (start_ns is None or r.log_time >= start_ns) and (stop_ns is None or r.log_time < stop_ns)
+        )
+        if not rec.ordered:
+            out = iter(sorted(out, key=lambda m: m.log_time_ns))
+        yield from out
+
     def deserialize(self, message: BagMessage) -> Any:
         """Decode a message into a rosbags message object."""
         return deserialize(message.rawdata, message.msgtype)
@@ -196,6 +397,13 @@ class BagWriter:
     Topics are declared on first use from the message type; messages may be rosbags message
     objects or raw CDR bytes. The bag is always finalised by ``close`` (also on an exception
     inside the ``with`` block), so what was written stays readable.
+
+    A process that is killed (SIGKILL, out of memory) never reaches ``close``: an MCAP then lacks
+    its summary, and :class:`BagReader` recovers the chunks that reached the file. With
+    ``flush_every_s`` the MCAP writer closes its chunk and flushes the file whenever the log
+    time has advanced that far since the last flush, so at most that much bag time is at risk.
+    The flush points depend only on the log times (not on the wall clock), so two writes of the
+    same messages still give identical files.
     """
 
     def __init__(
@@ -203,6 +411,9 @@ class BagWriter:
         path: str | Path,
         storage: StorageFormat | None = None,
         overwrite: bool = False,
+        *,
+        flush_every_s: float | None = None,
+        chunk_size: int = 1024 * 1024,
     ) -> None:
         self.path = Path(path)
         if storage is None:
@@ -217,6 +428,9 @@ class BagWriter:
         self._impl: Any = None
         self._file: Any = None
         self._count = 0
+        self.chunk_size = int(chunk_size)
+        self._flush_every_ns = None if flush_every_s is None else int(flush_every_s * 1e9)
+        self._last_flush_ns: int | None = None
 
     def __enter__(self) -> 'BagWriter':
         self.open()
@@ -248,7 +462,7 @@ class BagWriter:
                 if target.suffix != '.mcap':
                     target = self.path = target.with_suffix('.mcap')
                 self._file = open(target, 'wb')
-                self._impl = Writer(self._file, compression=CompressionType.ZSTD)
+                self._impl = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=self.chunk_size)
                 self._impl.start(profile='ros2', library='ar_tracking')
             else:
                 from rosbags.rosbag2 import StoragePlugin, Writer as Rosbag2Writer
@@ -307,9 +521,26 @@ class BagWriter:
                 publish_time=log_time_ns,
                 sequence=self._count & 0xFFFFFFFF,
             )
+            if self._flush_every_ns is not None:
+                if self._last_flush_ns is None:
+                    self._last_flush_ns = log_time_ns
+                elif log_time_ns - self._last_flush_ns >= self._flush_every_ns:
+                    self.flush()
+                    self._last_flush_ns = log_time_ns
         else:
             self._impl.write(channel, log_time_ns, rawdata)
         self._count += 1
+
+    def flush(self) -> None:
+        """Close the MCAP chunk in progress and flush the file to the OS (so that a kill of
+        this process loses nothing written so far); a no-op for sqlite3."""
+        if self._impl is None:
+            raise BagError(f'{self.path}: bag is not open for writing')
+        if self.storage == 'mcap':
+            try:
+                self._impl.flush()
+            except Exception as exc:
+                raise BagError(f'{self.path}: cannot flush bag ({_reason(exc)})') from exc
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Attach a named string map to the bag (MCAP metadata record; ignored for sqlite3).
@@ -356,6 +587,12 @@ def read_metadata(path: str | Path, name: str) -> dict[str, str] | None:
     path = Path(path)
     if path.suffix != '.mcap' or not path.is_file():
         return None
+    if is_unfinished_mcap(path):
+        try:
+            return scan_unfinished_mcap(path).metadata.get(name)
+        except BagError as exc:
+            logger.debug('%s: no metadata (%s)', path, exc)
+            return None
     try:
         from mcap.reader import make_reader
 

@@ -12,7 +12,10 @@ Two clocks (DESIGN sec. 4):
 
 Inputs the evaluation needs (ground truth, static transforms, the non-image sensor topics) are
 copied into the output bag; images only on request. The output bag is closed cleanly on every
-exit path, Ctrl-C included, with everything processed so far.
+exit path, Ctrl-C included, with everything processed so far. A kill that no handler sees
+(SIGKILL, out of memory) leaves an MCAP without its summary: the writer flushes a chunk every
+``flush_every_s`` of bag time, and :class:`~ar_tracking.io.bags.BagReader` recovers what reached
+the file.
 """
 from __future__ import annotations
 
@@ -236,8 +239,11 @@ class GraphRunner:
         step_timeout_s: float = 10.0,
         max_messages: int | None = None,
         graph: dict[str, Any] | None = None,
+        flush_every_s: float = 0.5,
     ) -> None:
         self.bag_path = Path(bag)
+        #: The output MCAP closes a chunk every this much bag time (what a kill can lose).
+        self.flush_every_s = flush_every_s
         self.out_path = Path(out)
         self.params_files = list(params_files or [])
         self.only_nodes = nodes
@@ -343,7 +349,8 @@ class GraphRunner:
                 and (self.copy_images or ty not in IMAGE_TYPES)
                 and t not in output_types
             }
-            writer = BagWriter(self.out_path, storage=self.storage, overwrite=True)  # type: ignore[arg-type]
+            writer = BagWriter(self.out_path, storage=self.storage, overwrite=True,  # type: ignore[arg-type]
+                               flush_every_s=self.flush_every_s)
             writer.open()
             writer.add_metadata(RUN_METADATA, {
                 'source_bag': str(self.bag_path.resolve()), 'nodes': ','.join(names),

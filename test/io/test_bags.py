@@ -254,8 +254,9 @@ def read_everything(path: Path) -> int:
     return count
 
 
-@pytest.mark.parametrize('fraction', [0.5, 0.1, 0.9, 0.999])
+@pytest.mark.parametrize('fraction', [0.5, 0.1, 0.3])
 def test_truncated_mcap(tmp_path, fraction):
+    """Cut inside the only chunk: not one complete message is left, so the bag is unreadable."""
     whole = write_sample_bag(tmp_path / 'whole.mcap')
     data = whole.read_bytes()
     path = tmp_path / 'cut.mcap'
@@ -420,3 +421,85 @@ def test_failing_finalisation_is_a_bag_error(tmp_path, monkeypatch, storage, nam
     writer.close()  # a second close is a no-op
     if storage == 'mcap':
         assert writer._file is None  # the file handle was released all the same
+
+
+def test_unfinished_mcap_of_one_complete_chunk_is_recovered_in_time_order(tmp_path, caplog):
+    """Cut after the (only) chunk, inside the summary: every message is recovered, merged into
+    log-time order although the writer wrote them topic by topic."""
+    whole = write_sample_bag(tmp_path / 'whole.mcap')
+    data = whole.read_bytes()
+    path = tmp_path / 'cut.mcap'
+    path.write_bytes(data[: int(len(data) * 0.999)])
+    with caplog.at_level('WARNING', logger='ar_tracking.io.bags'):
+        with BagReader(path) as bag:
+            assert bag.recovered is not None
+            total = len(IMU_TIMES) + len(IMAGE_TIMES) + len(TEXT_TIMES)
+            assert bag.message_count() == total
+            assert bag.topics == {'/imu/data_raw': 'sensor_msgs/msg/Imu',
+                                  '/camera/image_raw': 'sensor_msgs/msg/Image', '/notes': 'std_msgs/msg/String'}
+            times = [m.log_time_ns for m in bag.messages()]
+            assert times == sorted(IMU_TIMES + IMAGE_TIMES + TEXT_TIMES)
+            assert [m.log_time_ns for m in bag.messages(['/imu/data_raw'])] == IMU_TIMES
+            assert bag.start_ns == min(times) and bag.end_ns == max(times)
+    recovered = [r.getMessage() for r in caplog.records if 'unfinished MCAP' in r.getMessage()]
+    assert len(recovered) == 1 and recovered[0].startswith(f'recovered {total} messages from an unfinished MCAP')
+
+
+def _write_with_flush_points(path: Path, seconds: float = 3.0, flush_every_s: float = 0.1):
+    """100 Hz IMU through BagWriter with a periodic flush; returns the messages written and the
+    (bytes on disk, messages written) after each flush: what a kill at that moment leaves."""
+    points: list[tuple[int, int]] = []
+    times = [T0 + i * 10 * MS for i in range(int(seconds * 100))]
+    with BagWriter(path, flush_every_s=flush_every_s, chunk_size=1 << 30) as writer:
+        for i, t in enumerate(times):
+            writer.write('/imu/data_raw', t, imu(i, t))
+            size = path.stat().st_size
+            if size > (points[-1][0] if points else 0):
+                points.append((size, writer.message_count))
+    # close() wrote the rest as a last chunk; its end comes from the finished file's index.
+    from mcap.reader import make_reader
+
+    with open(path, 'rb') as f:
+        last = make_reader(f).get_summary().chunk_indexes[-1]
+    points.append((last.chunk_start_offset + last.chunk_length, len(times)))
+    return times, points
+
+
+@pytest.mark.parametrize('cut', ['50%', '90%', 'before the footer', 'inside the first chunk'])
+def test_writer_killed_at_any_point_leaves_the_flushed_chunks_readable(tmp_path, cut):
+    times, points = _write_with_flush_points(tmp_path / 'whole.mcap')
+    assert len(points) >= 25  # one flush per 0.1 s of log time, not one chunk for everything
+    data = (tmp_path / 'whole.mcap').read_bytes()
+    at = {'50%': len(data) // 2, '90%': int(len(data) * 0.9), 'before the footer': points[-1][0],
+          'inside the first chunk': points[0][0] + 40}[cut]
+    # What the complete chunks hold: everything flushed before the cut.
+    expected = max(n for size, n in points if size <= at)
+    path = tmp_path / 'killed.mcap'
+    path.write_bytes(data[:at])
+    with BagReader(path) as bag:
+        assert bag.recovered is not None
+        assert bag.message_count() == bag.message_count(['/imu/data_raw']) == expected
+        read = list(bag.messages())
+        assert [m.log_time_ns for m in read] == times[:expected]
+        assert bag.deserialize(read[-1]).angular_velocity.x == pytest.approx(0.1 * (expected - 1))
+
+
+def test_flush_points_depend_on_log_time_only(tmp_path):
+    """Two writes of the same messages give identical files (lockstep runs stay byte-identical)."""
+    _write_with_flush_points(tmp_path / 'a.mcap')
+    _write_with_flush_points(tmp_path / 'b.mcap')
+    assert (tmp_path / 'a.mcap').read_bytes() == (tmp_path / 'b.mcap').read_bytes()
+
+
+def test_unfinished_mcap_without_a_complete_chunk_is_one_error_line(tmp_path):
+    from mcap.reader import make_reader
+
+    _write_with_flush_points(tmp_path / 'whole.mcap')
+    with open(tmp_path / 'whole.mcap', 'rb') as f:
+        first = make_reader(f).get_summary().chunk_indexes[0]
+    path = tmp_path / 'killed_early.mcap'
+    path.write_bytes((tmp_path / 'whole.mcap').read_bytes()[: first.chunk_start_offset + first.chunk_length - 1])
+    with pytest.raises(BagError) as exc:
+        BagReader(path).open()
+    assert_one_line_mentioning(exc, path)
+    assert 'unfinished MCAP' in str(exc.value)

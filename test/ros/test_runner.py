@@ -102,10 +102,13 @@ def run_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize('content', [b'', b'not a bag at all' * 50, 'truncated'])
 def test_cli_unreadable_bag_is_one_line_and_nonzero(tmp_path, content):
     path = tmp_path / 'broken.mcap'
-    if content == 'truncated':
+    if content == 'truncated':  # cut inside its only chunk: nothing is recoverable
+        from mcap.reader import make_reader
+
         good = write_turning_imu_bag(tmp_path / 'good.mcap', seconds=1.0)
-        data = good.read_bytes()
-        path.write_bytes(data[: len(data) // 2])
+        with open(good, 'rb') as f:
+            chunk = make_reader(f).get_summary().chunk_indexes[0]
+        path.write_bytes(good.read_bytes()[: chunk.chunk_start_offset + chunk.chunk_length // 2])
     else:
         path.write_bytes(content)
     proc = run_cli('run', str(path), '-o', str(tmp_path / 'out.mcap'), '-q')
@@ -201,3 +204,29 @@ def test_cli_bad_rate_is_one_line_and_exit_1(tmp_path, command, rate):
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and '--rate' in proc.stderr
     assert 'Traceback' not in proc.stderr
     assert not (tmp_path / 'out.mcap').exists()
+
+
+def test_sigkill_leaves_an_output_that_opens_and_scores(tmp_path):
+    """A kill no handler sees (SIGKILL, out of memory): the flushed chunks stay readable, and
+    evaluate scores them with one line saying the bag was recovered."""
+    bag = write_turning_imu_bag(tmp_path / 'long.mcap', seconds=60.0)
+    out = tmp_path / 'out.mcap'
+    proc = subprocess.Popen(CLI + ['run', str(bag), '-o', str(out), '-q'],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 50_000):
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    with BagReader(out) as recovered:
+        assert recovered.recovered is not None  # no summary: the run was killed, not finished
+        n = recovered.message_count(['/imu/data'])
+        assert 0 < n < 6000
+        assert len(list(recovered.messages(['/imu/data']))) == n
+        assert {'/imu/data', '/ground_truth/orientation', '/imu/data_raw'} <= set(recovered.topics)
+    metrics = evaluate_bag(out)['orientation']['imu/data']
+    assert metrics['n'] == n and metrics['rmse_deg'] < 5.0  # every recovered estimate scored
+    proc = run_cli('evaluate', str(out), '--json', '--compact')
+    assert proc.returncode == 0, proc.stderr
+    assert [line for line in proc.stderr.splitlines() if line.startswith(f'{out}: recovered')]
