@@ -111,11 +111,22 @@ def cmd_run(args: argparse.Namespace) -> int:
         'output_messages': result.output_messages, 'wall_s': round(result.wall_s, 3),
         'bag_duration_s': round(result.bag_duration_s, 3), 'realtime_factor': round(result.realtime_factor, 2),
         'interrupted': result.interrupted,
+        'lost_deliveries': result.lost_deliveries,
+        'superseded_deliveries': result.superseded_deliveries,
+        'dropped_deliveries': result.dropped_deliveries,
+        # node -> topic -> count (see RunResult)
+        'superseded': result.superseded, 'dropped': result.dropped, 'lost': result.lost,
     }
-    print(json.dumps(summary) if args.json else
-          f'{result.out_path}: {result.output_messages} messages from {", ".join(result.nodes)} '
-          f'({result.input_messages} inputs, {result.wall_s:.1f} s, {result.realtime_factor:.1f}x realtime)'
-          + (' - interrupted' if result.interrupted else ''))
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f'{result.out_path}: {result.output_messages} messages from {", ".join(result.nodes)} '
+              f'({result.input_messages} inputs, {result.wall_s:.1f} s, {result.realtime_factor:.1f}x realtime)'
+              + (' - interrupted' if result.interrupted else ''))
+        for kind, table in (('superseded (latest value only)', result.superseded),
+                            ('dropped (queue overflow)', result.dropped), ('lost (not delivered)', result.lost)):
+            for node, topics in sorted(table.items()):
+                print(f'  {node}: ' + ', '.join(f'{n} {kind} on {t}' for t, n in sorted(topics.items())))
     return 130 if result.interrupted else 0
 
 

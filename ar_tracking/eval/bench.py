@@ -59,6 +59,11 @@ def bench_graph(workdir: Path, duration_s: float) -> dict[str, Any]:
         'realtime_factor': round(full.realtime_factor, 3),
         'transport_floor_factor': round(floor.realtime_factor, 3),
         'transport_wall_s': round(floor.wall_s, 3),
+        # lockstep accounting: timeouts, queue overflows, depth-1 replacements (node -> topic)
+        'lost_deliveries': full.lost_deliveries,
+        'dropped_deliveries': full.dropped_deliveries,
+        'superseded_deliveries': full.superseded_deliveries,
+        'dropped': full.dropped,
         'nodes': nodes,
     }
 

@@ -33,6 +33,8 @@ from rclpy.qos import (
 SENSOR_QOS = qos_profile_sensor_data
 #: Estimates and products: reliable, keep last 10.
 RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+#: Subscriptions that must see every message (the runner's recorder): reliable, keep all.
+RECORDER_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
 #: Latched products (maps, static data): reliable + transient local, depth 1.
 LATCHED_QOS = QoSProfile(
     depth=1,
@@ -44,10 +46,17 @@ LATCHED_QOS = QoSProfile(
 
 @dataclass
 class LockstepHooks:
-    """Callbacks the lockstep runner installs to know when a message is fully processed."""
+    """Callbacks the lockstep runner installs to account for every message.
 
-    delivered: Callable[[str], None]
+    ``published(topic)`` after each publish (the runner then knows, per subscription of the
+    topic, how many messages wait in its history and which one a full KEEP_LAST history just
+    dropped); ``taken(subscription)`` when a callback starts (the message has left the history);
+    ``delivered(subscription)`` when it has finished (whatever it published is counted by then).
+    """
+
+    delivered: Callable[[Any], None]
     published: Callable[[str], None]
+    taken: Callable[[Any], None] | None = None
 
 
 class _CountingPublisher:
@@ -171,6 +180,9 @@ class TrackingNode(Node):
         logger = self.get_logger()
 
         def guarded(msg: Any) -> None:
+            hooks = self.lockstep_hooks
+            if hooks is not None and hooks.taken is not None:
+                hooks.taken(subscription)
             start = time.perf_counter()
             try:
                 callback(msg)
@@ -182,9 +194,8 @@ class TrackingNode(Node):
                 )
             finally:
                 stats.durations_ms.append((time.perf_counter() - start) * 1e3)
-                hooks = self.lockstep_hooks
                 if hooks is not None:
-                    hooks.delivered(subscription.topic_name)
+                    hooks.delivered(subscription)
 
         subscription = self.create_subscription(msg_type, topic, guarded, qos, raw=raw)
         return subscription

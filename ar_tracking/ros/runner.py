@@ -5,7 +5,10 @@ Two clocks (DESIGN sec. 4):
 * **lockstep** (default): all nodes in one process on a private rclpy Context. The runner
   publishes one input message, then spins until every subscription that should receive it -
   and, recursively, every message the nodes publish in response - has been delivered and
-  processed. Only then does the next input go out. Outputs are written with the log time of the
+  processed. Only then does the next input go out. A burst larger than a subscription's
+  KEEP_LAST depth is booked at publish time as superseded (depth 1: the node wants the latest
+  value only) or dropped (a deeper queue overflowed), never waited for, and reported in the
+  run result by node and topic (:class:`_DeliveryLedger`). Outputs are written with the log time of the
   input that caused them, in a fixed order, so two runs give byte-identical output bags.
 * **realtime** (``rate > 0``): the bag is played at ``rate`` times its speed with ``/clock``;
   nodes use sim time and whatever they cannot keep up with is dropped, like on a device.
@@ -84,6 +87,16 @@ def check_rate(rate: float, *, lockstep: bool) -> float:
 
 @dataclass
 class RunResult:
+    """What one run did: counts, time, and every message a subscription did not get.
+
+    Lockstep accounting (see :class:`_DeliveryLedger`): ``superseded`` counts the messages that
+    a KEEP_LAST depth-1 subscription (a node that wants only the latest value, e.g. a map or
+    the current labels) replaced by a newer one; ``dropped`` the messages a deeper queue
+    overflowed with (a burst larger than the node's depth: the node may have needed them);
+    ``lost`` the deliveries that did not happen within the step timeout (a bug or a message
+    that does not deserialise). Each maps node name -> topic -> count.
+    """
+
     out_path: Path
     input_messages: int = 0
     output_messages: int = 0
@@ -94,10 +107,127 @@ class RunResult:
     nodes: list[str] = field(default_factory=list)
     #: node name -> input topic -> processing times in ms
     timings_ms: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    superseded: dict[str, dict[str, int]] = field(default_factory=dict)
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)
+    lost: dict[str, dict[str, int]] = field(default_factory=dict)
 
     @property
     def realtime_factor(self) -> float:
         return self.bag_duration_s / self.wall_s if self.wall_s > 0 else float('inf')
+
+    @property
+    def superseded_deliveries(self) -> int:
+        return sum(n for topics in self.superseded.values() for n in topics.values())
+
+    @property
+    def dropped_deliveries(self) -> int:
+        return sum(n for topics in self.dropped.values() for n in topics.values())
+
+
+class _SubscriptionAccount:
+    """One subscription's side of the ledger."""
+
+    __slots__ = ('node', 'topic', 'depth', 'queued', 'in_flight', 'superseded', 'lost')
+
+    def __init__(self, node: str, topic: str, depth: int | None) -> None:
+        self.node = node
+        self.topic = topic
+        #: KEEP_LAST depth; None for KEEP_ALL (never drops)
+        self.depth = depth
+        self.queued = 0
+        self.in_flight = 0
+        self.superseded = 0
+        self.lost = 0
+
+
+class _DeliveryLedger:
+    """Exact lockstep accounting of deliveries, per subscription.
+
+    All nodes share one process and DDS delivers a publish into each matching reader's history
+    at once, so at publish time the runner knows for each subscription of the topic how many
+    messages wait in its history; if that history is KEEP_LAST and already full, the oldest
+    waiting message is replaced - it is counted as superseded, not waited for. A step is
+    settled when no subscription has a message waiting or a callback running.
+
+    Should DDS keep a message the ledger counted as replaced (it never has in our tests), the
+    delivery cancels that count; should it lose one the ledger expects, the runner's step
+    timeout still ends the wait and reports it as lost.
+    """
+
+    def __init__(self) -> None:
+        self.by_topic: dict[str, list[_SubscriptionAccount]] = defaultdict(list)
+        self.by_sub: dict[int, _SubscriptionAccount] = {}
+        self.outstanding = 0
+        #: deliveries of messages the ledger had booked as replaced (0 when DDS keeps depth
+        #: exactly as modelled; tests check it)
+        self.corrections = 0
+
+    def add(self, node: str, subscription: Any) -> None:
+        from rclpy.qos import HistoryPolicy
+
+        qos = subscription.qos_profile
+        depth = None if qos.history == HistoryPolicy.KEEP_ALL else max(1, int(qos.depth))
+        account = _SubscriptionAccount(node, subscription.topic_name, depth)
+        self.by_topic[subscription.topic_name].append(account)
+        self.by_sub[id(subscription)] = account
+
+    def subscribers(self, topic: str) -> int:
+        return len(self.by_topic.get(topic, ()))
+
+    def published(self, topic: str) -> None:
+        for a in self.by_topic.get(topic, ()):
+            if a.depth is not None and a.queued >= a.depth:
+                a.superseded += 1  # the history drops its oldest waiting message for this one
+            else:
+                a.queued += 1
+                self.outstanding += 1
+
+    def taken(self, subscription: Any) -> None:
+        a = self.by_sub.get(id(subscription))
+        if a is None:
+            return
+        if a.queued > 0:
+            a.queued -= 1
+            self.outstanding -= 1
+        elif a.superseded > 0:
+            a.superseded -= 1  # DDS kept one the ledger thought replaced
+            self.corrections += 1
+        a.in_flight += 1
+        self.outstanding += 1
+
+    def delivered(self, subscription: Any) -> None:
+        a = self.by_sub.get(id(subscription))
+        if a is None or a.in_flight == 0:
+            return
+        a.in_flight -= 1
+        self.outstanding -= 1
+
+    @property
+    def settled(self) -> bool:
+        return self.outstanding <= 0
+
+    def give_up(self) -> int:
+        """Book every waiting message as lost (after a step timeout); returns how many."""
+        lost = 0
+        for accounts in self.by_topic.values():
+            for a in accounts:
+                waiting = a.queued + a.in_flight
+                a.lost += waiting
+                lost += waiting
+                a.queued = a.in_flight = 0
+        self.outstanding = 0
+        return lost
+
+    def report(self, result: RunResult) -> None:
+        """Superseded (depth-1 subscriptions: latest value only), dropped (deeper queues that a
+        burst overflowed) and lost deliveries into the run result, by node and topic."""
+        for accounts in self.by_topic.values():
+            for a in accounts:
+                if a.superseded:
+                    kind = result.superseded if a.depth == 1 else result.dropped
+                    kind.setdefault(a.node, {})[a.topic] = kind.get(a.node, {}).get(a.topic, 0) + a.superseded
+                if a.lost:
+                    result.lost.setdefault(a.node, {})[a.topic] = result.lost.get(a.node, {}).get(a.topic, 0) + a.lost
 
 
 def load_node_class(spec: Any) -> Any:
@@ -255,19 +385,9 @@ class GraphRunner:
         self.step_timeout_s = step_timeout_s
         self.max_messages = max_messages
         self.graph = GRAPH_NODES if graph is None else graph
-        self._delivered = 0
-        self._expected = 0
-        self._sub_counts: dict[str, int] = defaultdict(int)
+        self._ledger = _DeliveryLedger()
         self._stop = threading.Event()
         self._consecutive_losses: dict[str, int] = {}
-
-    # -- hooks used by TrackingNode ---------------------------------------------------------
-
-    def _on_delivered(self, topic: str) -> None:
-        self._delivered += 1
-
-    def _on_published(self, topic: str) -> None:
-        self._expected += self._sub_counts.get(topic, 0)
 
     # -- setup ------------------------------------------------------------------------------
 
@@ -284,7 +404,7 @@ class GraphRunner:
             reader.close()
 
     def _run_with(self, reader: BagReader, rclpy: Any, context: Any) -> RunResult:
-        from .node_base import LockstepHooks, RELIABLE_QOS, TrackingNode
+        from .node_base import LockstepHooks, RECORDER_QOS, RELIABLE_QOS, TrackingNode
         from .conversions import message_class
 
         bag_types = reader.topics
@@ -302,7 +422,8 @@ class GraphRunner:
         writer = None
         executor = None
         result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names)
-        hooks = LockstepHooks(self._on_delivered, self._on_published)
+        ledger = self._ledger = _DeliveryLedger()
+        hooks = LockstepHooks(ledger.delivered, ledger.published, ledger.taken)
         realtime = self.rate > 0
         try:
             for name in names:
@@ -368,12 +489,13 @@ class GraphRunner:
                     return record_now
                 return lambda raw: recorder.add(topic, raw)
 
+            # The recorder keeps every message: KEEP_ALL, so that no burst of a node is lost.
             for topic, msgtype in sorted(output_types.items()):
-                recorder_node.subscribe(message_class(msgtype), topic, make_cb(topic), RELIABLE_QOS, raw=True)
+                recorder_node.subscribe(message_class(msgtype), topic, make_cb(topic), RECORDER_QOS, raw=True)
 
             for n in nodes:
                 for sub in n.subscriptions:
-                    self._sub_counts[sub.topic_name] += 1
+                    ledger.add(n.get_name(), sub)
             executor = self._make_executor(rclpy, context, realtime)
             for n in nodes:
                 executor.add_node(n)
@@ -397,6 +519,11 @@ class GraphRunner:
                 logger.warning('interrupted: closing %s with what was processed', self.out_path)
             result.wall_s = time.perf_counter() - start
             result.output_messages = recorder.count
+            if not realtime:
+                ledger.report(result)
+                self._log_drops(result)
+                if ledger.corrections:
+                    logger.debug('delivery ledger: %d messages booked as replaced were delivered', ledger.corrections)
             for n in nodes[:-2]:
                 result.timings_ms[n.get_name()] = {
                     t: list(s.durations_ms) for t, s in n.callback_stats.items()
@@ -428,14 +555,15 @@ class GraphRunner:
     def _wait_for_discovery(self, executor: Any, nodes: list[Any], timeout_s: float = 15.0) -> None:
         """Spin until every publisher sees the subscriptions of its topic in this graph."""
         deadline = time.monotonic() + timeout_s
-        pubs = [p for n in nodes for p in n.publishers if self._sub_counts.get(p.topic_name, 0)]
+        subscribers = self._ledger.subscribers
+        pubs = [p for n in nodes for p in n.publishers if subscribers(p.topic_name)]
         while time.monotonic() < deadline:
-            if all(p.get_subscription_count() >= self._sub_counts[p.topic_name] for p in pubs):
+            if all(p.get_subscription_count() >= subscribers(p.topic_name) for p in pubs):
                 # Every reader matched; let the writers' side settle too.
                 executor.spin_once(timeout_sec=0.01)
                 return
             executor.spin_once(timeout_sec=0.02)
-        missing = [p.topic_name for p in pubs if p.get_subscription_count() < self._sub_counts[p.topic_name]]
+        missing = [p.topic_name for p in pubs if p.get_subscription_count() < subscribers(p.topic_name)]
         raise RunError(f'nodes did not connect within {timeout_s:g} s on {", ".join(missing)}')
 
     # -- lockstep --------------------------------------------------------------------------
@@ -474,27 +602,32 @@ class GraphRunner:
     MAX_CONSECUTIVE_LOSSES = 20
 
     def _settle(self, executor: Any, result: RunResult, topic: str = '') -> None:
-        """Spin until every expected delivery happened (or give up after the step timeout).
+        """Spin until every delivery the ledger expects happened (or give up after the step
+        timeout). Messages a full KEEP_LAST history replaced are not expected (the ledger
+        counts them at publish time), so a timeout means a delivery that DDS really lost.
 
         The first loss waits the full step timeout; while losses continue, later steps wait
         only a tenth of it, and a long run of them ends the run with a RunError.
         """
+        ledger = self._ledger
+        if ledger.settled:
+            self._consecutive_losses[topic] = 0
+            return
         losses = self._consecutive_losses.get(topic, 0)
         timeout = self.step_timeout_s if losses == 0 else self.step_timeout_s / 10
         deadline = None
-        while self._delivered < self._expected:
+        while not ledger.settled:
             executor.spin_once(timeout_sec=0.05)
-            if self._delivered >= self._expected:
+            if ledger.settled:
                 break
             now = time.monotonic()
             if deadline is None:
                 deadline = now + timeout
             elif now > deadline:
-                lost = self._expected - self._delivered
+                lost = ledger.give_up()
                 result.lost_deliveries += lost
                 self._consecutive_losses[topic] = losses + 1
                 logger.warning('%s: %d message deliveries did not happen within %.2f s', topic, lost, timeout)
-                self._delivered = self._expected
                 if losses + 1 >= self.MAX_CONSECUTIVE_LOSSES:
                     raise RunError(
                         f'the nodes received none of the last {losses + 1} messages on {topic}; '
@@ -502,6 +635,18 @@ class GraphRunner:
                     )
                 return
         self._consecutive_losses[topic] = 0
+
+    @staticmethod
+    def _log_drops(result: RunResult) -> None:
+        """One line per node and topic whose queue a burst overflowed (INFO for depth-1
+        latest-value subscriptions, WARNING for the others: the node may have needed them)."""
+        for node, topics in sorted(result.superseded.items()):
+            for topic, n in sorted(topics.items()):
+                logger.info('%s: %d messages on %s superseded by newer ones (depth 1: latest value only)',
+                            node, n, topic)
+        for node, topics in sorted(result.dropped.items()):
+            for topic, n in sorted(topics.items()):
+                logger.warning('%s: %d messages on %s dropped: a burst overflowed its queue', node, n, topic)
 
     # -- realtime --------------------------------------------------------------------------
 

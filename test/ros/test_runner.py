@@ -230,3 +230,85 @@ def test_sigkill_leaves_an_output_that_opens_and_scores(tmp_path):
     proc = run_cli('evaluate', str(out), '--json', '--compact')
     assert proc.returncode == 0, proc.stderr
     assert [line for line in proc.stderr.splitlines() if line.startswith(f'{out}: recovered')]
+
+
+def _burst_graph(burst: int) -> dict:
+    """A node that publishes ``burst`` messages per IMU sample, and three that listen with a
+    depth-1 history (latest value), the sensor depth (5) and keep-all."""
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from ar_tracking.ros.node_base import SENSOR_QOS, TrackingNode
+
+    class BurstSource(TrackingNode):
+        INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+        OUTPUTS = {'burst': 'std_msgs/msg/String'}
+
+        def __init__(self, **kwargs):
+            super().__init__('burst_source', **kwargs)
+            self.pub = self.advertise(String, 'burst')
+            self.subscribe(__import__('sensor_msgs.msg', fromlist=['Imu']).Imu, 'imu/data_raw', self.on_imu)
+
+        def on_imu(self, msg):
+            for i in range(burst):
+                self.pub.publish(String(data=str(i)))
+
+    def sink(name: str, qos):
+        class Sink(TrackingNode):
+            INPUTS = {'burst': 'std_msgs/msg/String'}
+            OUTPUTS: dict = {}
+            received: list = []
+
+            def __init__(self, **kwargs):
+                super().__init__(name, **kwargs)
+                self.subscribe(String, 'burst', type(self).received.append, qos)
+        Sink.received = []
+        return Sink
+
+    keep_all = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    latest = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+    return {'burst_source': BurstSource, 'latest': sink('latest', latest),
+            'queue5': sink('queue5', SENSOR_QOS), 'every': sink('every', keep_all)}
+
+
+@pytest.mark.parametrize('burst', [3, 7])
+def test_lockstep_counts_what_a_history_depth_drops_instead_of_waiting(tmp_path, burst):
+    """A burst larger than a subscription's depth is booked at publish time (superseded for a
+    depth-1 latest-value subscription, dropped for a deeper queue), never waited for."""
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)
+    graph = _burst_graph(burst)
+    runner = GraphRunner(bag, tmp_path / 'out.mcap', graph=graph, step_timeout_s=5.0)
+    result = runner.run()
+    steps = 20
+    assert result.lost_deliveries == 0 and result.lost == {}
+    assert runner._ledger.corrections == 0  # DDS dropped exactly what the ledger booked
+    assert len(graph['every'].received) == steps * burst
+    assert len(graph['latest'].received) == steps  # the last of each burst
+    assert [m.data for m in graph['latest'].received] == [str(burst - 1)] * steps
+    assert len(graph['queue5'].received) == steps * min(burst, 5)
+    assert result.superseded == {'latest': {'/burst': steps * (burst - 1)}}
+    assert result.dropped == ({'queue5': {'/burst': steps * (burst - 5)}} if burst > 5 else {})
+    with BagReader(result.out_path) as out:  # the recorder keeps every message of a burst
+        assert out.message_count(['/burst']) == steps * burst
+
+
+def test_cli_summary_reports_superseded_deliveries(tmp_path, monkeypatch):
+    import json
+
+    from ar_tracking import cli
+    from ar_tracking.ros import runner as runner_module
+
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.1)
+    monkeypatch.setattr(runner_module, 'GRAPH_NODES', _burst_graph(3))
+    original = runner_module.GraphRunner.__init__
+
+    def with_burst_graph(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        self.graph = runner_module.GRAPH_NODES
+    monkeypatch.setattr(runner_module.GraphRunner, '__init__', with_burst_graph)
+    printed = []
+    monkeypatch.setattr('builtins.print', lambda *a, **k: printed.append(' '.join(map(str, a))))
+    assert cli.main(['run', str(bag), '-o', str(tmp_path / 'out.mcap'), '--json', '-q']) == 0
+    summary = json.loads(printed[-1])
+    assert summary['superseded'] == {'latest': {'/burst': 20}} and summary['superseded_deliveries'] == 20
+    assert summary['lost_deliveries'] == 0 and summary['dropped'] == {} and summary['lost'] == {}
