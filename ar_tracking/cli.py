@@ -102,12 +102,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         result = GraphRunner(
             bag, out, params_files=params, nodes=args.nodes, rate=args.rate, storage=args.storage,
-            copy_images=args.copy_images, executor=args.executor, progress=update,
+            copy_images=args.copy_images, executor=args.executor, progress=update, named_graph=args.graph,
         ).run()
     finally:
         close()
     summary = {
-        'out': str(result.out_path), 'nodes': result.nodes, 'input_messages': result.input_messages,
+        'out': str(result.out_path), 'nodes': result.nodes, 'not_started': result.not_started,
+        'input_messages': result.input_messages,
         'output_messages': result.output_messages, 'wall_s': round(result.wall_s, 3),
         'bag_duration_s': round(result.bag_duration_s, 3), 'realtime_factor': round(result.realtime_factor, 2),
         'interrupted': result.interrupted,
@@ -268,14 +269,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_annotate)
 
-    p = sub.add_parser('run', help='run every node that can run on a bag; record the outputs')
+    p = sub.add_parser('run', help='run the graph a bag suits (or --graph/--nodes); record the outputs')
     p.add_argument('bag')
     p.add_argument('--out', '-o', help='output bag (default out/<bag>.out.mcap)')
     p.add_argument('--rate', type=float, default=0.0,
                    help='0 (default): lockstep, reproducible; R > 0 (finite): realtime at R x bag speed with /clock')
     p.add_argument('--params-file', action='append', help='ROS 2 params file (repeatable; later wins)')
     p.add_argument('--no-sidecar', action='store_true', help='ignore <bag>.params.yaml next to the bag')
-    p.add_argument('--nodes', nargs='+', help='only these nodes')
+    which = p.add_mutually_exclusive_group()
+    which.add_argument('--nodes', nargs='+', help='only these nodes')
+    which.add_argument('--graph', default='auto', choices=['auto', 'orientation', 'annotations', 'slam', 'markers', 'all'],
+                       help='which graph to start (default auto: every node the bag has inputs for, but '
+                            'keyframe_slam_mapper not on a bag with /imu/mag - a phone turned in place, '
+                            'where SLAM cannot initialise); orientation = imu_magnetometer, panorama_mapper, '
+                            'hybrid_orientation_filter; annotations = orientation + annotation_matcher, ar_view; '
+                            'slam = keyframe_slam_mapper; markers = marker_tracker, visual_inertial_filter')
     p.add_argument('--storage', choices=['mcap', 'sqlite3'])
     p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
     p.add_argument('--executor', default='single', choices=['single', 'events'], help='rclpy executor (lockstep)')

@@ -108,6 +108,8 @@ def test_demo_on_the_sample_bag(tmp_path):
         pytest.fail('the sample bag bags/rotation_sweep_authoring.mcap is missing from the repository')
     proc = cli('demo', '--workdir', str(tmp_path), '-q')
     assert proc.returncode == 0, proc.stderr
+    # exactly the nodes the README names (no SLAM on this rotate-in-place bag)
+    assert 'nodes: imu_magnetometer, panorama_mapper, hybrid_orientation_filter\n' in proc.stderr
     assert 'imu/data: orientation rmse' in proc.stdout
     assert (tmp_path / 'report.html').stat().st_size > 10_000
     assert (tmp_path / 'report.png').stat().st_size > 10_000

@@ -53,6 +53,22 @@ GRAPH_NODES: dict[str, str] = {
     'keyframe_slam_mapper': 'ar_tracking.nodes.keyframe_slam_mapper:KeyframeSlamMapperNode',
 }
 
+#: Named graphs for ``ar-tracking run --graph``: which nodes each starts (those whose inputs
+#: the bag has). ``auto`` (the default) is every node, with the rule of :func:`choose_nodes`.
+NAMED_GRAPHS: dict[str, list[str]] = {
+    'orientation': ['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter'],
+    'annotations': ['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter',
+                    'annotation_matcher', 'ar_view'],
+    'slam': ['keyframe_slam_mapper'],
+    'markers': ['marker_tracker', 'visual_inertial_filter'],
+    'all': list(GRAPH_NODES),
+}
+GRAPH_CHOICES = ('auto', *NAMED_GRAPHS)
+
+#: The topic by which the automatic choice recognises a phone orientation recording (see
+#: :func:`choose_nodes`).
+ROTATION_IN_PLACE_TOPIC = '/imu/mag'
+
 #: Name of the MCAP metadata record in which an output bag says where it came from.
 RUN_METADATA = 'ar_tracking.run'
 
@@ -107,6 +123,8 @@ class RunResult:
     nodes: list[str] = field(default_factory=list)
     #: node name -> input topic -> processing times in ms
     timings_ms: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    #: node name -> why it was not started (missing inputs or parameters, the automatic rule)
+    not_started: dict[str, str] = field(default_factory=dict)
     superseded: dict[str, dict[str, int]] = field(default_factory=dict)
     dropped: dict[str, dict[str, int]] = field(default_factory=dict)
     lost: dict[str, dict[str, int]] = field(default_factory=dict)
@@ -287,6 +305,40 @@ def plan_nodes(
     return started, reasons
 
 
+def choose_nodes(
+    bag_topics: Iterable[str],
+    nodes: Iterable[str] | None = None,
+    named_graph: str | None = None,
+    graph: dict[str, Any] | None = None,
+) -> tuple[list[str], dict[str, str]]:
+    """The nodes a run asks for, before :func:`plan_nodes` checks their inputs.
+
+    ``nodes`` (``--nodes``) wins, then a named graph (``--graph``, :data:`NAMED_GRAPHS`).
+    Automatic (``auto`` or None) is every node of ``graph`` except one rule: keyframe_slam_mapper
+    is not started on a bag with a magnetometer (``/imu/mag``). Such a bag is the outdoor
+    phone setting of Langlotz et al. 2011: the user turns the camera in place, and monocular
+    SLAM needs a sideways baseline to initialise; on a pure rotation it never does, prints
+    "move the camera sideways" and costs most of the graph's time. Returns (names asked for,
+    reason per node left out by the rule).
+    """
+    graph = GRAPH_NODES if graph is None else graph
+    if nodes:
+        return list(nodes), {}
+    if named_graph not in (None, 'auto'):
+        if named_graph not in NAMED_GRAPHS:
+            raise RunError(f'unknown graph {named_graph!r}; known: {", ".join(GRAPH_CHOICES)}')
+        return [n for n in NAMED_GRAPHS[named_graph] if n in graph], {}
+    topics = {'/' + t.lstrip('/') for t in bag_topics}
+    ruled_out: dict[str, str] = {}
+    if 'keyframe_slam_mapper' in graph and ROTATION_IN_PLACE_TOPIC in topics:
+        ruled_out['keyframe_slam_mapper'] = (
+            f'the bag has {ROTATION_IN_PLACE_TOPIC}: a phone orientation recording whose camera '
+            'mostly rotates in place, where monocular SLAM cannot initialise '
+            '(start it with --graph slam or all, or --nodes keyframe_slam_mapper)'
+        )
+    return [n for n in graph if n not in ruled_out], ruled_out
+
+
 _runs_in_process = itertools.count()
 
 
@@ -370,6 +422,7 @@ class GraphRunner:
         max_messages: int | None = None,
         graph: dict[str, Any] | None = None,
         flush_every_s: float = 0.5,
+        named_graph: str | None = None,
     ) -> None:
         self.bag_path = Path(bag)
         #: The output MCAP closes a chunk every this much bag time (what a kill can lose).
@@ -377,6 +430,8 @@ class GraphRunner:
         self.out_path = Path(out)
         self.params_files = list(params_files or [])
         self.only_nodes = nodes
+        #: ``--graph``: a name of NAMED_GRAPHS, or None/'auto' for the automatic choice
+        self.named_graph = named_graph
         self.rate = rate
         self.storage = storage
         self.copy_images = copy_images
@@ -409,9 +464,16 @@ class GraphRunner:
 
         bag_types = reader.topics
         node_params = {name: params_for_node(name, self.params_files) for name in self.graph}
-        names, skipped = plan_nodes(bag_types, self.only_nodes, self.graph, node_params.__getitem__)
+        wanted, ruled_out = choose_nodes(bag_types, self.only_nodes, self.named_graph, self.graph)
+        names, skipped = (plan_nodes(bag_types, wanted, self.graph, node_params.__getitem__)
+                          if wanted else ([], {}))
+        # Asked for by name and not startable: a warning. Left out by the automatic choice (the
+        # bag lacks its inputs, or the rule): information.
+        explicit = bool(self.only_nodes) or self.named_graph not in (None, 'auto')
         for name, why in skipped.items():
-            logger.warning('%s not started: %s', name, why)
+            logger.log(logging.WARNING if explicit else logging.INFO, '%s not started: %s', name, why)
+        for name, why in ruled_out.items():
+            logger.info('%s not started: %s', name, why)
         if not names:
             raise RunError(
                 f'{self.bag_path}: no node can run on this bag '
@@ -421,7 +483,8 @@ class GraphRunner:
         nodes: list[Any] = []
         writer = None
         executor = None
-        result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names)
+        result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names,
+                           not_started={**skipped, **ruled_out})
         ledger = self._ledger = _DeliveryLedger()
         hooks = LockstepHooks(ledger.delivered, ledger.published, ledger.taken)
         realtime = self.rate > 0

@@ -312,3 +312,62 @@ def test_cli_summary_reports_superseded_deliveries(tmp_path, monkeypatch):
     summary = json.loads(printed[-1])
     assert summary['superseded'] == {'latest': {'/burst': 20}} and summary['superseded_deliveries'] == 20
     assert summary['lost_deliveries'] == 0 and summary['dropped'] == {} and summary['lost'] == {}
+
+
+ROTATION_BAG_TOPICS = ['/camera/camera_info', '/camera/image_raw/compressed', '/gps/fix', '/imu/data_raw',
+                       '/imu/mag', '/ground_truth/orientation', '/ground_truth/pose']
+DESK_BAG_TOPICS = ['/camera/camera_info', '/camera/image_raw', '/ground_truth/pose', '/imu/data_raw', '/tf_static']
+
+
+def test_auto_graph_leaves_slam_out_of_a_rotate_in_place_bag():
+    from ar_tracking.ros.runner import choose_nodes, plan_nodes
+
+    wanted, ruled_out = choose_nodes(ROTATION_BAG_TOPICS)
+    assert 'keyframe_slam_mapper' not in wanted and '/imu/mag' in ruled_out['keyframe_slam_mapper']
+    names, _ = plan_nodes(ROTATION_BAG_TOPICS, wanted, params=lambda name: {})
+    assert names == ['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter']
+    wanted, ruled_out = choose_nodes(DESK_BAG_TOPICS)  # a hand-held camera without magnetometer
+    assert ruled_out == {}
+    assert 'keyframe_slam_mapper' in plan_nodes(DESK_BAG_TOPICS, wanted, params=lambda name: {})[0]
+
+
+@pytest.mark.parametrize('named, expected', [
+    ('slam', ['keyframe_slam_mapper']),
+    ('all', ['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter', 'keyframe_slam_mapper']),
+    ('orientation', ['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter']),
+    ('markers', []),  # marker_tracker needs its marker map
+])
+def test_named_graphs_and_explicit_nodes_override_the_rule(named, expected):
+    from ar_tracking.ros.runner import choose_nodes, plan_nodes
+
+    wanted, ruled_out = choose_nodes(ROTATION_BAG_TOPICS, named_graph=named)
+    assert ruled_out == {}
+    assert plan_nodes(ROTATION_BAG_TOPICS, wanted, params=lambda name: {})[0] == expected
+    assert choose_nodes(ROTATION_BAG_TOPICS, nodes=['keyframe_slam_mapper'], named_graph='orientation')[0] == [
+        'keyframe_slam_mapper']
+    with pytest.raises(RunError, match='unknown graph'):
+        choose_nodes(ROTATION_BAG_TOPICS, named_graph='everything')
+
+
+def test_cli_graph_choices_are_the_runners():
+    from ar_tracking.cli import build_parser
+    from ar_tracking.ros.runner import GRAPH_CHOICES
+
+    run = build_parser()._subparsers._group_actions[0].choices['run']
+    graph = next(a for a in run._actions if a.dest == 'graph')
+    assert tuple(graph.choices) == GRAPH_CHOICES and graph.default == 'auto'
+
+
+def test_auto_graph_says_why_at_info_level(tmp_path, caplog):
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)  # has /imu/mag
+    with caplog.at_level('INFO', logger='ar_tracking.ros.runner'):
+        result = GraphRunner(bag, tmp_path / 'out.mcap').run()
+    assert 'keyframe_slam_mapper' not in result.nodes
+    assert '/imu/mag' in result.not_started['keyframe_slam_mapper']
+    not_started = [r for r in caplog.records if 'not started' in r.getMessage()]
+    assert any(r.getMessage().startswith('keyframe_slam_mapper not started: the bag has /imu/mag') for r in not_started)
+    assert not_started and all(r.levelname == 'INFO' for r in not_started)
+    caplog.clear()
+    with caplog.at_level('INFO', logger='ar_tracking.ros.runner'):  # asked for by name: a warning
+        GraphRunner(bag, tmp_path / 'out2.mcap', nodes=['imu_magnetometer', 'panorama_mapper']).run()
+    assert [r.levelname for r in caplog.records if 'panorama_mapper not started' in r.getMessage()] == ['WARNING']
