@@ -1,17 +1,23 @@
-"""hybrid_orientation_filter: absolute camera orientation from vision plus compass (Langlotz 2011 sec. 5).
+"""hybrid_orientation_filter: absolute camera orientation from vision plus the phone's sensors (Langlotz 2011 sec. 5).
 
 Subscribes
   ``panorama/orientation`` geometry_msgs/TransformStamped panorama -> camera_optical (or, with
   ``relative_input_type: pose``, a PoseStamped such as ``slam/pose``: any relative orientation
-  source can be remapped in), ``imu/data`` sensor_msgs/Imu (absolute orientation of the IMU body in
-  ENU with covariance, from imu_magnetometer) and ``imu/data_raw`` (gyro, for the backup).
+  source can be remapped in); ``imu/data_raw`` sensor_msgs/Imu (gyro and accelerometer) and
+  ``imu/mag`` sensor_msgs/MagneticField (raw, calibrated here with the same parameters as
+  imu_magnetometer); ``imu/data`` (the AHRS orientation, used while there is no camera).
 Publishes
-  ``orientation/global`` sensor_msgs/Imu: the camera orientation in ENU (eq. 1 with the filtered
-  R_PN), frame_id ``camera_optical``, with covariance; at the visual tracker's stamps, and from
-  the integrated gyro (at ``backup_rate_hz``) while the tracker is lost;
+  ``orientation/global`` sensor_msgs/Imu: the camera orientation in ENU with covariance - eq. 1
+  with the panorama's place in the world R_PN estimated over the whole panorama session from
+  gravity and field carried into the panorama frame (:mod:`ar_tracking.core.world_alignment`),
+  at the visual tracker's stamps (and, with ``gyro_rate_output``, at every gyro sample between
+  them); from the gyro while the tracker is lost; and from ``imu/data`` (the AHRS, turned into
+  the camera frame) when there is no camera at all, so the node runs without one.
   ``orientation/panorama_in_world`` geometry_msgs/TransformStamped enu -> panorama (R_PN^-1).
 
-The callbacks only validate, convert, call :mod:`ar_tracking.core.hybrid_orientation` and publish.
+The IMU -> camera rotation comes from ``/tf_static`` when the graph or the bag has it (the
+parameter ``imu_to_camera_quat_xyzw`` is the fallback, with a warning when the two disagree).
+The callbacks only validate, convert, call the cores and publish.
 """
 from __future__ import annotations
 
@@ -20,19 +26,16 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
-from sensor_msgs.msg import Imu
+from sensor_msgs.msg import Imu, MagneticField
 
-from ..core.hybrid_orientation import (
-    GyroBackup,
-    GyroBackupParams,
-    HybridFilterParams,
-    PanoramaWorldFilter,
-    RotationBuffer,
-)
+from ..core.hybrid_orientation import GyroBackup, GyroBackupParams, RotationBuffer
+from ..core.imu_orientation import ImuCalibration
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
+from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig
 from ..ros.conversions import (
     ConversionError,
     covariance_is_known,
+    finite_vector3,
     rotation_from_quaternion,
     set_covariance,
     set_quaternion,
@@ -40,14 +43,24 @@ from ..ros.conversions import (
     to_stamp,
     vector3,
 )
-from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
+#: Disagreement between /tf_static and the parameter that is worth a warning, rad.
+_EXTRINSIC_WARN_RAD = np.radians(1.0)
 
 
 def _length(n: int) -> Any:
     return lambda v: None if len(v) == n else f'needs {n} values, got {len(v)}'
+
+
+def _matrix(v: Any) -> str | None:
+    if len(v) != 9:
+        return f'needs 9 values (row-major 3x3), got {len(v)}'
+    if abs(np.linalg.det(np.reshape(np.asarray(v, float), (3, 3)))) < 1e-6:
+        return 'matrix is singular'
+    return None
 
 
 def _unit_quat(v: Any) -> str | None:
@@ -60,10 +73,12 @@ def _unit_quat(v: Any) -> str | None:
 class HybridOrientationFilterNode(TrackingNode):
     INPUTS = {
         'panorama/orientation': 'geometry_msgs/msg/TransformStamped',
-        'imu/data': 'sensor_msgs/msg/Imu',
         'imu/data_raw': 'sensor_msgs/msg/Imu',
+        'imu/mag': 'sensor_msgs/msg/MagneticField',
+        'imu/data': 'sensor_msgs/msg/Imu',
     }
-    REQUIRED_INPUTS = ['panorama/orientation', 'imu/data']
+    #: Runs without a camera (then it follows imu/data); vision needs imu/data_raw + imu/mag.
+    REQUIRED_INPUTS = [('panorama/orientation', 'imu/data')]
     OUTPUTS = {
         'orientation/global': 'sensor_msgs/msg/Imu',
         'orientation/panorama_in_world': 'geometry_msgs/msg/TransformStamped',
@@ -72,31 +87,33 @@ class HybridOrientationFilterNode(TrackingNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('hybrid_orientation_filter', **kwargs)
         p = self.param
-        d = HybridFilterParams()
+        a = WorldAlignmentConfig()
         g = GyroBackupParams()
         input_type = p('relative_input_type', 'transform',
                        'Message type of panorama/orientation: transform (TransformStamped reference -> camera) '
                        'or pose (PoseStamped, orientation of the camera in header.frame_id)',
                        read_only=True, validate=lambda v: None if v in INPUT_TYPES else 'must be transform or pose')
         q_imu_cam = p('imu_to_camera_quat_xyzw', [1.0, 0.0, 0.0, 0.0],
-                      'Rotation imu -> camera_optical (R_imu_cam, x y z w); default the phone: diag(1, -1, -1)',
-                      read_only=True, validate=_unit_quat)
+                      'Rotation imu -> camera_optical (R_imu_cam, x y z w), used when no /tf_static gives it; '
+                      'default the phone: diag(1, -1, -1)', read_only=True, validate=_unit_quat)
         self.camera_frame: str = p('camera_frame_id', 'camera_optical', 'frame_id of orientation/global (the camera)')
         self.world_frame: str = p('world_frame_id', 'enu', 'World frame of imu/data and of the outputs (ENU)')
-        params = HybridFilterParams(
-            process_noise_rad_sqrt_s=p('process_noise_rad_sqrt_s', d.process_noise_rad_sqrt_s, 'Random walk of the panorama-in-world rotation, rad/sqrt(s) (follows a drifting tracker)', min_value=0.0, max_value=1.0),
-            visual_noise_rad=p('visual_noise_rad', d.visual_noise_rad, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0),
-            default_sensor_sigma_rad=p('default_sensor_sigma_rad', d.default_sensor_sigma_rad, 'Sensor orientation 1-sigma used when imu/data has no covariance (-1), rad', min_value=1e-6, max_value=3.2),
-            min_sensor_sigma_rad=p('min_sensor_sigma_rad', d.min_sensor_sigma_rad, 'Floor on the sensor orientation 1-sigma, rad', min_value=0.0, max_value=3.2),
-            max_sensor_heading_sigma_rad=p('max_sensor_heading_sigma_rad', d.max_sensor_heading_sigma_rad, 'Reject imu/data whose heading 1-sigma exceeds this (field magnitude/dip disturbed), rad', min_value=0.0, max_value=10.0),
-            gate_chi2=p('gate_chi2', d.gate_chi2, 'Mahalanobis gate on the innovation (3 dof; 0 disables)', min_value=0.0, max_value=1e6),
-            heading_gate_rad=p('heading_gate_rad', d.heading_gate_rad, 'Reject while the short-time mean heading innovation exceeds this, rad (0 disables)', min_value=0.0, max_value=3.2),
-            heading_gate_window_s=p('heading_gate_window_s', d.heading_gate_window_s, 'Time constant of that mean, s', min_value=0.01, max_value=60.0),
-            gate_after_sigma_rad=p('gate_after_sigma_rad', d.gate_after_sigma_rad, 'Gates apply once the heading 1-sigma of the estimate is below this, rad', min_value=0.0, max_value=3.2),
-            max_reject_s=p('max_reject_s', d.max_reject_s, 'After this long with every sensor sample rejected, re-seed from the sensor, s', min_value=0.0, max_value=3600.0),
-            direction_bins=p('direction_bins', d.direction_bins, 'Heading bins of the direction-spread weighting (0 disables)', min_value=0, max_value=360),
-            direction_ref_count=p('direction_ref_count', d.direction_ref_count, 'Samples per heading bin at full weight; more weigh less', min_value=1.0, max_value=1e9),
-            direction_memory_s=p('direction_memory_s', d.direction_memory_s, 'Forgetting time of the heading bin counts, s', min_value=0.1, max_value=1e6),
+        self.calibration = ImuCalibration(
+            gyro_bias=p('gyro_bias', [0.0, 0.0, 0.0], 'Gyro bias subtracted from imu/data_raw, rad/s', validate=_length(3)),
+            accel_bias=p('accel_bias', [0.0, 0.0, 0.0], 'Accelerometer bias subtracted from imu/data_raw, m/s^2', validate=_length(3)),
+            hard_iron_offset=p('hard_iron_offset', [0.0, 0.0, 0.0], 'Hard-iron offset subtracted from imu/mag, tesla (as imu_magnetometer)', validate=_length(3)),
+            soft_iron_matrix=p('soft_iron_matrix', [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], 'Soft-iron correction of imu/mag, row-major 3x3 (as imu_magnetometer)', validate=_matrix),
+        )
+        config = WorldAlignmentConfig(
+            accel_bias_sigma_m_s2=p('accel_bias_sigma_m_s2', a.accel_bias_sigma_m_s2, 'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2', min_value=1e-6, max_value=10.0),
+            hard_iron_sigma=p('hard_iron_sigma', a.hard_iron_sigma, 'Prior 1-sigma of the residual hard iron, relative to the field strength', min_value=1e-6, max_value=10.0),
+            mag_rate_hz=p('field_samples_hz', a.mag_rate_hz, 'Field samples kept per second for the robust fit of the panorama in the world', min_value=1.0, max_value=1000.0),
+            solve_period_s=p('solve_period_s', a.solve_period_s, 'Re-solve the field fit this often (sample stamps), s', min_value=0.01, max_value=60.0),
+            correlation_s=p('correlation_s', a.correlation_s, 'Correlation time of hand motion and field disturbances (window of the robust fit), s', min_value=0.05, max_value=60.0),
+            cauchy_scale=p('cauchy_scale', a.cauchy_scale, 'Cauchy scale of the window weights, in robust sigmas', min_value=0.5, max_value=100.0),
+            tilt_floor_rad=p('tilt_floor_rad', a.tilt_floor_rad, 'Floor of the reported tilt 1-sigma, rad', min_value=0.0, max_value=1.0),
+            heading_floor_rad=p('heading_floor_rad', a.heading_floor_rad, 'Floor of the reported heading 1-sigma, rad', min_value=0.0, max_value=1.0),
+            declination_rad=p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north (as imu_magnetometer)', min_value=-3.1416, max_value=3.1416),
         )
         backup = GyroBackupParams(
             gyro_noise_rad_s=p('gyro_noise_rad_s', g.gyro_noise_rad_s, 'Gyro rate noise, 1-sigma per sample, rad/s', min_value=0.0, max_value=10.0),
@@ -104,25 +121,31 @@ class HybridOrientationFilterNode(TrackingNode):
             bias_window_s=p('gyro_bias_window_s', g.bias_window_s, 'Interval over which gyro and visual rotations are compared to learn the bias, s', min_value=0.05, max_value=10.0),
             bias_gain=p('gyro_bias_gain', g.bias_gain, 'Weight of one comparison in the running gyro bias (0: no learning)', min_value=0.0, max_value=1.0),
         )
-        gyro_bias = np.asarray(p('gyro_bias', [0.0, 0.0, 0.0], 'Gyro bias subtracted from imu/data_raw before integration, rad/s', validate=_length(3)), dtype=float)
+        self.visual_noise_rad: float = p('visual_noise_rad', 0.001, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0)
+        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample still paired with an IMU sample, s', min_value=0.0, max_value=10.0))
         self.max_pair_gap_ns = int(1e9 * p('max_pair_gap_s', 0.2, 'Largest gap between two visual orientations that is interpolated across, s', min_value=0.0, max_value=10.0))
         self.visual_timeout_ns = int(1e9 * p('visual_timeout_s', 0.2, 'No visual orientation for this long (in stamps): the tracker is lost, the gyro backup publishes', min_value=0.0, max_value=60.0))
         self.backup_period_ns = int(1e9 / p('backup_rate_hz', 30.0, 'Rate of orientation/global from the gyro backup, Hz', min_value=0.1, max_value=1000.0))
-        self.max_backup_ns = int(1e9 * p('max_backup_s', 30.0, 'Stop the gyro backup after this long without vision, s', min_value=0.0, max_value=3600.0))
-        self.reseed_rad: float = p('reseed_threshold_rad', 0.1, 'When vision returns this far from the gyro backup, its frame changed: re-seed the filter from the backup, rad', min_value=0.0, max_value=3.2)
-        self.sensor_timeout_ns = int(1e9 * p('sensor_timeout_s', 1.0, 'Warn when imu/data has been silent this long', min_value=0.0, max_value=3600.0))
+        self.max_backup_ns = int(1e9 * p('max_backup_s', 30.0, 'After this long without vision the gyro backup stops and imu/data (the AHRS) is followed, s', min_value=0.0, max_value=3600.0))
+        self.gyro_rate_output: bool = p('gyro_rate_output', False, 'Also publish at every gyro sample between camera frames (the last frame carried forward by the gyro)')
+        self.reseed_rad: float = p('reseed_threshold_rad', 0.1, 'When vision returns this far from the gyro backup, its frame changed: restart the panorama-in-world estimate from the backup, rad', min_value=0.0, max_value=3.2)
         reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
 
-        self.R_imu_cam = quat_xyzw_to_matrix(np.asarray(q_imu_cam, dtype=float))
-        self.gyro_bias = gyro_bias
-        self.filter = PanoramaWorldFilter(params)
+        self.R_imu_cam_param = quat_xyzw_to_matrix(np.asarray(q_imu_cam, dtype=float))
+        self.R_imu_cam = self.R_imu_cam_param
+        self.extrinsic_source = 'parameter'
+        self.align = WorldAlignment(config)
         self.backup = GyroBackup(self.R_imu_cam, backup)
         self.visual = RotationBuffer(self.max_pair_gap_ns)
         self.pending: deque[tuple[int, np.ndarray, np.ndarray | None]] = deque()
-        self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'sensor', 'gyro')}
+        self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
+        self.mag: np.ndarray | None = None
+        self.mag_ns: int | None = None
         self.last_visual_ns: int | None = None
-        self.last_sensor_ns: int | None = None
+        self.last_imu_ns: int | None = None
         self.last_backup_pub_ns: int | None = None
+        self.last_global: np.ndarray | None = None
+        self.last_published_ns: int | None = None
         self.panorama_frame = 'panorama'
         self.published = 0
 
@@ -130,21 +153,69 @@ class HybridOrientationFilterNode(TrackingNode):
         self.pub_frame = self.advertise(TransformStamped, 'orientation/panorama_in_world', RELIABLE_QOS)
         self.input_type = input_type
         self.subscribe(INPUT_TYPES[input_type], 'panorama/orientation', self.on_visual, SENSOR_QOS)
-        self.subscribe(Imu, 'imu/data', self.on_sensor, SENSOR_QOS)
-        self.subscribe(Imu, 'imu/data_raw', self.on_gyro, SENSOR_QOS)
-        self.get_logger().info(f'hybrid_orientation_filter: panorama/orientation as {input_type}, imu/data, imu/data_raw')
+        self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
+        self.subscribe(MagneticField, 'imu/mag', self.on_mag, SENSOR_QOS)
+        self.subscribe(Imu, 'imu/data', self.on_ahrs, SENSOR_QOS)
+        self._subscribe_tf_static()
+        self.get_logger().info(f'hybrid_orientation_filter: panorama/orientation as {input_type}, imu/data_raw, imu/mag, imu/data')
+
+    # -- extrinsics ------------------------------------------------------------------------
+
+    def _subscribe_tf_static(self) -> None:
+        """/tf_static on a ROS install (tf2_msgs is not on the pip-only path: there the graph
+        runner hands the bag's static transforms to :meth:`on_static_transforms`)."""
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            return
+
+        def on_tf(msg: Any) -> None:
+            from types import SimpleNamespace
+
+            items = []
+            for tf in msg.transforms:
+                q = tf.transform.rotation
+                items.append(SimpleNamespace(parent=tf.header.frame_id, child=tf.child_frame_id,
+                                             rotation=quat_xyzw_to_matrix(np.array([q.x, q.y, q.z, q.w]))))
+            self.on_static_transforms(items)
+
+        self.create_subscription(TFMessage, '/tf_static', on_tf, LATCHED_QOS)
+
+    def on_static_transforms(self, transforms: list[Any]) -> None:
+        """Static transforms (``parent``, ``child``, ``rotation`` rotating child vectors into
+        the parent): take the IMU -> camera rotation from the one that names the camera frame."""
+        cam = self.camera_frame.lstrip('/')
+        for tf in transforms:
+            parent, child = str(tf.parent).lstrip('/'), str(tf.child).lstrip('/')
+            R = np.asarray(tf.rotation, dtype=float)
+            if child == cam and parent != cam:
+                R_imu_cam = R
+            elif parent == cam and child != cam:
+                R_imu_cam = R.T
+            else:
+                continue
+            diff = float(np.linalg.norm(so3_log(self.R_imu_cam_param.T @ R_imu_cam)))
+            if diff > _EXTRINSIC_WARN_RAD:
+                self.get_logger().warning(
+                    f'/tf_static {parent} -> {child} differs from imu_to_camera_quat_xyzw by '
+                    f'{np.degrees(diff):.1f} deg: using /tf_static')
+            self.R_imu_cam = R_imu_cam
+            self.backup.R_imu_cam = R_imu_cam
+            self.extrinsic_source = f'/tf_static {parent} -> {child}'
+            return
 
     # -- helpers ---------------------------------------------------------------------------
 
     def _reset(self, why: str) -> None:
         self.get_logger().warning(f'{why}: starting over')
-        self.filter.reset()
+        self.align.reset()
         self.backup.reset()
         self.visual.clear()
         self.pending.clear()
         for guard in self.stamp_guards.values():
             guard.reset()
-        self.last_visual_ns = self.last_sensor_ns = self.last_backup_pub_ns = None
+        self.mag = self.mag_ns = None
+        self.last_visual_ns = self.last_imu_ns = self.last_backup_pub_ns = self.last_published_ns = None
 
     def _stamp_ok(self, key: str, t_ns: int, what: str) -> bool:
         verdict = self.stamp_guards[key].check(t_ns)
@@ -157,11 +228,14 @@ class HybridOrientationFilterNode(TrackingNode):
         self.warn_throttled(f'{what}: {verdict.value}, message dropped')
         return False
 
-    def _publish(self, t_ns: int, R_enu_cam: np.ndarray, cov: np.ndarray) -> None:
-        """orientation/global and orientation/panorama_in_world, never with NaN."""
+    def _publish(self, t_ns: int, R_enu_cam: np.ndarray, cov: np.ndarray, R_enu_pano: np.ndarray | None) -> None:
+        """orientation/global (and orientation/panorama_in_world), never with NaN."""
         if not (np.all(np.isfinite(R_enu_cam)) and np.all(np.isfinite(cov))):
             self.warn_throttled('estimate is not finite; not published')
             return
+        if self.last_published_ns is not None and t_ns <= self.last_published_ns:
+            return  # one output per stamp, in stamp order (a gyro sample and a frame may share one)
+        self.last_published_ns = t_ns
         out = Imu()
         out.header.stamp = to_stamp(t_ns)
         out.header.frame_id = self.camera_frame
@@ -170,22 +244,24 @@ class HybridOrientationFilterNode(TrackingNode):
         set_covariance(out.angular_velocity_covariance, None)
         set_covariance(out.linear_acceleration_covariance, None)
         self.pub_global.publish(out)
-        tf = TransformStamped()
-        tf.header.stamp = out.header.stamp
-        tf.header.frame_id = self.world_frame
-        tf.child_frame_id = self.panorama_frame
-        set_quaternion(tf.transform.rotation, self.filter.R_hat.T)
-        self.pub_frame.publish(tf)
         self.published += 1
+        self.last_global = R_enu_cam
+        if R_enu_pano is not None:
+            tf = TransformStamped()
+            tf.header.stamp = out.header.stamp
+            tf.header.frame_id = self.world_frame
+            tf.child_frame_id = self.panorama_frame
+            set_quaternion(tf.transform.rotation, R_enu_pano)
+            self.pub_frame.publish(tf)
 
     def _resolve(self) -> None:
-        """Pair pending sensor samples with the visual orientation slerped at their stamps."""
+        """Feed pending IMU samples to the alignment with the visual orientation at their stamps."""
         newest_visual = self.visual.newest_ns
         while self.pending:
-            t_s, R_enu_cam, cov = self.pending[0]
+            t_s, accel, mag = self.pending[0]
             if newest_visual is None or newest_visual < t_s:
                 # Wait for a visual sample at or after t_s, unless vision is lost by now.
-                if self.last_sensor_ns is not None and self.last_sensor_ns - t_s > self.visual_timeout_ns:
+                if self.last_imu_ns is not None and self.last_imu_ns - t_s > self.visual_timeout_ns:
                     self.pending.popleft()
                     continue
                 break
@@ -193,12 +269,15 @@ class HybridOrientationFilterNode(TrackingNode):
             R_pano_cam = self.visual.at(t_s)
             if R_pano_cam is None:  # before the buffer, or across a lost stretch
                 continue
-            self.filter.update(t_s, R_pano_cam, R_enu_cam, cov)
+            self.align.add(t_s, R_pano_cam @ self.R_imu_cam.T, accel, mag)
+
+    def _vision_live(self, t_ns: int) -> bool:
+        return self.last_visual_ns is not None and t_ns - self.last_visual_ns <= self.visual_timeout_ns
 
     # -- callbacks -------------------------------------------------------------------------
 
     def on_visual(self, msg: Any) -> None:
-        """One relative orientation R_ref_cam: pair, update, publish eq. 1."""
+        """One relative orientation R_ref_cam: publish eq. 1 with the current R_PN."""
         try:
             if self.input_type == 'pose':
                 R_pano_cam = rotation_from_quaternion(msg.pose.orientation, 'panorama/orientation')
@@ -213,81 +292,109 @@ class HybridOrientationFilterNode(TrackingNode):
         if msg.header.frame_id:
             self.panorama_frame = msg.header.frame_id.lstrip('/')
         returning = self.last_visual_ns is not None and t_v - self.last_visual_ns > self.visual_timeout_ns
-        if returning and self.filter.initialized and self.backup.R_enu_cam is not None:
-            R_vis = self.filter.global_orientation(R_pano_cam)
+        estimate = self.align.estimate()
+        if returning and estimate is not None and self.backup.R_enu_cam is not None:
+            R_vis = estimate.R_pano_enu.T @ R_pano_cam
             jump = float(np.linalg.norm(so3_log(self.backup.R_enu_cam.T @ R_vis)))
             if jump > self.reseed_rad:
-                # A new visual reference frame (tracker restarted): carry the heading over from
-                # the gyro backup, so the output does not jump, and let the compass refine it.
+                # A new visual reference frame (tracker restarted): carry the orientation over
+                # from the gyro backup as a prior of a new panorama-in-world estimate.
                 self.get_logger().warning(
                     f'vision returned {np.degrees(jump):.1f} deg away from the gyro backup: '
-                    're-seeding the panorama frame from the backup')
+                    'a new panorama frame, placed in the world from the backup')
                 R_pe = R_pano_cam @ self.backup.R_enu_cam.T
-                self.filter.seed(t_v, R_pe, R_pe @ self.backup.cov @ R_pe.T)
+                self.align.reset(prior=(R_pe, float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))))
+                self.pending.clear()
             self.visual.clear()
             self.backup.visual.clear()
         self.last_visual_ns = t_v
         self.visual.add(t_v, R_pano_cam)
         self.backup.add_visual(t_v, R_pano_cam)
         self._resolve()
-        if not self.filter.initialized:
-            self.warn_throttled('waiting for imu/data to place the panorama in the world')
+        estimate = self.align.estimate()
+        if estimate is None:
+            self.warn_throttled('waiting for imu/data_raw and imu/mag to place the panorama in the world')
             return
-        if self.last_sensor_ns is None or t_v - self.last_sensor_ns > self.sensor_timeout_ns:
-            self.warn_throttled('imu/data is silent: publishing with the last panorama-in-world estimate, covariance growing')
-        self.filter.predict(t_v)
-        R_enu_cam = self.filter.global_orientation(R_pano_cam)
-        vis_var = self.filter.params.visual_noise_rad ** 2
-        cov = self.filter.world_covariance() + np.eye(3) * vis_var
+        R_enu_pano = estimate.R_pano_enu.T
+        R_enu_cam = R_enu_pano @ R_pano_cam
+        cov = estimate.covariance_enu + np.eye(3) * self.visual_noise_rad ** 2
         self.backup.anchor(t_v, R_enu_cam, cov)
-        self._publish(t_v, R_enu_cam, cov)
+        self._publish(t_v, R_enu_cam, cov, R_enu_pano)
 
-    def on_sensor(self, msg: Imu) -> None:
-        """Absolute orientation of the IMU (imu/data): queue it for pairing with vision."""
-        if not covariance_is_known(msg.orientation_covariance):
-            cov = None  # REP-145: unknown, the default sigma is used
-        else:
+    def on_mag(self, msg: MagneticField) -> None:
+        """Keep the newest calibrated field sample for pairing."""
+        try:
+            raw = finite_vector3(msg.magnetic_field, 'imu/mag field')
+        except ConversionError as exc:
+            self.warn_throttled(f'{exc}, message dropped')
+            return
+        t_m = stamp_ns(msg.header)
+        if not self._stamp_ok('mag', t_m, 'imu/mag'):
+            return
+        field = self.calibration.mag(raw)
+        if float(field @ field) <= 0.0:
+            self.warn_throttled('imu/mag field has zero norm, message dropped')
+            return
+        self.mag, self.mag_ns = field, t_m
+
+    def on_imu(self, msg: Imu) -> None:
+        """Gyro + accelerometer sample: to the alignment (paired with vision by stamp) and the
+        gyro backup; while vision is lost, publish the backup."""
+        try:
+            accel = finite_vector3(msg.linear_acceleration, 'imu/data_raw linear_acceleration')
+            omega = vector3(msg.angular_velocity)
+            if not np.all(np.isfinite(omega)):
+                raise ConversionError('imu/data_raw angular_velocity is not finite')
+        except ConversionError as exc:
+            self.warn_throttled(f'{exc}, message dropped')
+            return
+        t_g = stamp_ns(msg.header)
+        if not self._stamp_ok('imu', t_g, 'imu/data_raw'):
+            return
+        self.last_imu_ns = t_g
+        self.backup.add_gyro(t_g, self.calibration.gyro(omega))
+        mag = self.mag if self.mag_ns is not None and abs(t_g - self.mag_ns) <= self.max_mag_age_ns else None
+        if self.last_visual_ns is not None:
+            self.pending.append((t_g, self.calibration.accel(accel), mag))
+            self._resolve()
+        if self.last_visual_ns is None or self.backup.R_enu_cam is None or self.align.estimate() is None:
+            return
+        lost_for = t_g - self.last_visual_ns
+        if lost_for <= self.visual_timeout_ns:
+            if self.gyro_rate_output and t_g > self.last_visual_ns:
+                self._publish(t_g, self.backup.R_enu_cam, self.backup.cov, None)
+            return
+        if lost_for > self.max_backup_ns:
+            return  # imu/data (the AHRS) takes over in on_ahrs
+        if self.last_backup_pub_ns is not None and t_g - self.last_backup_pub_ns < self.backup_period_ns:
+            return
+        self.warn_throttled('visual tracker lost: publishing the gyro backup')
+        self.last_backup_pub_ns = t_g
+        self._publish(t_g, self.backup.R_enu_cam, self.backup.cov, None)
+
+    def on_ahrs(self, msg: Imu) -> None:
+        """imu/data (the AHRS): without a camera (none yet, or lost beyond max_backup_s) the
+        output is the AHRS orientation turned into the camera frame."""
+        t_s = stamp_ns(msg.header)
+        if self._vision_live(t_s) or (self.last_visual_ns is not None and t_s - self.last_visual_ns <= self.max_backup_ns):
+            return
+        if covariance_is_known(msg.orientation_covariance):
             cov = np.asarray(msg.orientation_covariance, dtype=float).reshape(3, 3)
             if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
                 self.warn_throttled('imu/data orientation covariance is not finite or negative, message dropped')
                 return
+        else:
+            cov = np.eye(3) * np.pi ** 2  # REP-145 unknown
         try:
             R_enu_imu = rotation_from_quaternion(msg.orientation, 'imu/data orientation')
         except ConversionError as exc:
             self.warn_throttled(f'{exc}, message dropped')
             return
-        t_s = stamp_ns(msg.header)
-        if not self._stamp_ok('sensor', t_s, 'imu/data'):
+        if not self._stamp_ok('ahrs', t_s, 'imu/data'):
             return
         frame = msg.header.frame_id.lstrip('/')
         R_enu_cam = R_enu_imu if frame == self.camera_frame else R_enu_imu @ self.R_imu_cam
-        self.last_sensor_ns = t_s
-        self.pending.append((t_s, R_enu_cam, cov))
-        self._resolve()
-
-    def on_gyro(self, msg: Imu) -> None:
-        """Gyro sample: integrate; while vision is lost, publish the backup orientation."""
-        omega = vector3(msg.angular_velocity)
-        if not np.all(np.isfinite(omega)):
-            self.warn_throttled('imu/data_raw angular_velocity is not finite, message dropped')
-            return
-        t_g = stamp_ns(msg.header)
-        if not self._stamp_ok('gyro', t_g, 'imu/data_raw'):
-            return
-        self.backup.add_gyro(t_g, omega - self.gyro_bias)
-        if self.last_visual_ns is None or self.backup.R_enu_cam is None or not self.filter.initialized:
-            return
-        lost_for = t_g - self.last_visual_ns
-        if lost_for <= self.visual_timeout_ns:
-            return
-        if lost_for > self.max_backup_ns:
-            self.warn_throttled('visual tracker lost for too long: gyro backup stopped')
-            return
-        if self.last_backup_pub_ns is not None and t_g - self.last_backup_pub_ns < self.backup_period_ns:
-            return
-        self.warn_throttled('visual tracker lost: publishing the gyro backup')
-        self.last_backup_pub_ns = t_g
-        self._publish(t_g, self.backup.R_enu_cam, self.backup.cov)
+        self._publish(t_s, R_enu_cam, cov, None)
 
 
 def main(args: list[str] | None = None) -> int:

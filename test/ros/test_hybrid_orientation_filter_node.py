@@ -11,7 +11,7 @@ rclpy = pytest.importorskip('rclpy')
 from geometry_msgs.msg import PoseStamped, TransformStamped  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import Imu  # noqa: E402
+from sensor_msgs.msg import Imu, MagneticField  # noqa: E402
 
 from ar_tracking.core.rotations import heading_tilt_error_deg, rot_z  # noqa: E402
 from ar_tracking.nodes.hybrid_orientation_filter import HybridOrientationFilterNode  # noqa: E402
@@ -28,6 +28,10 @@ def truth(t_s: float) -> np.ndarray:
     return rot_z(-0.7 - 0.4 * math.sin(t_s)) @ R0_ENU_CAM  # R_enu_cam
 
 
+FIELD_ENU = 48e-6 * np.array([0.0, math.cos(math.radians(64)), -math.sin(math.radians(64))])
+G = 9.80665
+
+
 class Harness:
     def __init__(self, context, params=None):
         overrides = [Parameter(k, value=v) for k, v in (params or {}).items()]
@@ -41,12 +45,15 @@ class Harness:
         self.pub_vis = self.src.create_publisher(vis_type, 'panorama/orientation', 500)
         self.pub_imu = self.src.create_publisher(Imu, 'imu/data', 500)
         self.pub_raw = self.src.create_publisher(Imu, 'imu/data_raw', 500)
+        self.pub_mag = self.src.create_publisher(MagneticField, 'imu/mag', 500)
         self.ex = SingleThreadedExecutor(context=context)
         self.ex.add_node(self.node)
         self.ex.add_node(self.src)
-        assert spin_until(self.ex, lambda: all(p.get_subscription_count() > 0 for p in (self.pub_vis, self.pub_imu, self.pub_raw))
+        pubs = (self.pub_vis, self.pub_imu, self.pub_raw, self.pub_mag)
+        assert spin_until(self.ex, lambda: all(p.get_subscription_count() > 0 for p in pubs)
                           and self.node.pub_global.get_subscription_count() > 0)
         self.sent = 0
+        self.ahrs_sent: list[np.ndarray] = []
 
     def _count(self) -> int:
         return sum(len(s.durations_ms) for s in self.node.callback_stats.values())
@@ -70,6 +77,7 @@ class Harness:
         self.send(self.pub_vis, msg)
 
     def sensor(self, t_ns, R_enu_imu, sigma=0.02, quat=None):
+        """imu/data: an AHRS orientation."""
         msg = Imu()
         msg.header.stamp = to_stamp(t_ns)
         msg.header.frame_id = 'imu'
@@ -77,27 +85,40 @@ class Harness:
         if quat is not None:
             msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = quat
         set_covariance(msg.orientation_covariance, np.eye(3) * sigma**2)
+        self.ahrs_sent.append(R_enu_imu)
         self.send(self.pub_imu, msg)
 
-    def gyro(self, t_ns, w_imu):
+    def raw(self, t_ns, w_imu, accel_imu):
         msg = Imu()
         msg.header.stamp = to_stamp(t_ns)
         msg.header.frame_id = 'imu'
         msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = map(float, w_imu)
+        msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = map(float, accel_imu)
         set_covariance(msg.orientation_covariance, None)
         self.send(self.pub_raw, msg)
 
-    def play(self, t0_s, t1_s, rng, sensor=True, visual=True, compass_bias=0.0, pose=False):
-        """Sensor + gyro at 50 Hz, vision at 25 Hz, true motion of truth()."""
+    def mag(self, t_ns, field_imu):
+        msg = MagneticField()
+        msg.header.stamp = to_stamp(t_ns)
+        msg.header.frame_id = 'imu'
+        msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = map(float, field_imu)
+        self.send(self.pub_mag, msg)
+
+    def play(self, t0_s, t1_s, rng, sensor=True, visual=True, field_turn=0.0, pose=False, ahrs=False):
+        """IMU + field at 50 Hz (hand acceleration and noise), vision at 25 Hz, the motion of
+        truth(); ``field_turn`` turns the horizontal field (|B| and dip kept)."""
         for k in range(int(round(t0_s * 50)), int(round(t1_s * 50))):
             t = k / 50.0
             t_ns = T0 + k * 20_000_000
             R = truth(t)
+            R_imu_enu = (R @ R_IMU_CAM.T).T
             w_cam = np.array([0.0, 0.4 * math.cos(t), 0.0])  # heading rate about camera y (down)
-            self.gyro(t_ns, R_IMU_CAM @ w_cam)
+            hand = rng.normal(0.0, 0.1, 3)  # m/s^2, zero mean
             if sensor:
-                noise = rot_z(compass_bias + rng.normal(0, 0.01))
-                self.sensor(t_ns, noise @ R @ R_IMU_CAM.T)
+                self.mag(t_ns, R_imu_enu @ (rot_z(field_turn) @ FIELD_ENU) + rng.normal(0, 0.2e-6, 3))
+            self.raw(t_ns, R_IMU_CAM @ w_cam, R_imu_enu @ (np.array([0.0, 0.0, G]) + hand))
+            if ahrs:
+                self.sensor(t_ns, rot_z(rng.normal(0, 0.02)) @ R @ R_IMU_CAM.T)
             if visual and k % 2 == 0:
                 self.visual(t_ns, R_PANO_ENU @ R, pose=pose)
 
@@ -119,12 +140,12 @@ def finite(msg) -> bool:
 
 
 @pytest.mark.parametrize('pose', [False, True])
-def test_global_orientation_is_eq_1_with_the_filtered_panorama_frame(ros_context, pose):
+def test_global_orientation_is_eq_1_with_the_estimated_panorama_frame(ros_context, pose):
     params = {'relative_input_type': 'pose'} if pose else None
     h = Harness(ros_context, params)
     try:
-        h.play(0.0, 3.0, np.random.default_rng(0), pose=pose)
-        assert len(h.out) >= 70
+        h.play(0.0, 6.0, np.random.default_rng(0), pose=pose)
+        assert len(h.out) >= 140
         assert all(m.header.frame_id == 'camera_optical' for m in h.out)
         assert all(abs(heading_err(m)) < 0.5 for m in h.out[-20:])
         assert h.out[-1].orientation_covariance[8] > 0
@@ -140,15 +161,39 @@ def test_gyro_backup_publishes_while_vision_is_lost_and_vision_resumes(ros_conte
     h = Harness(ros_context)
     try:
         rng = np.random.default_rng(1)
-        h.play(0.0, 2.0, rng)
+        h.play(0.0, 4.0, rng)
         n_before = len(h.out)
-        h.play(2.0, 3.0, rng, visual=False)  # lost for 1 s
+        h.play(4.0, 5.0, rng, visual=False)  # lost for 1 s
         backup = h.out[n_before:]
         assert len(backup) >= 20  # ~30 Hz from the gyro
         assert all(abs(heading_err(m)) < 1.0 for m in backup)
         assert backup[-1].orientation_covariance[0] > h.out[n_before - 1].orientation_covariance[0]
-        h.play(3.0, 3.6, rng)
+        h.play(5.0, 5.6, rng)
         assert abs(heading_err(h.out[-1])) < 0.5
+    finally:
+        h.close()
+
+
+def test_gyro_rate_output_fills_the_gaps_between_frames(ros_context):
+    h = Harness(ros_context, {'gyro_rate_output': True})
+    try:
+        h.play(0.0, 4.0, np.random.default_rng(4))
+        stamps = [m.header.stamp.nanosec + 10**9 * m.header.stamp.sec for m in h.out]
+        assert len(h.out) > 180  # 50 Hz rather than the camera's 25 Hz
+        assert all(abs(heading_err(m)) < 1.0 for m in h.out[-40:])
+        assert stamps == sorted(set(stamps))  # one output per stamp
+    finally:
+        h.close()
+
+
+def test_without_a_camera_the_output_is_the_ahrs_in_the_camera_frame(ros_context):
+    h = Harness(ros_context)
+    try:
+        h.play(0.0, 1.0, np.random.default_rng(5), visual=False, ahrs=True)
+        assert spin_until(h.ex, lambda: len(h.out) >= 50, 2.0) and len(h.out) == 50
+        for m, R_enu_imu in zip(h.out, h.ahrs_sent):
+            assert np.allclose(rotation_from_quaternion(m.orientation), R_enu_imu @ R_IMU_CAM, atol=1e-9)
+            assert m.orientation_covariance[8] == pytest.approx(0.02 ** 2)
     finally:
         h.close()
 
@@ -160,35 +205,48 @@ def test_bad_input_is_skipped_never_crashes_never_nan(ros_context):
         h.play(0.0, 1.0, rng)
         n = len(h.out)
         t_ns = T0 + 50 * 20_000_000
-        h.sensor(t_ns + 1, np.eye(3), quat=(float('nan'), 0.0, 0.0, 1.0))  # NaN quaternion
-        h.sensor(t_ns + 2, np.eye(3), quat=(0.0, 0.0, 0.5, 0.5))  # not unit
         bad = TransformStamped()
         bad.header.stamp = to_stamp(t_ns + 3)
         bad.transform.rotation.w = 2.0  # not unit
         h.send(h.pub_vis, bad)
         h.visual(T0 + 10 * 20_000_000, R_PANO_ENU @ truth(0.2))  # stamp out of order
-        h.gyro(t_ns + 4, [float('nan'), 0.0, 0.0])
+        h.raw(t_ns + 4, [float('nan'), 0.0, 0.0], [0.0, 0.0, G])
+        h.raw(t_ns + 5, [0.0, 0.0, 0.0], [0.0, float('inf'), G])
+        h.mag(t_ns + 6, [float('nan'), 0.0, 0.0])
+        h.mag(t_ns + 7, [0.0, 0.0, 0.0])
         assert len(h.out) == n  # nothing published for bad messages
         assert all(s.failures == 0 for s in h.node.callback_stats.values())
-        # imu/data silent for 2 s (e.g. a magnetometer stuck at zero upstream): vision goes on,
-        # the covariance grows, the estimate stays.
-        cov_before = h.out[-1].orientation_covariance[8]
+        # The field silent for 2 s (a magnetometer stuck upstream): vision goes on, the
+        # estimate stays.
         h.play(1.0, 3.0, rng, sensor=False)
         assert len(h.out) > n + 40
-        assert h.out[-1].orientation_covariance[8] > cov_before
         assert all(abs(heading_err(m)) < 1.0 for m in h.out[n:])
         assert all(finite(m) for m in h.out)
     finally:
         h.close()
 
 
-def test_disturbed_compass_does_not_pull_the_heading(ros_context):
+def test_turned_field_does_not_pull_the_heading(ros_context):
     h = Harness(ros_context)
     try:
         rng = np.random.default_rng(3)
-        h.play(0.0, 3.0, rng)
-        h.play(3.0, 5.0, rng, compass_bias=math.radians(8.0))  # field turned by 8 deg, same |B|
+        h.play(0.0, 4.0, rng)
+        h.play(4.0, 6.0, rng, field_turn=math.radians(8.0))  # field turned by 8 deg, same |B| and dip
         assert all(abs(heading_err(m)) < 1.0 for m in h.out[-50:])
+    finally:
+        h.close()
+
+
+def test_imu_to_camera_rotation_comes_from_tf_static(ros_context, capfd):
+    from types import SimpleNamespace
+
+    h = Harness(ros_context, {'imu_to_camera_quat_xyzw': [0.0, 0.0, 0.0, 1.0]})  # wrong: identity
+    try:
+        h.node.on_static_transforms([SimpleNamespace(parent='imu', child='camera_optical', rotation=R_IMU_CAM)])
+        assert np.allclose(h.node.R_imu_cam, R_IMU_CAM)
+        assert 'differs from imu_to_camera_quat_xyzw by 180.0 deg' in capfd.readouterr().err
+        h.play(0.0, 5.0, np.random.default_rng(6))
+        assert all(abs(heading_err(m)) < 0.7 for m in h.out[-20:])  # 90 deg off with the parameter
     finally:
         h.close()
 

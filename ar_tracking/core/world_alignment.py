@@ -1,0 +1,340 @@
+"""The panorama's place in the world, R_PN of Langlotz 2011 sec. 5, from a whole session of samples.
+
+Eq. 1-2 of the paper: ``R_DP R_PN = R_DN`` - the visual tracker gives the camera in the panorama
+frame (R_DP), the sensors give it in the world (R_DN), and the panorama frame itself does not move,
+so R_PN is one constant rotation. The paper estimates it with an EKF on per-sample tilt-compass
+readings (eq. 5-6, :class:`~.hybrid_orientation.PanoramaWorldFilter`); a reading carries the
+whole error of its sample (hand acceleration tilts it, a turned field or residual iron turns it),
+and the filter's result stays an almost constant offset of 1-3 degrees on hard data.
+
+Here the raw sensor vectors are carried into the panorama frame instead, where the quantities
+they measure are constant, and two small least-squares problems are solved over everything
+seen since the panorama started:
+
+* **gravity**: ``a_imu(t) = R_imu_P(t) g_P + b_a + e(t)``. The hand's linear acceleration is
+  part of e(t), and in the (inertial) panorama frame its mean over the session is the change of
+  velocity divided by the time (``(v(T) - v(0)) / T``): it vanishes as the session grows, whatever
+  its size - so the plain mean is right and no gating on |a| ~ g is needed. The accelerometer
+  bias b_a is estimated with a ridge prior (only its horizontal part is observable, and only as
+  the phone turns). O(1) per sample: the normal equations are sums.
+* **magnetic field**: ``m_imu(t) = R_imu_P(t) f_P + h + e(t)``: the local field is a constant
+  vector in the panorama frame and h is the residual hard iron left by the calibration; with
+  the panorama's rotations the two separate (a moving-body magnetometer calibration, linear in
+  (f_P, h)). Disturbances that turn the field while keeping its strength and dip - invisible to
+  a per-sample check - are outliers here: the estimate is an IRLS with a Cauchy loss on the
+  residual vectors (scale from their median absolute deviation), re-solved every
+  ``solve_period_s`` over the stored samples (decimated to ``mag_rate_hz``).
+
+R_PN follows from g_P and f_P by the gravity-first construction of eq. 3-4 (up = g, east =
+f x up, north = up x east), with the declination. Its covariance comes from the residual
+scatter with an effective sample count (samples per ``correlation_s``: hand motion and
+disturbances are correlated over about a second), plus floors for what the model leaves out
+(soft-iron residuals, the camera-IMU time offset).
+Field vectors are used in units of their median norm, so any magnetometer unit works.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .rotations import rot_z
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class WorldAlignmentConfig:
+    """Settings of :class:`WorldAlignment` (SI units; field quantities relative to |B|)."""
+
+    #: Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2.
+    accel_bias_sigma_m_s2: float = 0.1
+    #: Prior 1-sigma of the residual hard iron, relative to |B|.
+    hard_iron_sigma: float = 0.05
+    #: Field samples kept for the robust solve, per second (decimation of the IMU rate).
+    mag_rate_hz: float = 25.0
+    #: At most this many field samples are kept (then every other one is dropped).
+    max_mag_samples: int = 20000
+    #: Re-solve the field every this long (sample stamps), s.
+    solve_period_s: float = 0.5
+    #: IRLS iterations per solve.
+    irls_iterations: int = 4
+    #: Cauchy scale in robust sigmas of the residual norm.
+    cauchy_scale: float = 2.5
+    #: Floor of the robust residual sigma, relative to |B| (a perfect sensor is not trusted more).
+    min_field_sigma: float = 0.005
+    #: Per-sample error of the field model (soft-iron residuals, small disturbances), relative
+    #: to |B|: weighs the hard-iron prior, so that h moves only where the rotations tell it apart
+    #: from a field turned in the world.
+    field_model_sigma: float = 0.02
+    #: Correlation time of the residuals (hand motion, disturbances), s: sets the effective
+    #: sample count of the covariance.
+    correlation_s: float = 1.0
+    #: Window of the robust field fit, s (short, so that a disturbance of a few seconds is a
+    #: minority of the windows early in a session too).
+    window_s: float = 0.25
+    #: 1-sigma floors of the result, rad.
+    tilt_floor_rad: float = math.radians(0.05)
+    heading_floor_rad: float = math.radians(0.15)
+    declination_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class WorldAlignmentEstimate:
+    """R_pano_enu (rotates ENU vectors into the panorama frame) and its uncertainty."""
+
+    R_pano_enu: Array
+    #: Covariance of the error of R_enu_pano in ENU axes (x, y: tilt, z: heading), rad^2.
+    covariance_enu: Array
+    gravity_samples: int
+    field_samples: int
+    #: Share of the field samples the robust solve down-weighted below one half (disturbed).
+    field_outlier_share: float
+    #: Residual hard iron (imu frame, relative to |B|) and accelerometer bias (m/s^2).
+    hard_iron: Array
+    accel_bias: Array
+
+
+def _cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, float]:
+    """Cauchy weights of values about their median, with the robust sigma (1.4826 MAD, at
+    least ``floor``) times ``scale`` as the Cauchy width; returns (weights, sigma)."""
+    dev = np.abs(x - np.median(x))
+    sigma = max(1.4826 * float(np.median(dev)), floor)
+    return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
+
+
+class WorldAlignment:
+    """Accumulates (R_pano_imu, accel, field) samples and estimates R_pano_enu (module doc)."""
+
+    def __init__(self, config: WorldAlignmentConfig | None = None) -> None:
+        self.config = config or WorldAlignmentConfig()
+        self.reset()
+
+    def reset(self, prior: tuple[Array, float] | None = None) -> None:
+        """Forget every sample. ``prior`` = (R_pano_enu, 1-sigma rad) seeds a new panorama
+        with the orientation carried over (e.g. by the gyro) from the previous one."""
+        # Gravity: normal equations of [g_P; b_a] as sums.
+        self._n = 0
+        self._sum_R = np.zeros((3, 3))  # sum of R_imu_P
+        self._sum_Rt_a = np.zeros(3)  # sum of R_P_imu a
+        self._sum_a = np.zeros(3)
+        self._sum_aa = 0.0
+        self._accel_var = 0.25
+        self._sum_a_norm = 0.0
+        # Field: stored samples for the IRLS.
+        self._mag_R: list[Array] = []  # R_imu_P
+        self._mag_m: list[Array] = []  # field, raw units
+        self._mag_t_ns: int | None = None
+        self._mag_period_ns = int(1e9 / self.config.mag_rate_hz)
+        self._mag_period_ns_base = self._mag_period_ns
+        self._solve_t_ns: int | None = None
+        self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
+        self._prior = prior
+        self._h_last: Array | None = None
+        self._field_enu_ref: Array | None = None if prior is None else getattr(self, '_field_enu_ref', None)
+        self._estimate: WorldAlignmentEstimate | None = None
+        self._dirty = True
+
+    # -- samples ---------------------------------------------------------------------------
+
+    def add(self, t_ns: int, R_pano_imu: Array, accel: Array, mag: Array | None = None) -> None:
+        """One calibrated IMU sample (specific force, m/s^2; field, any unit) with the IMU's
+        orientation in the panorama frame at the sample's stamp."""
+        R_imu_P = R_pano_imu.T
+        self._n += 1
+        self._sum_R += R_imu_P
+        self._sum_Rt_a += R_pano_imu @ accel
+        self._sum_a += accel
+        self._sum_aa += float(accel @ accel)
+        self._sum_a_norm += math.sqrt(float(accel @ accel))
+        self._dirty = True
+        if mag is not None and (self._mag_t_ns is None or t_ns - self._mag_t_ns >= self._mag_period_ns):
+            self._mag_t_ns = int(t_ns)
+            self._mag_R.append(R_imu_P)
+            self._mag_m.append(np.asarray(mag, dtype=float))
+            if len(self._mag_m) > self.config.max_mag_samples:
+                self._mag_R = self._mag_R[::2]
+                self._mag_m = self._mag_m[::2]
+                self._mag_period_ns *= 2
+            if self._solve_t_ns is None or t_ns - self._solve_t_ns >= int(self.config.solve_period_s * 1e9) \
+                    or len(self._mag_m) < 8:
+                self._solve_t_ns = int(t_ns)
+                self._field = self._solve_field()
+
+    @property
+    def ready(self) -> bool:
+        return self._n > 0 and self._field is not None
+
+    # -- solves ----------------------------------------------------------------------------
+
+    def _prior_weight(self, sigma_rad: float, noise: float, scale: float) -> float:
+        """Samples' worth of a prior vector known to sigma_rad, against per-sample noise."""
+        return (noise / max(scale * sigma_rad, 1e-9)) ** 2
+
+    def _solve_gravity(self) -> tuple[Array, Array]:
+        """[g_P; b_a] from the summed normal equations with the ridge on b_a (and the prior)."""
+        c = self.config
+        n = float(self._n)
+        g_mag = self._sum_a_norm / n
+        # Per-sample noise of the model, for the ridge weight: the scatter of |a| about g.
+        var = max(self._accel_var, 0.05 ** 2)
+        lam_b = var / c.accel_bias_sigma_m_s2 ** 2
+        A = np.zeros((6, 6))
+        A[:3, :3] = np.eye(3) * n
+        A[:3, 3:] = self._sum_R.T
+        A[3:, :3] = self._sum_R
+        A[3:, 3:] = np.eye(3) * (n + lam_b)
+        rhs = np.concatenate([self._sum_Rt_a, self._sum_a])
+        if self._prior is not None:
+            R_pe, sigma = self._prior
+            w = self._prior_weight(sigma, math.sqrt(var), g_mag)
+            A[:3, :3] += np.eye(3) * w
+            rhs[:3] += w * (R_pe @ np.array([0.0, 0.0, g_mag]))
+        x = np.linalg.solve(A, rhs)
+        g, b = x[:3], x[3:]
+        # Per-axis residual variance of a - R g - b from the sums (the hand's acceleration and
+        # the sensor noise): it weighs the ridge of the next solve and sets the covariance.
+        sq = (self._sum_aa - 2.0 * g @ self._sum_Rt_a - 2.0 * b @ self._sum_a + n * (g @ g)
+              + 2.0 * g @ (self._sum_R.T @ b) + n * (b @ b))
+        self._accel_var = max(sq / (3.0 * n), 0.0)
+        return g, b
+
+    def _solve_field(self) -> tuple[Array, Array, float, float]:
+        """Robust fit of m = R_imu_P f_P + h (ridge on h), in windows of ``correlation_s``.
+
+        A disturbance lasts seconds and turns the field for all of its samples at once, so the
+        samples are grouped in short windows (``window_s``): each window gives the heading
+        of the field it implies in the panorama frame, the windows' headings are compared with
+        their weighted median, and a window that departs gets a Cauchy weight for all its
+        samples (a median survives up to half of the windows disturbed; a per-sample loss
+        started from least squares does not, once a long disturbance has pulled the fit).
+        f_P and h are then refitted by weighted least squares, three rounds. Returns f_P, h
+        (relative to |B|), the residual sigma of the window headings (rad) and the share of
+        windows weighted below one half."""
+        c = self.config
+        R = np.asarray(self._mag_R)  # (N, 3, 3) R_imu_P
+        m = np.asarray(self._mag_m)
+        scale = float(np.median(np.linalg.norm(m, axis=1)))
+        if scale <= 0 or not math.isfinite(scale):
+            scale = 1.0
+        m = m / scale
+        n = len(m)
+        per_window = max(1, int(round(c.window_s * c.mag_rate_hz * self._mag_period_ns_base / self._mag_period_ns)))
+        win = np.arange(n) // per_window
+        n_win = int(win[-1]) + 1
+        w_win = np.ones(n_win)
+        prior = None
+        if self._prior is not None and self._field_enu_ref is not None:
+            prior = self._prior[0] @ self._field_enu_ref
+        up = self._up_estimate()
+        spread = math.radians(2.0)
+        outliers = 0.0
+        # The windows are first judged with the previous hard iron held (zero at the start):
+        # a joint least-squares start would let h absorb a disturbance - with little rotation a
+        # field offset fixed in the world and one fixed in the phone look alike - after which
+        # every window agrees with the wrong fit.
+        h_held = self._h_last if self._h_last is not None else np.zeros(3)
+        if n_win >= 3:
+            f_held = np.einsum('nji,nj->i', R, m - h_held) / n
+            w_win, spread = self._window_weights(R, m, win, n_win, f_held, h_held, up)
+        for _ in range(max(1, c.irls_iterations)):
+            w = w_win[win]
+            sw = float(w.sum())
+            lam_h = (c.field_model_sigma / c.hard_iron_sigma) ** 2 * max(1.0, sw / max(per_window, 1))
+            A = np.zeros((6, 6))
+            A[:3, :3] = np.eye(3) * sw
+            WR = np.einsum('n,nij->ij', w, R)  # sum w R_imu_P
+            A[:3, 3:] = WR.T
+            A[3:, :3] = WR
+            A[3:, 3:] = np.eye(3) * sw + np.eye(3) * lam_h * per_window
+            rhs = np.concatenate([np.einsum('n,nji,nj->i', w, R, m), w @ m])
+            if prior is not None:
+                wp = (c.min_field_sigma / max(self._prior[1], 1e-6)) ** 2 * per_window  # type: ignore[index]
+                A[:3, :3] += np.eye(3) * wp
+                rhs[:3] += wp * prior
+            x = np.linalg.solve(A, rhs)
+            f, h = x[:3], x[3:]
+            if n_win < 3:
+                break
+            w_win, spread = self._window_weights(R, m, win, n_win, f, h, up)
+            outliers = float(np.mean(w_win < 0.5))
+        self._h_last = h
+        return f, h, spread, outliers
+
+    def _window_weights(self, R: Array, m: Array, win: Array, n_win: int, f: Array, h: Array,
+                        up: Array) -> tuple[Array, float]:
+        """Cauchy weights of the windows (heading, strength and dip of the field each implies
+        in the panorama frame, about their medians) and the heading spread (rad)."""
+        c = self.config
+        f_P_samples = np.einsum('nji,nj->ni', R, m - h)  # R_P_imu (m - h)
+        sums = np.zeros((n_win, 3))
+        np.add.at(sums, win, f_P_samples)
+        east = np.cross(f, up)
+        east /= max(np.linalg.norm(east), 1e-12)
+        north = np.cross(up, east)
+        psi = np.arctan2(sums @ east, sums @ north)  # 0 for a window agreeing with f
+        w_psi, spread = _cauchy_about_median(psi, math.radians(0.25), c.cauchy_scale)
+        # Most real disturbances also change the field's strength or dip: a window whose mean
+        # field departs in either is down-weighted too (a turn that keeps both is left to the
+        # heading test).
+        mean_f = sums / np.bincount(win, minlength=n_win)[:, None]
+        norm = np.linalg.norm(mean_f, axis=1)
+        dip = np.arcsin(np.clip(-(mean_f @ up) / np.maximum(norm, 1e-12), -1.0, 1.0))
+        w_norm, _ = _cauchy_about_median(norm, 0.005, c.cauchy_scale)
+        w_dip, _ = _cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
+        return w_psi * w_norm * w_dip, spread
+
+    def _up_estimate(self) -> Array:
+        """Gravity direction in the panorama frame from the current sums (z before any)."""
+        if self._n == 0:
+            return np.array([0.0, 0.0, 1.0])
+        g, _ = self._solve_gravity()
+        norm = float(np.linalg.norm(g))
+        return g / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
+
+    # -- result ----------------------------------------------------------------------------
+
+    def estimate(self) -> WorldAlignmentEstimate | None:
+        """The current R_pano_enu with its covariance (None before any field sample)."""
+        if not self.ready:
+            return None
+        if not self._dirty and self._estimate is not None:
+            return self._estimate
+        c = self.config
+        g_P, b_a = self._solve_gravity()
+        f_P, h, f_sigma, outliers = self._field  # type: ignore[misc]
+        up = g_P / np.linalg.norm(g_P)
+        east = np.cross(f_P, up)
+        f_h = float(np.linalg.norm(east))
+        if f_h < 1e-6:
+            return self._estimate
+        east /= f_h
+        north = np.cross(up, east)
+        R_pano_magenu = np.column_stack([east, north, up])
+        R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
+        self._field_enu_ref = R_pano_enu.T @ f_P
+        # Covariance: scatter / effective sample count, plus floors.
+        rate_g = max(self._n, 1)
+        n_eff_g = max(1.0, rate_g / max(self._samples_per_correlation(), 1.0))
+        g = float(np.linalg.norm(g_P))
+        tilt_var = self._accel_var / (g * g * n_eff_g) + c.tilt_floor_rad ** 2
+        n_m = len(self._mag_m)
+        n_win = max(1.0, n_m * self._mag_period_ns / (self.config.correlation_s * 1e9))
+        # f_sigma is the scatter of the window headings (rad): the mean of the kept windows.
+        # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
+        tan_dip = abs(float(f_P @ up)) / f_h
+        heading_var = (f_sigma ** 2 / max(1.0, n_win * (1.0 - outliers)) + c.heading_floor_rad ** 2
+                       + tilt_var * tan_dip ** 2)
+        self._estimate = WorldAlignmentEstimate(
+            R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),
+            gravity_samples=self._n, field_samples=n_m, field_outlier_share=outliers,
+            hard_iron=h, accel_bias=b_a)
+        self._dirty = False
+        return self._estimate
+
+    def _samples_per_correlation(self) -> float:
+        """IMU samples per correlation time (the IMU rate is not known here: from the field
+        decimation, which runs at mag_rate_hz of sample stamps)."""
+        return self.config.correlation_s * self.config.mag_rate_hz * max(self._n / max(len(self._mag_m), 1), 1.0)
