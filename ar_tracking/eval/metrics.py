@@ -36,7 +36,7 @@ from ar_tracking.core.rotations import (
     is_valid_quat,
     quat_xyzw_to_matrix,
 )
-from ar_tracking.io.bags import BagError, BagMessage, BagReader, stamp_to_ns
+from ar_tracking.io.bags import BagError, BagMessage, BagReader, stamp_to_ns, static_transforms
 
 logger = logging.getLogger(__name__)
 
@@ -199,6 +199,10 @@ class StaticTransforms:
     def __init__(self) -> None:
         self._R: dict[tuple[str, str], Array] = {}
 
+    def add_rotation(self, parent: str, child: str, R_parent_child: Array) -> None:
+        """One static rotation (rotates child vectors into the parent frame)."""
+        self._R[(_frame(parent), _frame(child))] = np.asarray(R_parent_child, dtype=float)
+
     def add(self, msg: Any) -> None:
         """Add every valid transform of a tf2_msgs/TFMessage."""
         for t in msg.transforms:
@@ -262,12 +266,10 @@ def _decode(bag: BagReader, m: BagMessage) -> Any | None:
 
 
 def _read_static_transforms(bag: BagReader, topics: dict[str, str]) -> StaticTransforms:
+    """The bag's /tf_static rotations (read by io.bags.static_transforms, as the runner does)."""
     tf = StaticTransforms()
-    if topics.get(TF_STATIC_TOPIC) == 'tf2_msgs/msg/TFMessage':
-        for m in bag.messages([TF_STATIC_TOPIC]):
-            msg = _decode(bag, m)
-            if msg is not None:
-                tf.add(msg)
+    for t in static_transforms(bag, TF_STATIC_TOPIC):
+        tf.add_rotation(t.parent, t.child, t.rotation)
     return tf
 
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from ..io.bags import BagReader, BagWriter
+from ..io.bags import TF_STATIC_TOPIC, BagReader, BagWriter, static_transforms
 from .params import params_for_node, to_overrides
 
 logger = logging.getLogger(__name__)
@@ -500,6 +500,7 @@ class GraphRunner:
                     raise RunError(f'{name}: cannot start ({exc})') from exc
                 node.lockstep_hooks = None if realtime else hooks
                 nodes.append(node)
+            self._hand_static_transforms(reader, nodes)
 
             consumed = {t for n in nodes for t in type(n).INPUTS}
             feeder = TrackingNode('graph_feeder', context=context)
@@ -603,6 +604,31 @@ class GraphRunner:
                 n.destroy_node()
             rclpy.try_shutdown(context=context)
         return result
+
+    @staticmethod
+    def _hand_static_transforms(reader: BagReader, nodes: list[Any]) -> None:
+        """Give the bag's /tf_static to every node with an ``on_static_transforms`` method.
+
+        The pip-only ROS has no tf2_msgs, so no node can subscribe to /tf_static; the runner
+        reads it with rosbags (io.bags.static_transforms) and calls the method with the list of
+        StaticTransform (parent, child, rotation, translation) before the first message. A
+        node that fails on them keeps running without (one warning).
+        """
+        if TF_STATIC_TOPIC not in reader.topics:
+            return
+        receivers = [n for n in nodes if callable(getattr(n, 'on_static_transforms', None))]
+        if not receivers:
+            return
+        transforms = static_transforms(reader)
+        if not transforms:
+            return
+        for node in receivers:
+            try:
+                node.on_static_transforms(transforms)
+            except Exception as exc:  # a node's bug must not end the run
+                logger.warning('%s: cannot use /tf_static (%s: %s)', node.get_name(), type(exc).__name__, exc)
+            else:
+                logger.info('%s: %d static transforms from the bag\'s /tf_static', node.get_name(), len(transforms))
 
     def _make_executor(self, rclpy: Any, context: Any, realtime: bool) -> Any:
         from rclpy.executors import SingleThreadedExecutor

@@ -503,3 +503,41 @@ def test_unfinished_mcap_without_a_complete_chunk_is_one_error_line(tmp_path):
         BagReader(path).open()
     assert_one_line_mentioning(exc, path)
     assert 'unfinished MCAP' in str(exc.value)
+
+
+def test_static_transforms_are_read_without_ros(tmp_path):
+    """/tf_static as StaticTransform: rotation takes child vectors into the parent, translation
+    is the child origin in the parent; a later transform replaces an earlier one; invalid ones
+    are skipped."""
+    from ar_tracking.core.rotations import matrix_to_quat_xyzw, rot_z
+    from ar_tracking.io.bags import static_transforms
+
+    TFMessage = msg_class('tf2_msgs/msg/TFMessage')
+    TransformStamped = msg_class('geometry_msgs/msg/TransformStamped')
+    Transform = msg_class('geometry_msgs/msg/Transform')
+
+    def tf(parent, child, R, p=(0.0, 0.0, 0.0), q=None):
+        q = matrix_to_quat_xyzw(R) if q is None else q
+        return TransformStamped(
+            header=Header(stamp=ns_to_stamp(T0), frame_id=parent), child_frame_id=child,
+            transform=Transform(translation=Vector3(x=p[0], y=p[1], z=p[2]),
+                                rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])))
+
+    R1, R2 = rot_z(0.3), rot_z(-1.1)
+    path = tmp_path / 'tf.mcap'
+    with BagWriter(path) as w:
+        w.write('/tf_static', T0, TFMessage(transforms=[tf('/imu', 'camera_optical', R1, (0.01, 0.02, 0.03)),
+                                                        tf('base', 'bad', np.eye(3), q=(0.0, 0.0, 0.0, 0.0))]))
+        w.write('/tf_static', T0 + MS, TFMessage(transforms=[tf('base', 'imu', R2)]))
+        w.write('/tf_static', T0 + 2 * MS, TFMessage(transforms=[tf('imu', 'camera_optical', R2, (1.0, 0.0, 0.0))]))
+        w.write('/notes', T0, String(data='no tf here'))
+    with BagReader(path) as bag:
+        found = {(t.parent, t.child): t for t in static_transforms(bag)}
+    assert set(found) == {('imu', 'camera_optical'), ('base', 'imu')}  # the zero quaternion skipped
+    cam = found[('imu', 'camera_optical')]  # the later one replaced the first
+    np.testing.assert_allclose(cam.rotation, R2, atol=1e-12)
+    np.testing.assert_allclose(cam.translation, [1.0, 0.0, 0.0])
+    x_child = np.array([1.0, 0.0, 0.0])
+    np.testing.assert_allclose(found[('base', 'imu')].rotation @ x_child, [np.cos(-1.1), np.sin(-1.1), 0.0], atol=1e-12)
+    with BagReader(write_sample_bag(tmp_path / 'none.mcap')) as bag:
+        assert static_transforms(bag) == []

@@ -371,3 +371,46 @@ def test_auto_graph_says_why_at_info_level(tmp_path, caplog):
     with caplog.at_level('INFO', logger='ar_tracking.ros.runner'):  # asked for by name: a warning
         GraphRunner(bag, tmp_path / 'out2.mcap', nodes=['imu_magnetometer', 'panorama_mapper']).run()
     assert [r.levelname for r in caplog.records if 'panorama_mapper not started' in r.getMessage()] == ['WARNING']
+
+
+def test_runner_hands_the_bags_tf_static_to_nodes_that_take_it(tmp_path, caplog):
+    """No tf2_msgs on the pip-only path: the runner reads /tf_static itself and calls
+    on_static_transforms before the first message, on every node that has the method."""
+    from sensor_msgs.msg import Imu
+
+    from ar_tracking.ros.node_base import TrackingNode
+    from bagfactory import R_IMU_CAM
+
+    calls: list = []
+
+    def fake(name: str, method: str | None):
+        class Fake(TrackingNode):
+            INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+            OUTPUTS: dict = {}
+
+            def __init__(self, **kwargs):
+                super().__init__(name, **kwargs)
+                self.subscribe(Imu, 'imu/data_raw', lambda msg: calls.append((name, 'message')))
+
+        if method == 'records':
+            Fake.on_static_transforms = lambda self, transforms: calls.append((name, list(transforms)))
+        elif method == 'raises':
+            def broken(self, transforms):
+                raise ValueError('no camera frame here')
+            Fake.on_static_transforms = broken
+        return Fake
+
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.1)
+    graph = {'taker': fake('taker', 'records'), 'ignorer': fake('ignorer', None), 'breaker': fake('breaker', 'raises')}
+    with caplog.at_level('WARNING', logger='ar_tracking.ros.runner'):
+        result = GraphRunner(bag, tmp_path / 'out.mcap', graph=graph).run()
+    assert result.input_messages == 10 and result.lost_deliveries == 0
+    given = [c for c in calls if c[1] != 'message']
+    assert len(given) == 1 and given[0][0] == 'taker'
+    assert calls.index(given[0]) == 0  # before any message
+    (tf,) = given[0][1]
+    assert (tf.parent, tf.child) == ('imu', 'camera_optical')
+    np.testing.assert_allclose(tf.rotation, R_IMU_CAM, atol=1e-12)
+    np.testing.assert_allclose(tf.translation, np.zeros(3))
+    assert sum(1 for c in calls if c == ('breaker', 'message')) == 10  # the failing node runs on
+    assert any('breaker: cannot use /tf_static' in r.getMessage() for r in caplog.records)
