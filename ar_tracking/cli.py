@@ -142,7 +142,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from .eval.evaluate import evaluate_all
     from .eval.report import write_report
 
-    metrics = evaluate_all(args.bag)
+    metrics = evaluate_all(args.bag, align=args.align_world)
+    if args.align_world != 'none':
+        print(f'world frames aligned to the truth by one constant {args.align_world} per estimate '
+              '(the truth is not north-referenced): absolute heading is not scored', file=sys.stderr)
     recovered = _recovered_line(Path(args.bag))
     if recovered:
         print(recovered, file=sys.stderr if args.json else sys.stdout)
@@ -296,6 +299,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--json', action='store_true', help='print the metrics as one JSON object')
     p.add_argument('--compact', action='store_true', help='JSON on one line')
     p.add_argument('--report', help='write the report here (.html or .png); default <bag>.report.html')
+    p.add_argument('--align-world', choices=['none', 'heading', 'rotation'], default='none',
+                   help='for truth whose world frame is not north-referenced (motion capture): turn each '
+                        'estimate onto the truth by one constant heading offset or rotation before scoring '
+                        '(default none: absolute orientation is scored)')
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser('demo', help='the whole job on the sample bag, ending in a report')

@@ -12,7 +12,7 @@ import logging
 from pathlib import Path
 from typing import Any, Callable
 
-from .metrics import EvaluationError, evaluate_bag
+from .metrics import EvaluationError, evaluate_orientations, load_orientations, score
 
 logger = logging.getLogger(__name__)
 
@@ -48,13 +48,24 @@ def _load(spec: str) -> Callable[[Path], dict[str, Any] | None]:
     return getattr(importlib.import_module(module), func)
 
 
-def evaluate_all(path: str | Path) -> dict[str, Any]:
-    """Orientation metrics plus every area whose topics the bag has (DESIGN sec. 8 names)."""
+def evaluate_all(path: str | Path, align: str = 'none', reference: bool = True) -> dict[str, Any]:
+    """Orientation metrics plus every area whose topics the bag has (DESIGN sec. 8 names).
+
+    ``align``: none / heading / rotation (metrics.align_world, for truth that is not
+    north-referenced). ``reference``: add the row ``reference/vqf`` (VQF on the bag's own IMU
+    samples, eval/reference_ahrs.py) next to the estimates."""
     path = Path(path)
     metrics: dict[str, Any] = {}
     missing_truth: EvaluationError | None = None
     try:
-        metrics = evaluate_bag(path)
+        data = load_orientations(path)
+        metrics = evaluate_orientations(data, align)
+        if reference and metrics.get('orientation'):
+            from .reference_ahrs import vqf_reference
+
+            ref = vqf_reference(path, source_bag_of(path))
+            if ref is not None:
+                metrics['orientation']['reference/vqf'] = score(data.truth, ref, 0, align)
     except EvaluationError as exc:
         missing_truth = exc
     for area, spec in AREA_EVALUATORS.items():

@@ -23,6 +23,7 @@ The output is the nested JSON-able dict of DESIGN.md section 8::
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -34,6 +35,7 @@ from ar_tracking.core.rotations import (
     heading_tilt_error_deg,
     interpolate_rotations,
     is_valid_quat,
+    nearest_rotation,
     quat_xyzw_to_matrix,
 )
 from ar_tracking.io.bags import BagError, BagMessage, BagReader, stamp_to_ns, static_transforms
@@ -446,15 +448,51 @@ def topic_key(topic: str) -> str:
     return topic.lstrip('/')
 
 
-def evaluate_orientations(data: BagOrientations) -> dict[str, Any]:
+#: How an estimate's world frame is matched to the truth's before scoring (``--align-world``).
+WORLD_ALIGNMENTS = ('none', 'heading', 'rotation')
+
+
+def align_world(truth: OrientationSeries, estimate: OrientationSeries, mode: str) -> tuple[OrientationSeries, float]:
+    """The estimate with its world frame turned onto the truth's by one constant rotation
+    (``rotation``: the chordal mean of R_true R_est^T; ``heading``: its part about up only),
+    and the angle removed (deg). For truth whose world frame is not north-referenced (optical
+    motion capture, a relative reference): such a bag cannot score absolute heading."""
+    if mode == 'none' or len(estimate) == 0:
+        return estimate, 0.0
+    if mode not in WORLD_ALIGNMENTS:
+        raise EvaluationError(f'unknown world alignment {mode!r}; use one of {", ".join(WORLD_ALIGNMENTS)}')
+    t0 = int(truth.stamps_ns[0])
+    R_true, inside = interpolate_rotations((truth.stamps_ns - t0).astype(float), truth.R_enu_cam,
+                                           (estimate.stamps_ns - t0).astype(float))
+    if not inside.any():
+        return estimate, 0.0
+    M = np.einsum('nij,nkj->ik', R_true, estimate.R_enu_cam[inside])  # sum R_true R_est^T
+    A = nearest_rotation(M)
+    if mode == 'heading':
+        yaw = math.atan2(A[1, 0] - A[0, 1], A[0, 0] + A[1, 1])
+        c, s = math.cos(yaw), math.sin(yaw)
+        A = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(A) - 1.0) / 2.0))))
+    return OrientationSeries(estimate.stamps_ns, A @ estimate.R_enu_cam), angle
+
+
+def score(truth: OrientationSeries, series: OrientationSeries, skipped: int = 0, align: str = 'none') -> dict[str, Any]:
+    """summarize_errors of one estimate, after the world alignment (if any)."""
+    aligned, angle = align_world(truth, series, align)
+    result = summarize_errors(orientation_errors(truth, aligned), skipped)
+    if align != 'none':
+        result['aligned_by_deg'] = _round(angle)
+    return result
+
+
+def evaluate_orientations(data: BagOrientations, align: str = 'none') -> dict[str, Any]:
     """The metrics dict of already loaded bag data (see the module docstring)."""
     orientation: dict[str, Any] = {}
     for topic, est in data.estimates.items():
         if est.error is not None:
             orientation[topic_key(topic)] = {'error': est.error}
             continue
-        errors = orientation_errors(data.truth, est.series)
-        orientation[topic_key(topic)] = summarize_errors(errors, est.skipped)
+        orientation[topic_key(topic)] = score(data.truth, est.series, est.skipped, align)
     if not orientation:
         logger.warning('%s: no orientation estimates to evaluate', data.path)
     return {
@@ -463,15 +501,18 @@ def evaluate_orientations(data: BagOrientations) -> dict[str, Any]:
             'path': str(data.path),
             'duration_s': _round(data.duration_s),
             'topics': data.topic_count,
+            # none: every estimate scored in its own world frame (north-referenced truth);
+            # heading / rotation: each turned by its constant best fit to the truth first.
+            'world_alignment': align,
         },
     }
 
 
-def evaluate_bag(path: str | Path) -> dict[str, Any]:
+def evaluate_bag(path: str | Path, align: str = 'none') -> dict[str, Any]:
     """Orientation metrics of every estimate in an output bag against its ground truth.
 
     Returns the nested JSON-able dict described in the module docstring. Raises
     :class:`EvaluationError` if the bag has no ground truth and lets :class:`BagError`
     propagate for a bag that cannot be read.
     """
-    return evaluate_orientations(load_orientations(path))
+    return evaluate_orientations(load_orientations(path), align)
