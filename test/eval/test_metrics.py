@@ -206,7 +206,19 @@ def test_recovers_known_heading_and_tilt_offsets(tmp_path: Path) -> None:
     # The bag's duration is that of its log times (the estimates are logged 0.7 s late).
     last_log_ns = estimate_stamps()[-1] + 700 * MS
     assert result['bag'] == {'path': str(bag), 'duration_s': (last_log_ns - T0) / SEC,
-                             'topics': 2}
+                             'topics': 2, 'world_alignment': 'none'}
+
+
+def test_world_alignment_removes_a_constant_offset_and_says_so(tmp_path: Path) -> None:
+    bag = make_bag(tmp_path / 'run.mcap', offset_estimate)
+    rotation = evaluate_bag(bag, align='rotation')
+    m = rotation['orientation']['orientation/global']
+    assert m['rmse_deg'] < 1e-3
+    assert m['aligned_by_deg'] == pytest.approx(np.degrees(angle_of(offset_error())), abs=TOL_DEG)
+    assert rotation['bag']['world_alignment'] == 'rotation'
+    heading = evaluate_bag(bag, align='heading')['orientation']['orientation/global']
+    assert heading['heading_rmse_deg'] < evaluate_bag(bag)['orientation']['orientation/global']['heading_rmse_deg']
+    assert heading['tilt_rmse_deg'] > 0.5 * TILT_OFFSET_DEG  # a heading alignment leaves the tilt
 
 
 def test_output_is_json_with_rounded_floats(tmp_path: Path) -> None:
