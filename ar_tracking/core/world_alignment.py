@@ -3,7 +3,7 @@
 Eq. 1-2 of the paper: ``R_DP R_PN = R_DN`` - the visual tracker gives the camera in the panorama
 frame (R_DP), the sensors give it in the world (R_DN), and the panorama frame itself does not move,
 so R_PN is one constant rotation. The paper estimates it with an EKF on per-sample tilt-compass
-readings (eq. 5-6, :class:`~.hybrid_orientation.PanoramaWorldFilter`); a reading carries the
+readings (eq. 5-6; our first version of this node did the same); a reading carries the
 whole error of its sample (hand acceleration tilts it, a turned field or residual iron turns it),
 and the filter's result stays an almost constant offset of 1-3 degrees on hard data.
 
