@@ -51,3 +51,30 @@ def test_slam_runs_reproducibly_and_evaluates(desk, tmp_path):
     proc = cli('evaluate', str(outs[0]), '--report', str(report))
     assert proc.returncode == 0, proc.stderr
     assert 'Keyframe SLAM' in report.read_text()
+
+
+
+@pytest.mark.parametrize('slowed', ['mapper', 'publisher'])
+def test_lockstep_slam_output_does_not_depend_on_thread_timing(desk, tmp_path, monkeypatch, slowed):
+    """The map a lockstep run publishes is read after the mapping thread finished the frame's
+    keyframe, so a slow mapper or a slow node (a loaded machine) gives the same bytes."""
+    import time
+
+    from ar_tracking.core.slam.mapper import MapMaker
+    from ar_tracking.nodes.keyframe_slam_mapper import KeyframeSlamMapperNode
+    from ar_tracking.ros.runner import GraphRunner
+
+    params = [desk.with_name('desk.params.yaml')]
+    plain = GraphRunner(desk, tmp_path / 'plain.mcap', params_files=params, nodes=['keyframe_slam_mapper']).run()
+    cls, name = (MapMaker, '_process_keyframe') if slowed == 'mapper' else (KeyframeSlamMapperNode, '_publish_map')
+    original = getattr(cls, name)
+
+    def slow(self, *args, **kwargs):
+        time.sleep(0.2)  # the other thread gets ahead meanwhile
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(cls, name, slow)
+    timed = GraphRunner(desk, tmp_path / 'slow.mcap', params_files=params, nodes=['keyframe_slam_mapper']).run()
+    a, b = slam_messages(plain.out_path), slam_messages(timed.out_path)
+    assert sum(1 for t, _, _ in a if t == '/slam/keyframes') >= 3
+    assert a == b

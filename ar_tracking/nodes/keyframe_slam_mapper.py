@@ -207,10 +207,13 @@ class KeyframeSlamMapperNode(TrackingNode):
             self.tracked += 1
         elif res.state == 'lost' and res.message:
             self.warn_throttled(f'slam lost: {res.message}')
+        if self.lockstep_hooks is not None:
+            # Reproducible lockstep runs: the map is read (and the next frame tracked) only once
+            # the mapping thread has taken this frame's keyframe in and finished its bundle
+            # adjustment, never half-way through it (live tracking never waits).
+            self.system.wait_for_mapping()
         if res.keyframe_added or self.last_map_pub_ns is None or t - self.last_map_pub_ns >= self.map_period_ns:
             self._publish_map(t)
-        if self.lockstep_hooks is not None:
-            self.system.wait_for_mapping()  # reproducible lockstep runs; after the outputs
 
     def _publish_map(self, t: int) -> None:
         assert self.system is not None
