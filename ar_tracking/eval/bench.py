@@ -74,23 +74,6 @@ def _rate(fn: Callable[[int], None], n: int) -> float:
     return n / (time.perf_counter() - start)
 
 
-def bench_orientation(samples: int = 20000, seed: int = 0) -> dict[str, Any]:
-    """Updates per second of the eq. 3-4 core (imu_magnetometer), one core."""
-    from ..core.imu_orientation import FieldModel, GravityFieldOrientation
-
-    rng = np.random.default_rng(seed)
-    accel = rng.normal([0.0, 0.0, 9.81], 0.05, size=(samples, 3))
-    mag = rng.normal([0.0, 2.1e-5, -4.3e-5], 3e-7, size=(samples, 3))
-    core = GravityFieldOrientation(model=FieldModel(field_t=48e-6, dip_rad=1.117))
-
-    def run(n: int) -> None:
-        for i in range(n):
-            core.estimate(accel[i], mag[i])
-
-    run(200)  # warm-up
-    return {'imu_magnetometer_updates_per_s': round(_rate(run, samples), 1)}
-
-
 def machine() -> dict[str, Any]:
     return {'python': platform.python_version(), 'cpus': os.cpu_count(), 'machine': platform.machine()}
 
@@ -106,8 +89,7 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
     if 'orientation' in chosen:
         from .bench_hybrid import bench_hybrid
 
-        results['orientation'] = bench_orientation()
-        results['orientation'].update(bench_hybrid(workdir, duration_s=duration_s))
+        results['orientation'] = bench_hybrid(workdir, duration_s=duration_s)
     if 'graph' in chosen:
         results['graph'] = bench_graph(workdir, duration_s)
     if 'panorama' in chosen:
