@@ -289,7 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
                             'slam = keyframe_slam_mapper; markers = marker_tracker, visual_inertial_filter')
     p.add_argument('--storage', choices=['mcap', 'sqlite3'])
     p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
-    p.add_argument('--executor', default='single', choices=['single', 'events'], help='rclpy executor (lockstep)')
+    p.add_argument('--executor', default='auto', choices=['auto', 'single', 'events'],
+                   help='rclpy executor (default auto: events in lockstep, single with --rate)')
     p.add_argument('--json', action='store_true', help='print the run summary as JSON')
     p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_run)
