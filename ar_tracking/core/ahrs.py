@@ -149,7 +149,8 @@ class Ahrs:
     rate in rad/s, specific force in m/s^2) and, optionally, the newest field sample (raw,
     tesla) with its stamp. It returns an :class:`AhrsEstimate`, or a string saying why the
     sample was refused (the node logs it throttled). Until the sample time is known (the first
-    few gaps, when not configured), samples are buffered and replayed.
+    few gaps, when not configured) a provisional filter answers, and the probe samples are then
+    replayed into the final one: every accepted sample has an estimate.
     """
 
     def __init__(self, config: AhrsConfig | None = None, calibration: ImuCalibration | None = None) -> None:
@@ -163,6 +164,13 @@ class Ahrs:
         self._vqf: Any = None
         self._ts = self.config.sample_period_s
         self._probe: list[tuple[int, Array, Array, Array | None, int | None]] = []
+        self._restart_state()
+        self.samples = 0
+        if self._ts > 0:
+            self._make_filter(self._ts)
+
+    def _restart_state(self) -> None:
+        """The per-sample state around the filter (stamps, covariance model)."""
         self.t_ns: int | None = None
         self._acc_dev_lp = 0.0
         # 6D by choice: the world frame's heading is the start's, known exactly at first;
@@ -171,27 +179,26 @@ class Ahrs:
         self._mag_ever_used = False
         self._unaided_s = 0.0
         self._reject_s = _MAG_MAX_REJECTION_S + 0.01
-        self.samples = 0
-        if self._ts > 0:
-            self._make_filter(self._ts)
 
     @property
     def sample_period_s(self) -> float:
-        """The sample time VQF runs with (0 while it is still being measured)."""
+        """The measured or configured sample time (0 while it is still being measured)."""
         return self._ts
 
-    def _make_filter(self, ts: float) -> None:
+    def _make_filter(self, ts: float, provisional: bool = False) -> None:
         from vqf import VQF
 
         c = self.config
-        self._ts = ts
+        self._filter_ts = ts
+        if not provisional:
+            self._ts = ts
         self._vqf = VQF(ts, tauAcc=c.tau_acc_s, tauMag=c.tau_mag_s,
                         motionBiasEstEnabled=c.bias_estimation, restBiasEstEnabled=c.bias_estimation,
                         magDistRejectionEnabled=c.mag_disturbance_rejection)
 
     def update(self, t_ns: int, gyro: Any, accel: Any, mag_t: Any = None,
-               mag_t_ns: int | None = None) -> AhrsEstimate | str | None:
-        """One sample; an estimate, a refusal reason, or None while the rate is measured."""
+               mag_t_ns: int | None = None) -> AhrsEstimate | str:
+        """One sample: its estimate, or the reason it was refused."""
         g = _finite3(gyro)
         a = _finite3(accel)
         if g is None or a is None:
@@ -210,15 +217,20 @@ class Ahrs:
         a = self.calibration.accel(a)
         if m is not None:
             m = self.calibration.mag(m)
-        if self._vqf is None:
+        if self._ts <= 0:
+            # The sample time is being measured: answer from a provisional filter (nominal
+            # 100 Hz, the rate scaled by the stamp gaps) so that every sample has an output;
+            # once the probe is full, the filter is rebuilt with the measured period and the
+            # probe samples are replayed into it.
+            if self._vqf is None:
+                self._make_filter(0.01, provisional=True)
             self._probe.append((t_ns, g, a, m, mag_t_ns))
-            self.t_ns = t_ns
             if len(self._probe) <= _RATE_PROBE:
-                return None
+                return self._step(t_ns, g, a, m, mag_t_ns)
             gaps = np.diff([p[0] for p in self._probe]) * 1e-9
-            self._make_filter(float(np.median(gaps)))
             probe, self._probe = self._probe, []
-            self.t_ns = None
+            self._restart_state()
+            self._make_filter(float(np.median(gaps)))
             out: AhrsEstimate | str | None = None
             for args in probe:
                 out = self._step(*args)
@@ -228,11 +240,11 @@ class Ahrs:
     def _step(self, t_ns: int, g: Array, a: Array, m: Array | None, mag_t_ns: int | None) -> AhrsEstimate:
         c = self.config
         vqf = self._vqf
-        dt = self._ts if self.t_ns is None else (t_ns - self.t_ns) * 1e-9
+        dt = self._filter_ts if self.t_ns is None else (t_ns - self.t_ns) * 1e-9
         self.t_ns = t_ns
         # VQF integrates rate * Ts: scale the rate so that a jittered or late sample turns by
         # rate * (its own dt).
-        scale = dt / self._ts
+        scale = dt / self._filter_ts
         vqf.updateGyr(g * scale if abs(scale - 1.0) > 1e-6 else g)
         vqf.updateAcc(a)
         fresh = (m is not None and c.use_mag

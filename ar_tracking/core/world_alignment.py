@@ -14,16 +14,20 @@ seen since the panorama started:
 * **gravity**: ``a_imu(t) = R_imu_P(t) g_P + b_a + e(t)``. The hand's linear acceleration is
   part of e(t), and in the (inertial) panorama frame its mean over the session is the change of
   velocity divided by the time (``(v(T) - v(0)) / T``): it vanishes as the session grows, whatever
-  its size - so the plain mean is right and no gating on |a| ~ g is needed. The accelerometer
+  its size - so no gating on |a| ~ g is needed. The samples are weighted by a Hann window over
+  the session (per window of ``window_s``): with weights that go to zero at both ends the
+  velocity term becomes the velocity projected on one slow sinusoid, far smaller than its end
+  values (which is what a plain mean keeps for the first tens of seconds). The accelerometer
   bias b_a is estimated with a ridge prior (only its horizontal part is observable, and only as
-  the phone turns). O(1) per sample: the normal equations are sums.
+  the phone turns). O(1) per sample: the normal equations are sums, kept per window.
 * **magnetic field**: ``m_imu(t) = R_imu_P(t) f_P + h + e(t)``: the local field is a constant
   vector in the panorama frame and h is the residual hard iron left by the calibration; with
   the panorama's rotations the two separate (a moving-body magnetometer calibration, linear in
   (f_P, h)). Disturbances that turn the field while keeping its strength and dip - invisible to
   a per-sample check - are outliers here: the estimate is an IRLS with a Cauchy loss on the
-  residual vectors (scale from their median absolute deviation), re-solved every
-  ``solve_period_s`` over the stored samples (decimated to ``mag_rate_hz``).
+  field each short window of samples implies (heading, strength, dip about their medians),
+  re-solved every ``solve_period_s``; the normal equations are sums, so only each window's
+  sums are kept (O(1) per sample, O(windows) per solve).
 
 R_PN follows from g_P and f_P by the gravity-first construction of eq. 3-4 (up = g, east =
 f x up, north = up x east), with the declination. Its covariance comes from the residual
@@ -49,14 +53,14 @@ Array = NDArray[np.float64]
 class WorldAlignmentConfig:
     """Settings of :class:`WorldAlignment` (SI units; field quantities relative to |B|)."""
 
-    #: Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2.
-    accel_bias_sigma_m_s2: float = 0.1
+    #: Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2. Kept tight: the
+    #: horizontal part of a bias averages out as the phone turns anyway, and a loose bias
+    #: absorbs accelerometer scale errors (which rotate with the phone) and tilts g_P.
+    accel_bias_sigma_m_s2: float = 0.01
     #: Prior 1-sigma of the residual hard iron, relative to |B|.
-    hard_iron_sigma: float = 0.05
-    #: Field samples kept for the robust solve, per second (decimation of the IMU rate).
-    mag_rate_hz: float = 25.0
-    #: At most this many field samples are kept (then every other one is dropped).
-    max_mag_samples: int = 20000
+    hard_iron_sigma: float = 0.2
+    #: At most this many windows are kept (then neighbours are merged two by two).
+    max_windows: int = 20000
     #: Re-solve the field every this long (sample stamps), s.
     solve_period_s: float = 0.5
     #: IRLS iterations per solve.
@@ -97,6 +101,11 @@ class WorldAlignmentEstimate:
     accel_bias: Array
 
 
+def _cross(a: Array, b: Array) -> Array:
+    """3-vector cross product (numpy's is slow for single vectors)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def _cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, float]:
     """Cauchy weights of values about their median, with the robust sigma (1.4826 MAD, at
     least ``floor``) times ``scale`` as the Cauchy width; returns (weights, sigma)."""
@@ -123,12 +132,31 @@ class WorldAlignment:
         self._sum_aa = 0.0
         self._accel_var = 0.25
         self._sum_a_norm = 0.0
-        # Field: stored samples for the IRLS.
-        self._mag_R: list[Array] = []  # R_imu_P
-        self._mag_m: list[Array] = []  # field, raw units
-        self._mag_t_ns: int | None = None
-        self._mag_period_ns = int(1e9 / self.config.mag_rate_hz)
-        self._mag_period_ns_base = self._mag_period_ns
+        self._t_first_ns: int | None = None
+        self._t_last_ns = 0
+        # Gravity per window: count, sum R_imu_P, sum R_P_imu a, sum a.
+        self._g_n: list[float] = []
+        self._g_S: list[Array] = []
+        self._g_Rta: list[Array] = []
+        self._g_a: list[Array] = []
+        self._g_cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3)]
+        self._g_end_ns: int | None = None
+        self._gravity: tuple[Array, Array] | None = None
+        self._gravity_windows = -1
+        # Field: the normal equations of m = R_imu_P f + h are sums, so each window keeps its
+        # own sums (count, sum R_imu_P, sum R_P_imu m, sum m, sum |m|) and the robust solve
+        # works on windows only.
+        cap = 256
+        self._w_n = np.zeros(cap)
+        self._w_S = np.zeros((cap, 3, 3))
+        self._w_Rtm = np.zeros((cap, 3))
+        self._w_m = np.zeros((cap, 3))
+        self._w_norm = np.zeros(cap)
+        self._n_win = 0  # finished windows
+        self._win_ns = int(self.config.window_s * 1e9)
+        self._win_end_ns: int | None = None
+        self._cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3), 0.0]
+        self._field_samples = 0
         self._solve_t_ns: int | None = None
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
         self._prior = prior
@@ -144,24 +172,93 @@ class WorldAlignment:
         orientation in the panorama frame at the sample's stamp."""
         R_imu_P = R_pano_imu.T
         self._n += 1
+        if self._t_first_ns is None:
+            self._t_first_ns = int(t_ns)
+        self._t_last_ns = int(t_ns)
+        Rta = R_pano_imu @ accel
         self._sum_R += R_imu_P
-        self._sum_Rt_a += R_pano_imu @ accel
+        self._sum_Rt_a += Rta
         self._sum_a += accel
-        self._sum_aa += float(accel @ accel)
-        self._sum_a_norm += math.sqrt(float(accel @ accel))
+        if self._g_end_ns is None:
+            self._g_end_ns = int(t_ns) + self._win_ns
+        elif t_ns >= self._g_end_ns:
+            self._close_gravity_window()
+            self._g_end_ns += self._win_ns * max(1, (int(t_ns) - self._g_end_ns) // self._win_ns + 1)
+        g_cur = self._g_cur
+        g_cur[0] += 1
+        g_cur[1] += R_imu_P
+        g_cur[2] += Rta
+        g_cur[3] += accel
+        aa = float(accel @ accel)
+        self._sum_aa += aa
+        self._sum_a_norm += math.sqrt(aa)
         self._dirty = True
-        if mag is not None and (self._mag_t_ns is None or t_ns - self._mag_t_ns >= self._mag_period_ns):
-            self._mag_t_ns = int(t_ns)
-            self._mag_R.append(R_imu_P)
-            self._mag_m.append(np.asarray(mag, dtype=float))
-            if len(self._mag_m) > self.config.max_mag_samples:
-                self._mag_R = self._mag_R[::2]
-                self._mag_m = self._mag_m[::2]
-                self._mag_period_ns *= 2
-            if self._solve_t_ns is None or t_ns - self._solve_t_ns >= int(self.config.solve_period_s * 1e9) \
-                    or len(self._mag_m) < 8:
-                self._solve_t_ns = int(t_ns)
-                self._field = self._solve_field()
+        if mag is None:
+            return
+        t_ns = int(t_ns)
+        if self._win_end_ns is None:
+            self._win_end_ns = t_ns + self._win_ns
+        elif t_ns >= self._win_end_ns:
+            self._close_window()
+            self._win_end_ns += self._win_ns * max(1, (t_ns - self._win_end_ns) // self._win_ns + 1)
+        cur = self._cur
+        cur[0] += 1
+        cur[1] += R_imu_P
+        cur[2] += R_pano_imu @ mag
+        cur[3] += mag
+        cur[4] += math.sqrt(float(mag @ mag))
+        self._field_samples += 1
+        if self._solve_t_ns is None or t_ns - self._solve_t_ns >= int(self.config.solve_period_s * 1e9) \
+                or self._field_samples < 8:
+            self._solve_t_ns = t_ns
+            self._field = self._solve_field()
+
+    def _close_gravity_window(self) -> None:
+        cur = self._g_cur
+        if cur[0] == 0:
+            return
+        if len(self._g_n) >= self.config.max_windows:  # merge neighbours two by two
+            for arr in (self._g_n, self._g_S, self._g_Rta, self._g_a):
+                merged = [arr[i] + arr[i + 1] for i in range(0, len(arr) - 1, 2)]
+                if len(arr) % 2:
+                    merged.append(arr[-1])
+                arr[:] = merged
+        self._g_n.append(float(cur[0]))
+        self._g_S.append(cur[1])
+        self._g_Rta.append(cur[2])
+        self._g_a.append(cur[3])
+        self._g_cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3)]
+
+    def _close_window(self) -> None:
+        """Move the current window's sums into the arrays (merging pairs when full)."""
+        cur = self._cur
+        if cur[0] == 0:
+            return
+        if self._n_win == len(self._w_n):
+            if self._n_win >= self.config.max_windows:
+                self._merge_pairs()
+            else:
+                grow = len(self._w_n)
+                self._w_n = np.concatenate([self._w_n, np.zeros(grow)])
+                self._w_S = np.concatenate([self._w_S, np.zeros((grow, 3, 3))])
+                self._w_Rtm = np.concatenate([self._w_Rtm, np.zeros((grow, 3))])
+                self._w_m = np.concatenate([self._w_m, np.zeros((grow, 3))])
+                self._w_norm = np.concatenate([self._w_norm, np.zeros(grow)])
+        k = self._n_win
+        self._w_n[k], self._w_S[k], self._w_Rtm[k], self._w_m[k], self._w_norm[k] = cur
+        self._n_win += 1
+        self._cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3), 0.0]
+
+    def _merge_pairs(self) -> None:
+        k = self._n_win // 2 * 2
+        for arr_name in ('_w_n', '_w_S', '_w_Rtm', '_w_m', '_w_norm'):
+            arr = getattr(self, arr_name)
+            merged = arr[0:k:2] + arr[1:k:2]
+            arr[: k // 2] = merged
+            if self._n_win % 2:
+                arr[k // 2] = arr[k]
+            arr[(self._n_win + 1) // 2:] = 0
+        self._n_win = (self._n_win + 1) // 2
 
     @property
     def ready(self) -> bool:
@@ -174,26 +271,42 @@ class WorldAlignment:
         return (noise / max(scale * sigma_rad, 1e-9)) ** 2
 
     def _solve_gravity(self) -> tuple[Array, Array]:
-        """[g_P; b_a] from the summed normal equations with the ridge on b_a (and the prior)."""
+        """[g_P; b_a] from the window sums, Hann-weighted over the session (module docstring),
+        with the ridge on b_a (and the prior). Re-solved when a window has closed."""
+        if self._gravity is not None and self._gravity_windows == len(self._g_n) and len(self._g_n) >= 4:
+            return self._gravity
         c = self.config
-        n = float(self._n)
-        g_mag = self._sum_a_norm / n
+        cur = self._g_cur
+        n_w = np.array(self._g_n + ([float(cur[0])] if cur[0] else []))
+        S_w = np.array(self._g_S + ([cur[1]] if cur[0] else []))
+        Rta_w = np.array(self._g_Rta + ([cur[2]] if cur[0] else []))
+        a_w = np.array(self._g_a + ([cur[3]] if cur[0] else []))
+        k = len(n_w)
+        w = np.sin(np.pi * (np.arange(k) + 0.5) / k) ** 2 if k >= 4 else np.ones(k)
+        n = float(w @ n_w)
+        sum_R = np.einsum('k,kij->ij', w, S_w)
+        sum_Rta = w @ Rta_w
+        sum_a = w @ a_w
+        g_mag = self._sum_a_norm / self._n
         # Per-sample noise of the model, for the ridge weight: the scatter of |a| about g.
         var = max(self._accel_var, 0.05 ** 2)
         lam_b = var / c.accel_bias_sigma_m_s2 ** 2
         A = np.zeros((6, 6))
         A[:3, :3] = np.eye(3) * n
-        A[:3, 3:] = self._sum_R.T
-        A[3:, :3] = self._sum_R
+        A[:3, 3:] = sum_R.T
+        A[3:, :3] = sum_R
         A[3:, 3:] = np.eye(3) * (n + lam_b)
-        rhs = np.concatenate([self._sum_Rt_a, self._sum_a])
+        rhs = np.concatenate([sum_Rta, sum_a])
         if self._prior is not None:
             R_pe, sigma = self._prior
-            w = self._prior_weight(sigma, math.sqrt(var), g_mag)
-            A[:3, :3] += np.eye(3) * w
-            rhs[:3] += w * (R_pe @ np.array([0.0, 0.0, g_mag]))
+            wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
+            A[:3, :3] += np.eye(3) * wp
+            rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
         x = np.linalg.solve(A, rhs)
         g, b = x[:3], x[3:]
+        self._gravity = (g, b)
+        self._gravity_windows = len(self._g_n)
+        n = float(self._n)
         # Per-axis residual variance of a - R g - b from the sums (the hand's acceleration and
         # the sensor noise): it weighs the ridge of the next solve and sets the covariance.
         sq = (self._sum_aa - 2.0 * g @ self._sum_Rt_a - 2.0 * b @ self._sum_a + n * (g @ g)
@@ -201,29 +314,37 @@ class WorldAlignment:
         self._accel_var = max(sq / (3.0 * n), 0.0)
         return g, b
 
+    def _window_arrays(self) -> tuple[Array, Array, Array, Array, Array]:
+        """Finished windows plus the current one: count, sum R_imu_P, sum R_P_imu m, sum m,
+        sum |m|."""
+        k = self._n_win
+        cur = self._cur
+        if cur[0] == 0:
+            return self._w_n[:k], self._w_S[:k], self._w_Rtm[:k], self._w_m[:k], self._w_norm[:k]
+        return (np.append(self._w_n[:k], cur[0]), np.concatenate([self._w_S[:k], cur[1][None]]),
+                np.concatenate([self._w_Rtm[:k], cur[2][None]]), np.concatenate([self._w_m[:k], cur[3][None]]),
+                np.append(self._w_norm[:k], cur[4]))
+
     def _solve_field(self) -> tuple[Array, Array, float, float]:
-        """Robust fit of m = R_imu_P f_P + h (ridge on h), in windows of ``correlation_s``.
+        """Robust fit of m = R_imu_P f_P + h (ridge on h), over windows of ``window_s``.
 
         A disturbance lasts seconds and turns the field for all of its samples at once, so the
         samples are grouped in short windows (``window_s``): each window gives the heading
         of the field it implies in the panorama frame, the windows' headings are compared with
-        their weighted median, and a window that departs gets a Cauchy weight for all its
-        samples (a median survives up to half of the windows disturbed; a per-sample loss
-        started from least squares does not, once a long disturbance has pulled the fit).
-        f_P and h are then refitted by weighted least squares, three rounds. Returns f_P, h
-        (relative to |B|), the residual sigma of the window headings (rad) and the share of
-        windows weighted below one half."""
+        their median, and a window that departs gets a Cauchy weight for all its samples (a
+        median survives up to half of the windows disturbed; a per-sample loss started from
+        least squares does not, once a long disturbance has pulled the fit). f_P and h are
+        then refitted by weighted least squares. The normal equations are sums, so only the
+        windows' sums are kept. Returns f_P, h (relative to |B|), the residual sigma of the
+        window headings (rad) and the share of windows weighted below one half."""
         c = self.config
-        R = np.asarray(self._mag_R)  # (N, 3, 3) R_imu_P
-        m = np.asarray(self._mag_m)
-        scale = float(np.median(np.linalg.norm(m, axis=1)))
+        n_w, S_w, Rtm_w, m_w, norm_w = self._window_arrays()
+        scale = float(np.median(norm_w / n_w))
         if scale <= 0 or not math.isfinite(scale):
             scale = 1.0
-        m = m / scale
-        n = len(m)
-        per_window = max(1, int(round(c.window_s * c.mag_rate_hz * self._mag_period_ns_base / self._mag_period_ns)))
-        win = np.arange(n) // per_window
-        n_win = int(win[-1]) + 1
+        Rtm_w = Rtm_w / scale
+        m_w = m_w / scale
+        n_win = len(n_w)
         w_win = np.ones(n_win)
         prior = None
         if self._prior is not None and self._field_enu_ref is not None:
@@ -237,49 +358,46 @@ class WorldAlignment:
         # every window agrees with the wrong fit.
         h_held = self._h_last if self._h_last is not None else np.zeros(3)
         if n_win >= 3:
-            f_held = np.einsum('nji,nj->i', R, m - h_held) / n
-            w_win, spread = self._window_weights(R, m, win, n_win, f_held, h_held, up)
+            f_held = (Rtm_w.sum(axis=0) - np.einsum('nji,j->i', S_w, h_held)) / n_w.sum()
+            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up)
+        lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         for _ in range(max(1, c.irls_iterations)):
-            w = w_win[win]
-            sw = float(w.sum())
-            lam_h = (c.field_model_sigma / c.hard_iron_sigma) ** 2 * max(1.0, sw / max(per_window, 1))
+            wn = w_win * n_w
+            sw = float(wn.sum())
+            WS = np.einsum('n,nij->ij', w_win, S_w)  # sum w R_imu_P
             A = np.zeros((6, 6))
             A[:3, :3] = np.eye(3) * sw
-            WR = np.einsum('n,nij->ij', w, R)  # sum w R_imu_P
-            A[:3, 3:] = WR.T
-            A[3:, :3] = WR
-            A[3:, 3:] = np.eye(3) * sw + np.eye(3) * lam_h * per_window
-            rhs = np.concatenate([np.einsum('n,nji,nj->i', w, R, m), w @ m])
+            A[:3, 3:] = WS.T
+            A[3:, :3] = WS
+            A[3:, 3:] = np.eye(3) * sw * (1.0 + lam)
+            rhs = np.concatenate([w_win @ Rtm_w, w_win @ m_w])
             if prior is not None:
-                wp = (c.min_field_sigma / max(self._prior[1], 1e-6)) ** 2 * per_window  # type: ignore[index]
+                wp = (c.min_field_sigma / max(self._prior[1], 1e-6)) ** 2 * max(float(n_w.mean()), 1.0)  # type: ignore[index]
                 A[:3, :3] += np.eye(3) * wp
                 rhs[:3] += wp * prior
             x = np.linalg.solve(A, rhs)
             f, h = x[:3], x[3:]
             if n_win < 3:
                 break
-            w_win, spread = self._window_weights(R, m, win, n_win, f, h, up)
+            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f, h, up)
             outliers = float(np.mean(w_win < 0.5))
         self._h_last = h
         return f, h, spread, outliers
 
-    def _window_weights(self, R: Array, m: Array, win: Array, n_win: int, f: Array, h: Array,
+    def _window_weights(self, n_w: Array, S_w: Array, Rtm_w: Array, f: Array, h: Array,
                         up: Array) -> tuple[Array, float]:
         """Cauchy weights of the windows (heading, strength and dip of the field each implies
         in the panorama frame, about their medians) and the heading spread (rad)."""
         c = self.config
-        f_P_samples = np.einsum('nji,nj->ni', R, m - h)  # R_P_imu (m - h)
-        sums = np.zeros((n_win, 3))
-        np.add.at(sums, win, f_P_samples)
-        east = np.cross(f, up)
-        east /= max(np.linalg.norm(east), 1e-12)
-        north = np.cross(up, east)
-        psi = np.arctan2(sums @ east, sums @ north)  # 0 for a window agreeing with f
+        mean_f = (Rtm_w - np.einsum('nji,j->ni', S_w, h)) / n_w[:, None]  # mean R_P_imu (m - h)
+        east = _cross(f, up)
+        east /= max(float(np.linalg.norm(east)), 1e-12)
+        north = _cross(up, east)
+        psi = np.arctan2(mean_f @ east, mean_f @ north)  # 0 for a window agreeing with f
         w_psi, spread = _cauchy_about_median(psi, math.radians(0.25), c.cauchy_scale)
         # Most real disturbances also change the field's strength or dip: a window whose mean
         # field departs in either is down-weighted too (a turn that keeps both is left to the
         # heading test).
-        mean_f = sums / np.bincount(win, minlength=n_win)[:, None]
         norm = np.linalg.norm(mean_f, axis=1)
         dip = np.arcsin(np.clip(-(mean_f @ up) / np.maximum(norm, 1e-12), -1.0, 1.0))
         w_norm, _ = _cauchy_about_median(norm, 0.005, c.cauchy_scale)
@@ -306,35 +424,29 @@ class WorldAlignment:
         g_P, b_a = self._solve_gravity()
         f_P, h, f_sigma, outliers = self._field  # type: ignore[misc]
         up = g_P / np.linalg.norm(g_P)
-        east = np.cross(f_P, up)
+        east = _cross(f_P, up)
         f_h = float(np.linalg.norm(east))
         if f_h < 1e-6:
             return self._estimate
         east /= f_h
-        north = np.cross(up, east)
+        north = _cross(up, east)
         R_pano_magenu = np.column_stack([east, north, up])
         R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
         self._field_enu_ref = R_pano_enu.T @ f_P
-        # Covariance: scatter / effective sample count, plus floors.
-        rate_g = max(self._n, 1)
-        n_eff_g = max(1.0, rate_g / max(self._samples_per_correlation(), 1.0))
+        # Covariance: scatter / effective sample count (the session's span in correlation
+        # times), plus floors.
+        span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
+        n_eff = max(1.0, span_s / c.correlation_s)
         g = float(np.linalg.norm(g_P))
-        tilt_var = self._accel_var / (g * g * n_eff_g) + c.tilt_floor_rad ** 2
-        n_m = len(self._mag_m)
-        n_win = max(1.0, n_m * self._mag_period_ns / (self.config.correlation_s * 1e9))
+        tilt_var = self._accel_var / (g * g * n_eff) + c.tilt_floor_rad ** 2
         # f_sigma is the scatter of the window headings (rad): the mean of the kept windows.
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
         tan_dip = abs(float(f_P @ up)) / f_h
-        heading_var = (f_sigma ** 2 / max(1.0, n_win * (1.0 - outliers)) + c.heading_floor_rad ** 2
+        heading_var = (f_sigma ** 2 / max(1.0, n_eff * (1.0 - outliers)) + c.heading_floor_rad ** 2
                        + tilt_var * tan_dip ** 2)
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),
-            gravity_samples=self._n, field_samples=n_m, field_outlier_share=outliers,
+            gravity_samples=self._n, field_samples=self._field_samples, field_outlier_share=outliers,
             hard_iron=h, accel_bias=b_a)
         self._dirty = False
         return self._estimate
-
-    def _samples_per_correlation(self) -> float:
-        """IMU samples per correlation time (the IMU rate is not known here: from the field
-        decimation, which runs at mag_rate_hz of sample stamps)."""
-        return self.config.correlation_s * self.config.mag_rate_hz * max(self._n / max(len(self._mag_m), 1), 1.0)

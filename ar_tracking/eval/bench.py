@@ -17,7 +17,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-AREAS = ('graph', 'orientation', 'panorama', 'markers_vi', 'annotations', 'slam')
+AREAS = ('graph', 'orientation', 'orientation_seeds', 'panorama', 'markers_vi', 'annotations', 'slam')
 
 
 def percentiles_ms(values: list[float]) -> dict[str, float]:
@@ -90,6 +90,11 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
         from .bench_hybrid import bench_hybrid
 
         results['orientation'] = bench_hybrid(workdir, duration_s=duration_s)
+    if 'orientation_seeds' in chosen:
+        from .bench_hybrid import bench_seeds
+
+        # 10 fresh 40 s rotation_sweep seeds through the graph, evaluated (~15 min).
+        results['orientation_seeds'] = bench_seeds(workdir / 'seeds')
     if 'graph' in chosen:
         results['graph'] = bench_graph(workdir, duration_s)
     if 'panorama' in chosen:

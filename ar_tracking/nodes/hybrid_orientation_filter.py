@@ -105,9 +105,9 @@ class HybridOrientationFilterNode(TrackingNode):
             soft_iron_matrix=p('soft_iron_matrix', [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], 'Soft-iron correction of imu/mag, row-major 3x3 (as imu_magnetometer)', validate=_matrix),
         )
         config = WorldAlignmentConfig(
-            accel_bias_sigma_m_s2=p('accel_bias_sigma_m_s2', a.accel_bias_sigma_m_s2, 'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2', min_value=1e-6, max_value=10.0),
+            accel_bias_sigma_m_s2=p('accel_bias_sigma_m_s2', a.accel_bias_sigma_m_s2, 'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2 (tight: a loose bias absorbs scale errors)', min_value=1e-6, max_value=10.0),
             hard_iron_sigma=p('hard_iron_sigma', a.hard_iron_sigma, 'Prior 1-sigma of the residual hard iron, relative to the field strength', min_value=1e-6, max_value=10.0),
-            mag_rate_hz=p('field_samples_hz', a.mag_rate_hz, 'Field samples kept per second for the robust fit of the panorama in the world', min_value=1.0, max_value=1000.0),
+            window_s=p('window_s', a.window_s, 'Window of the robust field fit, s (a disturbance is judged window by window)', min_value=0.01, max_value=60.0),
             solve_period_s=p('solve_period_s', a.solve_period_s, 'Re-solve the field fit this often (sample stamps), s', min_value=0.01, max_value=60.0),
             correlation_s=p('correlation_s', a.correlation_s, 'Correlation time of hand motion and field disturbances (window of the robust fit), s', min_value=0.05, max_value=60.0),
             cauchy_scale=p('cauchy_scale', a.cauchy_scale, 'Cauchy scale of the window weights, in robust sigmas', min_value=0.5, max_value=100.0),

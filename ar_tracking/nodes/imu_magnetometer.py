@@ -15,9 +15,10 @@ Two methods (parameter ``method``):
 * ``compass``: the per-sample tilt-compass of Langlotz 2011 eq. 3-4
   (:mod:`ar_tracking.core.imu_orientation`), the paper's sensor-only baseline of Fig. 8.
 
-Each IMU sample is processed when it arrives, with the newest field sample that is at most
-``max_mag_age_s`` from it: no sample waits for the other stream, so a magnetometer that returns
-after a dropout releases no burst downstream.
+Each IMU sample is processed with the newest field sample that is at most ``max_mag_age_s``
+from it, as soon as the field sample of its stamp has come or the next IMU sample has: at most
+one sample is ever held, so a magnetometer that returns after a dropout releases no burst
+downstream.
 
 Replay mode (parameter ``bag_path``): reads those topics from a bag itself and also publishes the
 calibrated ``imu/data_raw`` and ``imu/mag``.
@@ -134,6 +135,7 @@ class ImuMagnetometerNode(TrackingNode):
         self.mag_guard = StampGuard(reset_s)
         self.mag_raw: np.ndarray | None = None
         self.mag_ns: int | None = None
+        self.held: tuple[int, np.ndarray, np.ndarray, Imu] | None = None
         self.published = 0
 
         self.pub_data = self.advertise(Imu, 'imu/data', RELIABLE_QOS)
@@ -207,6 +209,7 @@ class ImuMagnetometerNode(TrackingNode):
             self.compass.reset()
         self.mag_raw = None
         self.mag_ns = None
+        self.held = None
 
     def _stamp_ok(self, guard: StampGuard, msg: Any, what: str) -> bool:
         verdict = guard.check(stamp_ns(msg.header))
@@ -231,6 +234,9 @@ class ImuMagnetometerNode(TrackingNode):
             return None
         self.mag_raw = raw
         self.mag_ns = stamp_ns(msg.header)
+        if self.held is not None and self.mag_ns >= self.held[0]:
+            self._process(*self.held)
+            self.held = None
         out = MagneticField()
         out.header = msg.header
         set_vector3(out.magnetic_field, self.calibration.mag(raw))
@@ -259,6 +265,20 @@ class ImuMagnetometerNode(TrackingNode):
         calibrated.linear_acceleration_covariance = msg.linear_acceleration_covariance
         set_covariance(calibrated.orientation_covariance, None)
         t_ns = stamp_ns(msg.header)
+        # A field sample with the IMU sample's stamp may come just after it: hold this one
+        # sample until that field sample or the next IMU sample, whichever comes first (at
+        # most one sample is ever held, so nothing queues up and nothing floods out later).
+        if self.held is not None:
+            self._process(*self.held)
+            self.held = None
+        if self.use_mag and (self.mag_ns is None or self.mag_ns < t_ns):
+            self.held = (t_ns, gyro, accel, calibrated)
+        else:
+            self._process(t_ns, gyro, accel, calibrated)
+        return calibrated
+
+    def _process(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, calibrated: Imu) -> None:
+        """imu/data for one IMU sample with the newest field sample within max_mag_age_s."""
         mag = None
         if self.use_mag and self.mag_ns is not None and abs(t_ns - self.mag_ns) <= self.max_mag_age_ns:
             mag = self.mag_raw
@@ -266,13 +286,12 @@ class ImuMagnetometerNode(TrackingNode):
             est = self.ahrs.update(t_ns, gyro, accel, mag, self.mag_ns)
             if isinstance(est, str):
                 self.warn_throttled(f'imu/data_raw: {est}, message dropped')
-            elif est is not None:
-                if self.use_mag and not est.mag_used:
-                    self.warn_throttled('magnetometer missing, stale or disturbed: heading from the gyro, its covariance growing', 30.0)
-                self._publish(calibrated, est.R_enu_body, est.covariance)
+                return
+            if self.use_mag and not est.mag_used:
+                self.warn_throttled('magnetometer missing, stale or disturbed: heading from the gyro, its covariance growing', 30.0)
+            self._publish(calibrated, est.R_enu_body, est.covariance)
         else:
             self._emit_compass(accel, calibrated, mag)
-        return calibrated
 
     def _emit_compass(self, accel: np.ndarray, calibrated: Imu, mag: np.ndarray | None) -> None:
         """Eq. 3-4 for one IMU sample and the field sample paired with it."""

@@ -65,10 +65,9 @@ def test_residual_hard_iron_is_estimated_over_a_turn():
     h = np.array([3e-6, -2e-6, 1.5e-6])
     est = run(hard_iron=h)
     # Panning turns the phone's x and z axes (y points up): those components are observable,
-    # shrunk a little by the prior; y is not, and stays near the prior.
+    # shrunk a little by the prior (y is barely, and does not turn the heading).
     found = est.hard_iron * np.linalg.norm(FIELD)
-    assert np.allclose(found[[0, 2]], h[[0, 2]], atol=0.8e-6)
-    assert abs(found[1]) < 0.5e-6
+    assert np.allclose(found[[0, 2]], h[[0, 2]], atol=0.5e-6)
     assert errors_deg(est)[0] < 0.2
 
 
