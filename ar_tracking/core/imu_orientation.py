@@ -20,12 +20,13 @@ away from the local field), which is what makes the estimate usable by a fusion 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .rotations import rot_z
+from .rotations import cross3, rot_z
 
 logger = logging.getLogger(__name__)
 
@@ -96,17 +97,17 @@ def orientation_from_gravity_and_field(
     m = np.asarray(mag, dtype=float)
     if a.shape != (3,) or m.shape != (3,) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(m))):
         return None
-    a_norm = np.linalg.norm(a)
-    m_norm = np.linalg.norm(m)
+    a_norm = math.sqrt(float(a @ a))
+    m_norm = math.sqrt(float(m @ m))
     if a_norm < 1e-6 or m_norm < 1e-12:
         return None
     up = a / a_norm
-    east = np.cross(m / m_norm, up)
-    east_norm = np.linalg.norm(east)
+    east = cross3(m / m_norm, up)
+    east_norm = math.sqrt(float(east @ east))
     if east_norm < 1e-3:  # field (nearly) vertical: heading undefined
         return None
     east /= east_norm
-    north = np.cross(up, east)
+    north = cross3(up, east)
     R_magenu_body = np.vstack([east, north, up])
     if declination_rad:
         return rot_z(-declination_rad) @ R_magenu_body
@@ -115,9 +116,8 @@ def orientation_from_gravity_and_field(
 
 def field_dip_rad(accel: Array, mag: Array) -> float:
     """Inclination of the measured field below the horizon, from the gravity direction."""
-    up = accel / np.linalg.norm(accel)
-    m_unit = mag / np.linalg.norm(mag)
-    return float(np.arcsin(np.clip(-np.dot(m_unit, up), -1.0, 1.0)))
+    cos = -float(mag @ accel) / math.sqrt(float(mag @ mag) * float(accel @ accel))
+    return math.asin(min(1.0, max(-1.0, cos)))
 
 
 @dataclass
@@ -168,7 +168,7 @@ class GravityFieldOrientation:
 
     def estimate(self, accel_raw: Array, mag_raw: Array) -> OrientationEstimate | None:
         """Orientation from raw (uncalibrated) samples; None when they define none."""
-        if not (np.all(np.isfinite(accel_raw)) and np.all(np.isfinite(mag_raw))):
+        if not (math.isfinite(float(np.sum(accel_raw))) and math.isfinite(float(np.sum(mag_raw)))):
             return None
         a = self.calibration.accel(accel_raw)
         m = self.calibration.mag(mag_raw)
@@ -176,8 +176,8 @@ class GravityFieldOrientation:
         if R is None:
             return None
         g = self.model.gravity_m_s2
-        a_norm = float(np.linalg.norm(a))
-        m_norm = float(np.linalg.norm(m))
+        a_norm = math.sqrt(float(a @ a))
+        m_norm = math.sqrt(float(m @ m))
         dip = field_dip_rad(a, m)
         if self._field_ref is None or self._dip_ref is None:
             self._field_ref, self._dip_ref = m_norm, dip

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .rotations import rot_z
+from .rotations import cross3, rot_z
 
 Array = NDArray[np.float64]
 
@@ -62,9 +62,9 @@ class WorldAlignmentConfig:
     #: At most this many windows are kept (then neighbours are merged two by two).
     max_windows: int = 20000
     #: Re-solve the field every this long (sample stamps), s.
-    solve_period_s: float = 0.5
+    solve_period_s: float = 1.0
     #: IRLS iterations per solve.
-    irls_iterations: int = 4
+    irls_iterations: int = 2
     #: Cauchy scale in robust sigmas of the residual norm.
     cauchy_scale: float = 2.5
     #: Floor of the robust residual sigma, relative to |B| (a perfect sensor is not trusted more).
@@ -101,17 +101,60 @@ class WorldAlignmentEstimate:
     accel_bias: Array
 
 
-def _cross(a: Array, b: Array) -> Array:
-    """3-vector cross product (numpy's is slow for single vectors)."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
 def _cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, float]:
     """Cauchy weights of values about their median, with the robust sigma (1.4826 MAD, at
     least ``floor``) times ``scale`` as the Cauchy width; returns (weights, sigma)."""
     dev = np.abs(x - np.median(x))
     sigma = max(1.4826 * float(np.median(dev)), floor)
     return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
+
+
+class _WindowSums:
+    """Sums of samples per time window of ``window_ns`` (stamps), in preallocated arrays whose
+    last used row is the open window; neighbours are merged two by two past ``max_windows``.
+    ``shapes`` names the summed quantities and their shapes; ``n`` counts the samples."""
+
+    def __init__(self, window_ns: int, max_windows: int, shapes: dict[str, tuple[int, ...]]) -> None:
+        self.window_ns = window_ns
+        self.max_windows = max_windows
+        self.shapes = shapes
+        self.n = np.zeros(64)
+        self.sums = {k: np.zeros((64,) + shape) for k, shape in shapes.items()}
+        self.count = 0  # windows used, the open one included
+        self.end_ns: int | None = None
+
+    def open(self, t_ns: int) -> int:
+        """Index of the window that takes a sample at t_ns (a new one when t_ns is past the
+        open window's end)."""
+        if self.end_ns is None or t_ns >= self.end_ns:
+            if self.end_ns is None:
+                self.end_ns = t_ns + self.window_ns
+            else:
+                self.end_ns += self.window_ns * ((t_ns - self.end_ns) // self.window_ns + 1)
+            if self.count == len(self.n):
+                if self.count >= self.max_windows:
+                    self._merge_pairs()
+                else:
+                    self.n = np.concatenate([self.n, np.zeros(len(self.n))])
+                    self.sums = {k: np.concatenate([v, np.zeros_like(v)]) for k, v in self.sums.items()}
+            self.count += 1
+        return self.count - 1
+
+    def _merge_pairs(self) -> None:
+        k = self.count // 2 * 2
+        half = (self.count + 1) // 2
+        for arr in [self.n] + list(self.sums.values()):
+            merged = arr[0:k:2] + arr[1:k:2]
+            if self.count % 2:
+                merged = np.concatenate([merged, arr[k:k + 1]])
+            arr[:half] = merged
+            arr[half:] = 0
+        self.count = half
+
+    def arrays(self) -> tuple[Array, dict[str, Array]]:
+        """Counts and sums of the windows so far (views)."""
+        k = self.count
+        return self.n[:k], {name: v[:k] for name, v in self.sums.items()}
 
 
 class WorldAlignment:
@@ -135,27 +178,14 @@ class WorldAlignment:
         self._t_first_ns: int | None = None
         self._t_last_ns = 0
         # Gravity per window: count, sum R_imu_P, sum R_P_imu a, sum a.
-        self._g_n: list[float] = []
-        self._g_S: list[Array] = []
-        self._g_Rta: list[Array] = []
-        self._g_a: list[Array] = []
-        self._g_cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3)]
-        self._g_end_ns: int | None = None
+        win_ns = int(self.config.window_s * 1e9)
+        self._gw = _WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rta': (3,), 'a': (3,)})
         self._gravity: tuple[Array, Array] | None = None
         self._gravity_windows = -1
         # Field: the normal equations of m = R_imu_P f + h are sums, so each window keeps its
         # own sums (count, sum R_imu_P, sum R_P_imu m, sum m, sum |m|) and the robust solve
         # works on windows only.
-        cap = 256
-        self._w_n = np.zeros(cap)
-        self._w_S = np.zeros((cap, 3, 3))
-        self._w_Rtm = np.zeros((cap, 3))
-        self._w_m = np.zeros((cap, 3))
-        self._w_norm = np.zeros(cap)
-        self._n_win = 0  # finished windows
-        self._win_ns = int(self.config.window_s * 1e9)
-        self._win_end_ns: int | None = None
-        self._cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3), 0.0]
+        self._fw = _WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rtm': (3,), 'm': (3,), 'norm': ()})
         self._field_samples = 0
         self._solve_t_ns: int | None = None
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
@@ -179,86 +209,30 @@ class WorldAlignment:
         self._sum_R += R_imu_P
         self._sum_Rt_a += Rta
         self._sum_a += accel
-        if self._g_end_ns is None:
-            self._g_end_ns = int(t_ns) + self._win_ns
-        elif t_ns >= self._g_end_ns:
-            self._close_gravity_window()
-            self._g_end_ns += self._win_ns * max(1, (int(t_ns) - self._g_end_ns) // self._win_ns + 1)
-        g_cur = self._g_cur
-        g_cur[0] += 1
-        g_cur[1] += R_imu_P
-        g_cur[2] += Rta
-        g_cur[3] += accel
+        gw = self._gw
+        k = gw.open(int(t_ns))
+        gw.n[k] += 1
+        gw.sums['S'][k] += R_imu_P
+        gw.sums['Rta'][k] += Rta
+        gw.sums['a'][k] += accel
         aa = float(accel @ accel)
         self._sum_aa += aa
         self._sum_a_norm += math.sqrt(aa)
         self._dirty = True
         if mag is None:
             return
-        t_ns = int(t_ns)
-        if self._win_end_ns is None:
-            self._win_end_ns = t_ns + self._win_ns
-        elif t_ns >= self._win_end_ns:
-            self._close_window()
-            self._win_end_ns += self._win_ns * max(1, (t_ns - self._win_end_ns) // self._win_ns + 1)
-        cur = self._cur
-        cur[0] += 1
-        cur[1] += R_imu_P
-        cur[2] += R_pano_imu @ mag
-        cur[3] += mag
-        cur[4] += math.sqrt(float(mag @ mag))
+        fw = self._fw
+        k = fw.open(int(t_ns))
+        fw.n[k] += 1
+        fw.sums['S'][k] += R_imu_P
+        fw.sums['Rtm'][k] += R_pano_imu @ mag
+        fw.sums['m'][k] += mag
+        fw.sums['norm'][k] += math.sqrt(float(mag @ mag))
         self._field_samples += 1
         if self._solve_t_ns is None or t_ns - self._solve_t_ns >= int(self.config.solve_period_s * 1e9) \
                 or self._field_samples < 8:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()
-
-    def _close_gravity_window(self) -> None:
-        cur = self._g_cur
-        if cur[0] == 0:
-            return
-        if len(self._g_n) >= self.config.max_windows:  # merge neighbours two by two
-            for arr in (self._g_n, self._g_S, self._g_Rta, self._g_a):
-                merged = [arr[i] + arr[i + 1] for i in range(0, len(arr) - 1, 2)]
-                if len(arr) % 2:
-                    merged.append(arr[-1])
-                arr[:] = merged
-        self._g_n.append(float(cur[0]))
-        self._g_S.append(cur[1])
-        self._g_Rta.append(cur[2])
-        self._g_a.append(cur[3])
-        self._g_cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3)]
-
-    def _close_window(self) -> None:
-        """Move the current window's sums into the arrays (merging pairs when full)."""
-        cur = self._cur
-        if cur[0] == 0:
-            return
-        if self._n_win == len(self._w_n):
-            if self._n_win >= self.config.max_windows:
-                self._merge_pairs()
-            else:
-                grow = len(self._w_n)
-                self._w_n = np.concatenate([self._w_n, np.zeros(grow)])
-                self._w_S = np.concatenate([self._w_S, np.zeros((grow, 3, 3))])
-                self._w_Rtm = np.concatenate([self._w_Rtm, np.zeros((grow, 3))])
-                self._w_m = np.concatenate([self._w_m, np.zeros((grow, 3))])
-                self._w_norm = np.concatenate([self._w_norm, np.zeros(grow)])
-        k = self._n_win
-        self._w_n[k], self._w_S[k], self._w_Rtm[k], self._w_m[k], self._w_norm[k] = cur
-        self._n_win += 1
-        self._cur = [0, np.zeros((3, 3)), np.zeros(3), np.zeros(3), 0.0]
-
-    def _merge_pairs(self) -> None:
-        k = self._n_win // 2 * 2
-        for arr_name in ('_w_n', '_w_S', '_w_Rtm', '_w_m', '_w_norm'):
-            arr = getattr(self, arr_name)
-            merged = arr[0:k:2] + arr[1:k:2]
-            arr[: k // 2] = merged
-            if self._n_win % 2:
-                arr[k // 2] = arr[k]
-            arr[(self._n_win + 1) // 2:] = 0
-        self._n_win = (self._n_win + 1) // 2
 
     @property
     def ready(self) -> bool:
@@ -273,14 +247,12 @@ class WorldAlignment:
     def _solve_gravity(self) -> tuple[Array, Array]:
         """[g_P; b_a] from the window sums, Hann-weighted over the session (module docstring),
         with the ridge on b_a (and the prior). Re-solved when a window has closed."""
-        if self._gravity is not None and self._gravity_windows == len(self._g_n) and len(self._g_n) >= 4:
+        closed = self._gw.count - 1  # the open window changes with every sample
+        if self._gravity is not None and self._gravity_windows == closed and closed >= 4:
             return self._gravity
         c = self.config
-        cur = self._g_cur
-        n_w = np.array(self._g_n + ([float(cur[0])] if cur[0] else []))
-        S_w = np.array(self._g_S + ([cur[1]] if cur[0] else []))
-        Rta_w = np.array(self._g_Rta + ([cur[2]] if cur[0] else []))
-        a_w = np.array(self._g_a + ([cur[3]] if cur[0] else []))
+        n_w, sums = self._gw.arrays()
+        S_w, Rta_w, a_w = sums['S'], sums['Rta'], sums['a']
         k = len(n_w)
         w = np.sin(np.pi * (np.arange(k) + 0.5) / k) ** 2 if k >= 4 else np.ones(k)
         n = float(w @ n_w)
@@ -305,7 +277,7 @@ class WorldAlignment:
         x = np.linalg.solve(A, rhs)
         g, b = x[:3], x[3:]
         self._gravity = (g, b)
-        self._gravity_windows = len(self._g_n)
+        self._gravity_windows = closed
         n = float(self._n)
         # Per-axis residual variance of a - R g - b from the sums (the hand's acceleration and
         # the sensor noise): it weighs the ridge of the next solve and sets the covariance.
@@ -313,17 +285,6 @@ class WorldAlignment:
               + 2.0 * g @ (self._sum_R.T @ b) + n * (b @ b))
         self._accel_var = max(sq / (3.0 * n), 0.0)
         return g, b
-
-    def _window_arrays(self) -> tuple[Array, Array, Array, Array, Array]:
-        """Finished windows plus the current one: count, sum R_imu_P, sum R_P_imu m, sum m,
-        sum |m|."""
-        k = self._n_win
-        cur = self._cur
-        if cur[0] == 0:
-            return self._w_n[:k], self._w_S[:k], self._w_Rtm[:k], self._w_m[:k], self._w_norm[:k]
-        return (np.append(self._w_n[:k], cur[0]), np.concatenate([self._w_S[:k], cur[1][None]]),
-                np.concatenate([self._w_Rtm[:k], cur[2][None]]), np.concatenate([self._w_m[:k], cur[3][None]]),
-                np.append(self._w_norm[:k], cur[4]))
 
     def _solve_field(self) -> tuple[Array, Array, float, float]:
         """Robust fit of m = R_imu_P f_P + h (ridge on h), over windows of ``window_s``.
@@ -338,7 +299,8 @@ class WorldAlignment:
         windows' sums are kept. Returns f_P, h (relative to |B|), the residual sigma of the
         window headings (rad) and the share of windows weighted below one half."""
         c = self.config
-        n_w, S_w, Rtm_w, m_w, norm_w = self._window_arrays()
+        n_w, sums = self._fw.arrays()
+        S_w, Rtm_w, m_w, norm_w = sums['S'], sums['Rtm'], sums['m'], sums['norm']
         scale = float(np.median(norm_w / n_w))
         if scale <= 0 or not math.isfinite(scale):
             scale = 1.0
@@ -390,9 +352,9 @@ class WorldAlignment:
         in the panorama frame, about their medians) and the heading spread (rad)."""
         c = self.config
         mean_f = (Rtm_w - np.einsum('nji,j->ni', S_w, h)) / n_w[:, None]  # mean R_P_imu (m - h)
-        east = _cross(f, up)
+        east = cross3(f, up)
         east /= max(float(np.linalg.norm(east)), 1e-12)
-        north = _cross(up, east)
+        north = cross3(up, east)
         psi = np.arctan2(mean_f @ east, mean_f @ north)  # 0 for a window agreeing with f
         w_psi, spread = _cauchy_about_median(psi, math.radians(0.25), c.cauchy_scale)
         # Most real disturbances also change the field's strength or dip: a window whose mean
@@ -424,12 +386,12 @@ class WorldAlignment:
         g_P, b_a = self._solve_gravity()
         f_P, h, f_sigma, outliers = self._field  # type: ignore[misc]
         up = g_P / np.linalg.norm(g_P)
-        east = _cross(f_P, up)
+        east = cross3(f_P, up)
         f_h = float(np.linalg.norm(east))
         if f_h < 1e-6:
             return self._estimate
         east /= f_h
-        north = _cross(up, east)
+        north = cross3(up, east)
         R_pano_magenu = np.column_stack([east, north, up])
         R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
         self._field_enu_ref = R_pano_enu.T @ f_P
