@@ -50,6 +50,7 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
         path = make_bag(
             args.scenario, args.out, seed=args.seed, duration_s=args.duration, session=args.session,
             storage=args.storage, image_format=args.image_format, overwrite=True, progress=progress,
+            profile=args.profile,
         )
     finally:
         close()
@@ -251,6 +252,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--out', '-o', required=True, help='output bag (.mcap file, or a directory with --storage sqlite3)')
     p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
     p.add_argument('--image-format', default='raw', choices=['raw', 'compressed'])
+    p.add_argument('--profile', default='hard', choices=['hard', 'kind'],
+                   help="rotation_sweep sensor realism: 'hard' (default) = realistic phone: hand acceleration, "
+                        'field turns that keep |B| and dip, residual iron after a rough calibration, gyro bias drift, '
+                        "camera-IMU time offset; 'kind' = the earlier, easier simulator, for the paper's Fig. 8 comparison")
     p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_make_bag)
 

@@ -25,6 +25,16 @@ Topics (log time = header stamp, integer ns from a fixed start), as topic: type,
   relative to the authoring spot)
 * /ground_truth/mag_disturbance: geometry_msgs/Vector3Stamped, 100 Hz, enu (x: compass error
   caused by the disturbance in rad, y: extra |B| in tesla)
+
+``profile`` (rotation_sweep): 'hard' (default) simulates a realistic phone, 'kind' the earlier,
+easier simulator, whose bags are byte for byte those made before profiles existed (see
+:mod:`ar_tracking.sim.rotation_sweep`). In the hard profile the IMU and magnetometer stamps
+are the true sample time plus the scenario's camera-IMU time offset (2-8 ms, either sign), so
+they no longer equal the ground-truth stamps (true time, on the 100 Hz grid); /tf_static and
+/ground_truth/annotations then go first, at the earlier of START_NS and the first IMU stamp.
+The profile is named in the sidecar's header comment and, for hard bags, in the MCAP metadata
+record ``ar_tracking.simulator`` (scenario, profile, seed, session) for evaluation; kind bags
+carry no record, as before. Estimators must not read either.
 """
 from __future__ import annotations
 
@@ -51,6 +61,9 @@ SCENARIOS: tuple[str, ...] = ('rotation_sweep', 'robot_arcs', 'handheld_desk')
 SESSIONS: tuple[str, ...] = rs.SESSIONS
 STORAGES: tuple[str, ...] = ('mcap', 'sqlite3')
 IMAGE_FORMATS: tuple[str, ...] = ('raw', 'compressed')
+PROFILES: tuple[str, ...] = rs.PROFILES
+#: MCAP metadata record naming the simulator profile of a hard rotation_sweep bag (evaluation only).
+SIM_METADATA = 'ar_tracking.simulator'
 
 #: Stamp of the first message (2023-11-14T22:13:20Z): fixed, so bags are reproducible.
 START_NS = 1_700_000_000 * 1_000_000_000
@@ -89,17 +102,20 @@ class SimError(Exception):
 def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float = 60.0,
              session: str = 'authoring', storage: str = 'mcap', image_format: str = 'raw',
              overwrite: bool = False, progress: Callable[[float], None] | None = None,
-             lighting: str | None = None) -> Path:
+             lighting: str | None = None, profile: str = 'hard') -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
     rosbag2 directory. ``progress`` is called now and then with the fraction done (0..1).
     ``lighting`` (rotation_sweep only): the session whose sun and sky light the spot, default
     ``session``; e.g. a browsing walk under the authoring sun (the 'same lighting' column of
-    Langlotz 2011 Fig. 7). Raises :class:`SimError` for bad arguments (including an existing
-    output without ``overwrite``).
+    Langlotz 2011 Fig. 7). ``profile`` (rotation_sweep only): 'hard' (default, a realistic
+    phone) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
+    :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
     _check_args(scenario, seed, duration_s, session, storage, image_format)
+    if profile not in PROFILES:
+        raise SimError(f'unknown profile {profile!r} (use {" or ".join(PROFILES)})')
     if lighting is not None and lighting not in SESSIONS:
         raise SimError(f'unknown lighting {lighting!r} (use {" or ".join(SESSIONS)})')
     bag_path = _bag_path(Path(out), storage)
@@ -129,7 +145,7 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         handheld_desk.write_sidecars(sidecar, bag_path, seed)
         logger.info('wrote %s (handheld_desk, seed %d, %.1f s) and %s', bag_path, seed, duration_s, sidecar.name)
         return bag_path
-    scn = rs.make_scenario(seed, session, duration_s)
+    scn = rs.make_scenario(seed, session, duration_s, profile=profile)
     world, light, pano = session_view(seed, session, lighting)
     plan = _Plan.make(scn, pano)
     try:
@@ -138,8 +154,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     except BagError as exc:
         raise SimError(str(exc)) from exc
     write_sidecar(sidecar, scn, bag_path)
-    logger.info('wrote %s (%s, seed %d, %s, %.1f s) and %s', bag_path, scenario, seed, session,
-                duration_s, sidecar.name)
+    logger.info('wrote %s (%s, seed %d, %s, %.1f s, profile %s) and %s', bag_path, scenario,
+                seed, session, duration_s, profile, sidecar.name)
     return bag_path
 
 
@@ -211,7 +227,8 @@ class _Plan:
         n_cam = int(math.ceil(dur_ns * rs.CAMERA_RATE_HZ / 1e9))
         cam = (np.arange(n_cam, dtype=np.int64) * 1_000_000_000) // rs.CAMERA_RATE_HZ
         gps = np.arange(0, dur_ns, 1_000_000_000 // rs.GPS_RATE_HZ, dtype=np.int64)
-        factor, wb = rs.make_exposure(scn.seed, scn.session, scn.duration_s).at(cam * 1e-9)
+        factor, wb = rs.make_exposure(scn.seed, scn.session, scn.duration_s,
+                                      scn.profile).at(cam * 1e-9)
         base = (EXPOSURE_TARGET / max(pano.mean_radiance, 1e-3)) ** EXPOSURE_COMPENSATION
         return _Plan(imu, cam, gps, base * factor, wb)
 
@@ -347,24 +364,34 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, 
     gyro_var, accel_var, mag_var = (err.gyro_noise_rad_s ** 2, err.accel_noise_m_s2 ** 2,
                                     err.mag_noise_t ** 2)
     image_topic = TOPIC_IMAGE if image_format == 'raw' else TOPIC_IMAGE_COMPRESSED
+    # IMU/magnetometer stamps = true sample time + offset; ground truth at the true time.
+    off = int(scn.imu_time_offset_ns)
+    first_ns = START_NS + min(0, off)
+    if scn.profile != 'kind':  # kind bags stay byte for byte those of the earlier simulator
+        bag.add_metadata(SIM_METADATA, {'scenario': 'rotation_sweep', 'profile': scn.profile,
+                                        'seed': str(scn.seed), 'session': scn.session})
 
-    bag.write(TOPIC_TF_STATIC, START_NS, msg_class('tf2_msgs/msg/TFMessage')(transforms=[
-        m.transform_stamped(START_NS, FRAME_IMU, FRAME_CAMERA, np.zeros(3),
+    bag.write(TOPIC_TF_STATIC, first_ns, msg_class('tf2_msgs/msg/TFMessage')(transforms=[
+        m.transform_stamped(first_ns, FRAME_IMU, FRAME_CAMERA, np.zeros(3),
                             matrix_to_quat_xyzw(rs.R_IMU_CAM))]))
-    bag.write(TOPIC_GT_ANNOTATIONS, START_NS, m.markers(
-        START_NS, [a.label for a in world.anchors], [a.position_enu for a in world.anchors]))
+    bag.write(TOPIC_GT_ANNOTATIONS, first_ns, m.markers(
+        first_ns, [a.label for a in world.anchors], [a.position_enu for a in world.anchors]))
 
-    events = sorted([(int(s), 0, k) for k, s in enumerate(plan.imu_ns)]
-                    + [(int(s), 1, k) for k, s in enumerate(plan.gps_ns)]
-                    + [(int(s), 2, k) for k, s in enumerate(plan.cam_ns)])
+    # (stamp, stream, part, k): IMU + magnetometer (0, 0), ground truth (0, 1), GPS, camera;
+    # with no offset this is the order of the earlier simulator (IMU, truth, GPS, camera).
+    events = sorted([(int(s) + off, 0, 0, k) for k, s in enumerate(plan.imu_ns)]
+                    + [(int(s), 0, 1, k) for k, s in enumerate(plan.imu_ns)]
+                    + [(int(s), 1, 0, k) for k, s in enumerate(plan.gps_ns)]
+                    + [(int(s), 2, 0, k) for k, s in enumerate(plan.cam_ns)])
     n_cam = len(plan.cam_ns)
     report_every = max(1, n_cam // 50)
-    for stamp, kind, k in events:
+    for stamp, kind, part, k in events:
         ns = START_NS + stamp
-        if kind == 0:
+        if kind == 0 and part == 0:
             bag.write(TOPIC_IMU, ns, m.imu(ns, imu.gyro_rad_s[k], imu.accel_m_s2[k], gyro_var,
                                            accel_var))
             bag.write(TOPIC_MAG, ns, m.mag(ns, imu.mag_t[k], mag_var))
+        elif kind == 0:
             bag.write(TOPIC_GT_ORIENTATION, ns, m.transform_stamped(
                 ns, FRAME_WORLD, FRAME_CAMERA, imu.position_enu[k], q_gt[k]))
             bag.write(TOPIC_GT_POSE, ns, m.pose_stamped(ns, FRAME_WORLD, imu.position_enu[k],
@@ -385,11 +412,32 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, 
                 progress((k + 1) / n_cam)
 
 
+#: The calibration keys the hybrid filter reads too (it uses raw accelerometer and field samples).
+HYBRID_CALIBRATION_KEYS = ('gyro_bias', 'accel_bias', 'hard_iron_offset', 'soft_iron_matrix',
+                           'declination_rad')
+_PROFILE_NOTES = {
+    'hard': 'a realistic phone: hand acceleration, field turns that keep |B| and dip, '
+            'residual iron after a rough calibration, gyro bias drift, camera-IMU time offset',
+    'kind': 'the earlier, easier simulator',
+}
+
+
 def write_sidecar(path: Path, scn: rs.Scenario, bag_path: Path) -> None:
-    """The ROS 2 params file of the imu_magnetometer node for this device (plain floats)."""
-    doc = {'imu_magnetometer': {'ros__parameters': rs.calibration_params(scn)}}
+    """The ROS 2 params file for this device (plain floats): the calibration under
+    ``imu_magnetometer`` and the same values (:data:`HYBRID_CALIBRATION_KEYS`) under
+    ``hybrid_orientation_filter``."""
+    cal = rs.calibration_params(scn)
+    doc = {'imu_magnetometer': {'ros__parameters': cal}}
+    hybrid = {'hybrid_orientation_filter': {'ros__parameters': {
+        k: cal[k] for k in HYBRID_CALIBRATION_KEYS}}}
+    quality = ('with 1-3 % error' if scn.profile == 'kind' else
+               'from a rough calibration (biases 1-3 % off, hard iron 1-3 uT off per axis, '
+               'soft iron 20-50 % off)')
     head = (f'# Calibration of the simulated device of {bag_path.name} '
             f'(scenario rotation_sweep, seed {scn.seed}, session {scn.session}).\n'
-            '# Measured values with 1-3 % error, as a user would have them; '
-            'calibrated mag = soft_iron_matrix @ (raw - hard_iron_offset).\n')
-    path.write_text(head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
+            f'# Measured values {quality}, as a user would have them; '
+            'calibrated mag = soft_iron_matrix @ (raw - hard_iron_offset).\n'
+            f'# Simulator profile: {scn.profile} ({_PROFILE_NOTES[scn.profile]}).\n')
+    dump = functools.partial(yaml.safe_dump, sort_keys=False, default_flow_style=None)
+    path.write_text(head + dump(doc) + '# The same calibration for the hybrid filter, which '
+                    'reads raw accelerometer and field samples too.\n' + dump(hybrid))

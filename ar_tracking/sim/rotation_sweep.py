@@ -19,11 +19,35 @@ Frames and conventions (../shared/DESIGN.md section 3):
 * The magnetic disturbance's heading deflection is what a compass would be off by: the
   compass heading computed from the disturbed field minus the one from the true field
   (positive = the compass reads too far clockwise, i.e. the field turned counter-clockwise).
+
+Profiles (``profile`` argument of :func:`make_scenario`):
+
+* ``'hard'`` (default) models what real phones do; each new phenomenon draws from its own
+  random stream (so the ``'kind'`` streams are untouched), the disturbances and exposure jumps
+  reuse the kind draws (same schedule) and only change their effect: hand linear acceleration
+  (a hand motion of a few cm at 0.5-3 Hz and the phone 0.2-0.4 m in front of the body's
+  turning axis: |a| RMS about 0.7 m/s^2, 1-2 m/s^2 in sweeps); magnetic disturbances that turn
+  the horizontal field by 2-10 deg about the up axis with |B| and dip unchanged (also during
+  the ramps); a rough magnetometer calibration (residual hard iron 1-3 uT per axis, soft-iron
+  correction 20-50 % off its deviation from identity: against the 21 uT horizontal field a
+  compass error that varies with heading, about 2-7 deg RMS); a gyro bias that drifts by a random walk (a few mrad/s per minute) from the
+  constant part the calibration measured; accelerometer scale errors of 0.5-1 %; auto-exposure
+  jumps 1.5 times larger; and a **camera-IMU time offset**: the IMU and magnetometer header
+  stamps are the true sample time plus a constant offset of 2-8 ms (either sign,
+  :attr:`Scenario.imu_time_offset_ns`), while camera stamps and the ground truth
+  (``/ground_truth/*``) carry the true capture time.
+* ``'kind'``: the earlier, easier simulator (hand sway of 1 cm, phone 2-4 cm from the turning
+  axis, half the disturbances change |B| and dip, calibration 1-3 % off, constant gyro bias, no
+  time offset). Its bags are byte for byte those of the simulator before the profiles existed
+  (the paper's Fig. 8 comparison).
+
+The camera images are rendered by rotation only, from the panorama of the standing spot: the
+hand motion and the lever arm move the ground-truth position, not the image (no parallax).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +71,19 @@ MAX_PAN_PEAK_DEG_S = 84.0  # leaves room for hand tremor below the 90 deg/s limi
 EXPOSURE_TIME_S = 0.012
 
 SESSIONS = ('authoring', 'browsing')
+PROFILES = ('hard', 'kind')
+
+#: Hard profile (ranges drawn per scenario; see the module docstring).
+HARD_LEVER_ARM_M = (0.2, 0.4)  # phone in front of the body's turning axis
+HARD_HAND_SWEEP_M = (0.01, 0.03)  # per axis, at 0.5-1.2 Hz (acceleration amplitude <= 0.5 m/s^2)
+HARD_HAND_SWEEP_MAX_ACCEL_M_S2 = 0.5
+HARD_HAND_TREMOR_ACCEL_M_S2 = (0.05, 0.2)  # per axis, at 1.5-3 Hz
+HARD_IRON_RESIDUAL_T = (1e-6, 3e-6)  # per axis, random sign
+HARD_SOFT_IRON_RESIDUAL = (0.2, 0.5)  # of the soft-iron correction's deviation from identity
+HARD_GYRO_DRIFT_PER_MINUTE_RAD_S = (0.002, 0.005)  # typical |change| of the bias over 60 s
+HARD_ACCEL_SCALE_ERROR = (0.005, 0.01)  # per axis, random sign
+HARD_IMU_TIME_OFFSET_S = (0.002, 0.008)  # |offset|, random sign
+HARD_EXPOSURE_JUMP_FACTOR = 1.5  # auto-exposure jumps of 30-75 % instead of 20-50 %
 
 #: Latitude/longitude around which the spots of all seeds lie (Graz), degrees.
 BASE_LATITUDE_DEG = 47.06
@@ -241,12 +278,24 @@ def session_offset(seed: int, session: str) -> Array:
     return np.array([r * math.sin(a), r * math.cos(a), rng.uniform(-0.1, 0.1)])
 
 
-def make_trajectory(seed: int, session: str, duration_s: float) -> Trajectory:
-    """The sweep of one session: random start heading, pan bumps, pitch/roll wander, tremor."""
+def check_profile(profile: str) -> None:
+    """Raises ValueError for a profile other than 'hard' and 'kind'."""
+    if profile not in PROFILES:
+        raise ValueError(f'unknown profile {profile!r} (use {" or ".join(PROFILES)})')
+
+
+def make_trajectory(seed: int, session: str, duration_s: float, profile: str = 'hard'
+                    ) -> Trajectory:
+    """The sweep of one session: random start heading, pan bumps, pitch/roll wander, tremor.
+
+    The 'hard' profile adds the hand's linear motion (:func:`_hard_hand_motion`) and puts the
+    phone 0.2-0.4 m in front of the body's turning axis (stream 'hand-motion'); everything
+    else is the 'kind' trajectory."""
+    check_profile(profile)
     rng = rng_stream(seed, 'trajectory', session)
     deg = math.radians
     mean_pitch = rng.uniform(0.0, 8.0)
-    return Trajectory(
+    kind = Trajectory(
         duration_s=float(duration_s),
         heading0_rad=float(rng.uniform(0, 2 * math.pi)),
         pan=make_pan_profile(rng, duration_s),
@@ -258,6 +307,24 @@ def make_trajectory(seed: int, session: str, duration_s: float) -> Trajectory:
         lever_arm_m=float(rng.uniform(0.02, 0.04)),
         spot_enu=session_offset(seed, session),
     )
+    if profile == 'kind':
+        return kind
+    hand_rng = rng_stream(seed, 'hand-motion', session)
+    lever = float(hand_rng.uniform(*HARD_LEVER_ARM_M))
+    extra = [_hard_hand_motion(hand_rng) for _ in range(3)]
+    return replace(kind, hand=tuple(_add(h, e) for h, e in zip(kind.hand, extra)),
+                   lever_arm_m=lever)
+
+
+def _hard_hand_motion(rng: np.random.Generator) -> SineSum:
+    """One axis of the hand's linear motion (m): a sweep of 1-3 cm at 0.5-1.2 Hz (its
+    acceleration amplitude capped at 0.5 m/s^2) and a tremor of 0.05-0.2 m/s^2 at 1.5-3 Hz.
+    Zero-mean velocity, bounded position, exact acceleration."""
+    f = np.array([rng.uniform(0.5, 1.2), rng.uniform(1.5, 3.0)])
+    w2 = (2 * math.pi * f) ** 2
+    sweep = min(rng.uniform(*HARD_HAND_SWEEP_M), HARD_HAND_SWEEP_MAX_ACCEL_M_S2 / w2[0])
+    tremor = rng.uniform(*HARD_HAND_TREMOR_ACCEL_M_S2) / w2[1]
+    return SineSum(0.0, np.array([sweep, tremor]), f, rng.uniform(0, 2 * math.pi, 2))
 
 
 def _tremor(rng: np.random.Generator) -> SineSum:
@@ -294,12 +361,19 @@ class EarthField:
 
 @dataclass(frozen=True)
 class Disturbances:
-    """Transient magnetic disturbances: each a constant extra field with smooth on/off ramps."""
+    """Transient magnetic disturbances with smooth on/off ramps.
+
+    Without ``turn_rad`` (profile 'kind') each event adds a constant extra field scaled by its
+    envelope. With it (profile 'hard') the events turn the horizontal part of the undisturbed
+    field ``base_enu`` about the up axis by ``envelope @ turn_rad`` (counter-clockwise
+    positive), so |B| and the dip angle stay exactly those of the earth field throughout."""
 
     start_s: Array
     duration_s: Array
     ramp_s: Array
     field_enu: Array  # (k, 3) extra field at full strength, tesla
+    turn_rad: Array | None = None  # (k,) turn of the horizontal field at full strength
+    base_enu: Array | None = None  # the field that is turned (needed with turn_rad)
 
     def envelope(self, t: Array) -> Array:
         """(N, k) strength 0..1 of each event."""
@@ -311,17 +385,26 @@ class Disturbances:
 
     def field(self, t: Array) -> Array:
         """Extra field (N, 3) in ENU, tesla."""
-        return self.envelope(t) @ self.field_enu
+        if self.turn_rad is None:
+            return self.envelope(t) @ self.field_enu
+        assert self.base_enu is not None
+        angle = self.envelope(t) @ self.turn_rad
+        c, s = np.cos(angle), np.sin(angle)
+        bx, by = float(self.base_enu[0]), float(self.base_enu[1])
+        return np.stack([c * bx - s * by - bx, s * bx + c * by - by, np.zeros_like(angle)], -1)
 
 
-def make_disturbances(rng: np.random.Generator, duration_s: float, earth: EarthField
-                      ) -> Disturbances:
-    """3-5 events per minute (at least one), each deflecting a compass by 2-10 degrees."""
+def make_disturbances(rng: np.random.Generator, duration_s: float, earth: EarthField,
+                      keep_field: bool = False) -> Disturbances:
+    """3-5 events per minute (at least one), each deflecting a compass by 2-10 degrees.
+
+    ``keep_field`` (profile 'hard'): the same schedule and deflections (the same draws), but
+    every event only turns the horizontal field, keeping |B| and dip (hard to detect)."""
     n = max(1, int(round(duration_s / 60.0 * rng.uniform(3.0, 5.0))))
     slot = duration_s / n
     b = earth.vector_enu
     bh = np.array([b[0], b[1], 0.0])
-    starts, durs, ramps, fields = [], [], [], []
+    starts, durs, ramps, fields, turns = [], [], [], [], []
     for k in range(n):
         dur = min(rng.uniform(2.0, 5.0), 0.8 * slot)
         ramp = min(rng.uniform(0.4, 1.0), dur / 3)
@@ -333,10 +416,16 @@ def make_disturbances(rng: np.random.Generator, duration_s: float, earth: EarthF
         extra = turned - bh
         if scale != 1.0:
             extra[2] = rng.uniform(-4e-6, 4e-6)  # some events also change dip and |B|
+        if keep_field:
+            extra = rot_z(defl) @ bh - bh
         starts.append(start)
         durs.append(dur)
         ramps.append(ramp)
         fields.append(extra)
+        turns.append(defl)
+    if keep_field:
+        return Disturbances(np.array(starts), np.array(durs), np.array(ramps), np.array(fields),
+                            np.array(turns), b.copy())
     return Disturbances(np.array(starts), np.array(durs), np.array(ramps), np.array(fields))
 
 
@@ -348,8 +437,25 @@ def heading_deflection(b_true_enu: Array, b_meas_enu: Array) -> Array:
 
 
 @dataclass(frozen=True)
+class BiasDrift:
+    """A random walk sampled at knots (linear in between, held outside), added to a bias."""
+
+    knot_s: Array  # (k,)
+    value: Array  # (k, 3), value[0] = 0: the drift starts from the calibrated constant part
+
+    def at(self, t: Array) -> Array:
+        """(N, 3) drift at times ``t`` (s)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return np.stack([np.interp(t, self.knot_s, self.value[:, i]) for i in range(3)], -1)
+
+
+@dataclass(frozen=True)
 class SensorErrors:
-    """The device's true sensor errors (the sidecar holds a slightly wrong estimate of them)."""
+    """The device's true sensor errors (the sidecar holds a slightly wrong estimate of them).
+
+    ``gyro_bias_drift`` and ``accel_scale`` exist in the 'hard' profile only (None otherwise):
+    the gyro bias at time t is ``gyro_bias_rad_s + gyro_bias_drift.at(t)``, the accelerometer
+    measures ``accel_scale * specific_force + accel_bias_m_s2``."""
 
     gyro_bias_rad_s: Array
     accel_bias_m_s2: Array
@@ -358,6 +464,16 @@ class SensorErrors:
     gyro_noise_rad_s: float = 0.01
     accel_noise_m_s2: float = 0.05
     mag_noise_t: float = 0.3e-6
+    gyro_bias_drift: BiasDrift | None = None
+    accel_scale: Array | None = None  # (3,) per-axis scale factor (1 + error)
+
+    def gyro_bias_at(self, t: Array) -> Array:
+        """(N, 3) true gyro bias at times ``t`` (rad/s)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        bias = np.broadcast_to(self.gyro_bias_rad_s, (len(t), 3)).copy()
+        if self.gyro_bias_drift is not None:
+            bias += self.gyro_bias_drift.at(t)
+        return bias
 
 
 def make_sensor_errors(rng: np.random.Generator) -> SensorErrors:
@@ -377,6 +493,28 @@ def make_sensor_errors(rng: np.random.Generator) -> SensorErrors:
     )
 
 
+def make_gyro_bias_drift(rng: np.random.Generator, duration_s: float) -> BiasDrift:
+    """A random walk of the gyro bias from 0, knots every second; its step is set so that
+    the typical |change| over a minute is 2-5 mrad/s (drawn per device)."""
+    per_minute = rng.uniform(*HARD_GYRO_DRIFT_PER_MINUTE_RAD_S)
+    # E|w(60 s)| of a 3-axis walk of step sigma per second is sigma * sqrt(60) * 1.596.
+    sigma = per_minute / (math.sqrt(60.0) * 1.596)
+    n = int(math.ceil(duration_s)) + 2
+    steps = rng.normal(0.0, sigma, (n - 1, 3))
+    value = np.vstack([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+    return BiasDrift(np.arange(n, dtype=float), value)
+
+
+def make_hard_sensor_errors(seed: int, session: str, duration_s: float, kind: SensorErrors
+                            ) -> SensorErrors:
+    """The 'kind' device plus a drifting gyro bias (stream 'gyro-drift') and accelerometer
+    scale errors of 0.5-1 % per axis (stream 'accel-scale')."""
+    drift = make_gyro_bias_drift(rng_stream(seed, 'gyro-drift', session), duration_s)
+    rng = rng_stream(seed, 'accel-scale', session)
+    scale = 1.0 + rng.uniform(*HARD_ACCEL_SCALE_ERROR, 3) * rng.choice([-1.0, 1.0], 3)
+    return replace(kind, gyro_bias_drift=drift, accel_scale=scale)
+
+
 @dataclass(frozen=True)
 class Scenario:
     """Everything of one (seed, session) recording except the world's pictures."""
@@ -389,24 +527,41 @@ class Scenario:
     disturbances: Disturbances
     errors: SensorErrors
     origin_lat_lon_alt: tuple[float, float, float]
+    profile: str = 'hard'
+    #: IMU / magnetometer header stamp minus the true sample time (0 in the 'kind' profile).
+    imu_time_offset_ns: int = 0
 
 
 def make_scenario(seed: int, session: str, duration_s: float,
-                  declination_rad: float = 0.0) -> Scenario:
-    """The scenario for a seed and session; the spot (and so the GPS origin) is the seed's."""
+                  declination_rad: float = 0.0, profile: str = 'hard') -> Scenario:
+    """The scenario for a seed and session; the spot (and so the GPS origin) is the seed's.
+
+    ``profile``: 'hard' (default, a realistic phone) or 'kind' (the earlier, easier simulator);
+    see the module docstring."""
     if session not in SESSIONS:
         raise ValueError(f'unknown session {session!r} (use {" or ".join(SESSIONS)})')
+    check_profile(profile)
+    hard = profile == 'hard'
     earth = EarthField(declination_rad=declination_rad)
     spot = rng_stream(seed, 'spot')
     origin = (BASE_LATITUDE_DEG + spot.uniform(-0.03, 0.03),
               BASE_LONGITUDE_DEG + spot.uniform(-0.045, 0.045), 353.0 + spot.uniform(-5, 40))
+    errors = make_sensor_errors(rng_stream(seed, 'device', session))
+    offset_ns = 0
+    if hard:
+        errors = make_hard_sensor_errors(seed, session, duration_s, errors)
+        rng = rng_stream(seed, 'imu-time-offset', session)
+        offset_ns = int(round(rng.uniform(*HARD_IMU_TIME_OFFSET_S) * 1e9)) * \
+            (1 if rng.random() < 0.5 else -1)
     return Scenario(
         seed=seed, session=session, duration_s=float(duration_s),
-        trajectory=make_trajectory(seed, session, duration_s), earth=earth,
+        trajectory=make_trajectory(seed, session, duration_s, profile), earth=earth,
         disturbances=make_disturbances(rng_stream(seed, 'disturbances', session), duration_s,
-                                       earth),
-        errors=make_sensor_errors(rng_stream(seed, 'device', session)),
+                                       earth, keep_field=hard),
+        errors=errors,
         origin_lat_lon_alt=origin,
+        profile=profile,
+        imu_time_offset_ns=offset_ns,
     )
 
 
@@ -422,19 +577,26 @@ class ImuSamples:
     position_enu: Array  # (N, 3) truth
     deflection_rad: Array  # (N,) compass error caused by the disturbance
     extra_field_t: Array  # (N,) |B + disturbance| - |B|
+    gyro_bias_rad_s: Array  # (N, 3) truth: the constant bias plus its drift (hard profile)
 
 
 def simulate_imu(scn: Scenario, t_s: Array) -> ImuSamples:
-    """Gyro, accelerometer and magnetometer samples at times ``t_s`` (exact motion + errors)."""
+    """Gyro, accelerometer and magnetometer samples at true times ``t_s`` (exact motion +
+    errors). Their header stamps are ``t_s`` plus ``scn.imu_time_offset_ns`` (bagmaker)."""
     rng = rng_stream(scn.seed, 'imu-noise', scn.session)
     traj, err = scn.trajectory, scn.errors
     n = len(t_s)
     R = traj.R_enu_cam(t_s)
     R_imu_enu = R_IMU_CAM @ np.swapaxes(R, 1, 2)
     gyro = traj.omega_cam(t_s) @ R_IMU_CAM.T + err.gyro_bias_rad_s
+    if err.gyro_bias_drift is not None:
+        gyro += err.gyro_bias_drift.at(t_s)
     gyro += rng.normal(0.0, err.gyro_noise_rad_s, (n, 3))
     f_enu = traj.acceleration(t_s) + np.array([0.0, 0.0, GRAVITY_M_S2])
-    accel = np.einsum('nij,nj->ni', R_imu_enu, f_enu) + err.accel_bias_m_s2
+    f_imu = np.einsum('nij,nj->ni', R_imu_enu, f_enu)
+    if err.accel_scale is not None:
+        f_imu = f_imu * err.accel_scale
+    accel = f_imu + err.accel_bias_m_s2
     accel += rng.normal(0.0, err.accel_noise_m_s2, (n, 3))
     b = scn.earth.vector_enu
     b_meas = b + scn.disturbances.field(t_s)
@@ -445,6 +607,7 @@ def simulate_imu(scn: Scenario, t_s: Array) -> ImuSamples:
         position_enu=traj.position(t_s),
         deflection_rad=heading_deflection(np.broadcast_to(b, b_meas.shape), b_meas),
         extra_field_t=np.linalg.norm(b_meas, axis=1) - np.linalg.norm(b),
+        gyro_bias_rad_s=err.gyro_bias_at(t_s),
     )
 
 
@@ -499,8 +662,12 @@ class Exposure:
         return np.exp(log_gain), wb
 
 
-def make_exposure(seed: int, session: str, duration_s: float) -> Exposure:
-    """Several jumps of 20-50 % a minute (at least one on a 5 s bag), back toward the middle."""
+def make_exposure(seed: int, session: str, duration_s: float, profile: str = 'hard'
+                  ) -> Exposure:
+    """Several jumps of 20-50 % a minute (at least one on a 5 s bag), back toward the middle;
+    30-75 % in the 'hard' profile (the same draws, larger jumps)."""
+    check_profile(profile)
+    scale = HARD_EXPOSURE_JUMP_FACTOR if profile == 'hard' else 1.0
     rng = rng_stream(seed, 'exposure', session)
     n = max(1, int(round(duration_s / 60.0 * rng.uniform(4.0, 7.0)))) if duration_s >= 3 else 0
     times = np.sort(rng.uniform(0.15, 0.9, n)) * duration_s if n else np.zeros(0)
@@ -508,6 +675,8 @@ def make_exposure(seed: int, session: str, duration_s: float) -> Exposure:
     log_g = 0.0
     for _ in range(n):
         m = rng.uniform(0.2, 0.5)
+        if scale != 1.0:
+            m *= scale
         up = rng.random() < 1.0 / (1.0 + math.exp(4.0 * log_g))
         f = 1.0 + m if up else 1.0 / (1.0 + m)
         log_g += math.log(f)
@@ -522,7 +691,10 @@ def calibration_params(scn: Scenario) -> dict[str, list[float] | float]:
     """What a user would have measured for this device: the truth with 1-3 % errors.
 
     The soft-iron matrix is the inverse of the true distortion with its deviation from identity
-    a few percent off; everything is plain Python floats for YAML.
+    a few percent off; everything is plain Python floats for YAML. In the 'hard' profile the
+    magnetometer calibration is rough (stream 'calibration-residual'): the hard-iron offset is
+    1-3 uT off per axis and the soft-iron matrix's deviation from identity 20-50 % off; the
+    gyro bias is an estimate of the constant part only (the drift is not in it).
     """
     rng = rng_stream(scn.seed, 'calibration', scn.session)
     err = scn.errors
@@ -532,10 +704,19 @@ def calibration_params(scn: Scenario) -> dict[str, list[float] | float]:
 
     S = np.linalg.inv(err.soft_iron)
     S_est = np.eye(3) + off(S - np.eye(3))
+    gyro_bias, accel_bias, hard_iron = (off(err.gyro_bias_rad_s), off(err.accel_bias_m_s2),
+                                        off(err.hard_iron_t))
+    if scn.profile == 'hard':
+        res = rng_stream(scn.seed, 'calibration-residual', scn.session)
+        hard_iron = err.hard_iron_t + res.uniform(*HARD_IRON_RESIDUAL_T, 3) * \
+            res.choice([-1.0, 1.0], 3)
+        rel = res.uniform(*HARD_SOFT_IRON_RESIDUAL, (3, 3)) * res.choice([-1.0, 1.0], (3, 3))
+        rel = np.triu(rel) + np.triu(rel, 1).T  # the truth is symmetric: so is the estimate
+        S_est = np.eye(3) + (S - np.eye(3)) * (1.0 + rel)
     return {
-        'gyro_bias': [float(x) for x in off(err.gyro_bias_rad_s)],
-        'accel_bias': [float(x) for x in off(err.accel_bias_m_s2)],
-        'hard_iron_offset': [float(x) for x in off(err.hard_iron_t)],
+        'gyro_bias': [float(x) for x in gyro_bias],
+        'accel_bias': [float(x) for x in accel_bias],
+        'hard_iron_offset': [float(x) for x in hard_iron],
         'soft_iron_matrix': [float(x) for x in S_est.ravel()],
         'declination_rad': float(scn.earth.declination_rad),
         'expected_field_t': float(scn.earth.magnitude_t),

@@ -1,11 +1,14 @@
 """Tests of the rotation_sweep simulator: bag layout, determinism and the physics of its sensors.
 
 Bags are short (1-4 s) and the world/panorama of a seed is cached by the simulator, so the whole
-file runs in well under a minute; the 60 s properties (full turn, rate limit) are checked on the
-closed-form trajectory without rendering.
+file runs in well under a minute; the 60 s properties (full turn, rate limit, hand acceleration,
+gyro drift, residual iron) are checked on the closed-form scenario without rendering. The
+default ('hard') profile and the 'kind' one (the earlier simulator, byte for byte) are both
+tested; physics tests take the profile as a parameter.
 """
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 
@@ -16,13 +19,17 @@ import yaml
 
 from ar_tracking.core.rotations import (camera_heading_pitch_roll_deg, matrix_to_quat_xyzw,
                                         quat_xyzw_to_matrix)
-from ar_tracking.io.bags import BagReader, stamp_to_ns
+from ar_tracking.io.bags import BagReader, read_metadata, stamp_to_ns
 from ar_tracking.sim import bagmaker, rotation_sweep as rs
 from ar_tracking.sim.bagmaker import SCENARIOS, SimError, make_bag
 from ar_tracking.sim.world import FrameRenderer, PinholeCamera
 
 SEED = 1
 DURATION_S = 4.0
+KIND_DURATION_S = 3.0
+#: sha256 of make_bag('rotation_sweep', seed=1, duration_s=3.0) made by the simulator before
+#: profiles existed (commit 1eb25d9); profile='kind' must keep giving these bytes.
+KIND_3S_SHA256 = '042c60fdd2e176c4fbe3e5be2bef65f47bd0e1b37559093924c061d113cc28bb'
 
 
 @pytest.fixture(scope='module')
@@ -47,13 +54,36 @@ def short_bag(bag_dir: Path) -> Path:
 
 
 @pytest.fixture(scope='module')
-def data(authoring_bag: Path) -> dict[str, list]:
-    """Every message of the authoring bag, decoded, per topic: (log time ns, message)."""
+def kind_bag(bag_dir: Path) -> Path:
+    return make_bag('rotation_sweep', bag_dir / 'kind.mcap', seed=SEED,
+                    duration_s=KIND_DURATION_S, profile='kind')
+
+
+def _read(bag_path: Path) -> dict[str, list]:
     out: dict[str, list] = {}
-    with BagReader(authoring_bag) as bag:
+    with BagReader(bag_path) as bag:
         for topic in bag.topics:
             out[topic] = bag.read_all(topic)
     return out
+
+
+@pytest.fixture(scope='module')
+def data(authoring_bag: Path) -> dict[str, list]:
+    """Every message of the authoring bag, decoded, per topic: (log time ns, message)."""
+    return _read(authoring_bag)
+
+
+@pytest.fixture(scope='module')
+def kind_data(kind_bag: Path) -> dict[str, list]:
+    return _read(kind_bag)
+
+
+@pytest.fixture(params=['hard', 'kind'])
+def profile_bag(request: pytest.FixtureRequest) -> tuple[str, Path, dict[str, list]]:
+    """(profile, bag, its messages): the 4 s default (hard) bag or the 3 s kind bag."""
+    if request.param == 'hard':
+        return 'hard', request.getfixturevalue('authoring_bag'), request.getfixturevalue('data')
+    return 'kind', request.getfixturevalue('kind_bag'), request.getfixturevalue('kind_data')
 
 
 def _vec(v) -> np.ndarray:
@@ -110,15 +140,20 @@ def test_topics_types_rates_and_frames(authoring_bag: Path, data: dict[str, list
         assert np.array_equal(stamps, [t for t, _ in msgs]), 'log time must equal header stamp'
         assert np.allclose(np.diff(stamps), 1e9 / rate, atol=1), topic
         assert {m.header.frame_id for _, m in msgs} == {frame}, topic
-    # IMU, magnetometer and ground truth share stamps; camera_info pairs with every image.
-    imu_stamps = [t for t, _ in data['/imu/data_raw']]
-    for topic in ('/imu/mag', '/ground_truth/orientation', '/ground_truth/mag_disturbance'):
-        assert [t for t, _ in data[topic]] == imu_stamps
+    # IMU and magnetometer share stamps, the ground truth is at the true sample times (the
+    # stamps minus the camera-IMU time offset); camera_info pairs with every image.
+    off = rs.make_scenario(SEED, 'authoring', DURATION_S).imu_time_offset_ns
+    imu_stamps = np.array([t for t, _ in data['/imu/data_raw']])
+    assert np.array_equal([t for t, _ in data['/imu/mag']], imu_stamps)
+    for topic in ('/ground_truth/orientation', '/ground_truth/pose',
+                  '/ground_truth/mag_disturbance'):
+        assert np.array_equal([t for t, _ in data[topic]], imu_stamps - off), topic
     assert [t for t, _ in data['/camera/camera_info']] == [t for t, _ in data['/camera/image_raw']]
-    first = data['/imu/data_raw'][0][0]
+    first = data['/ground_truth/orientation'][0][0]
     assert data['/camera/image_raw'][0][0] == first == bagmaker.START_NS
+    assert imu_stamps[0] == bagmaker.START_NS + off
     (t_tf, tf), = data['/tf_static']
-    assert t_tf == first
+    assert t_tf == bagmaker.START_NS + min(0, off)  # the first message of the bag
     (tr,) = tf.transforms
     assert (tr.header.frame_id, tr.child_frame_id) == ('imu', 'camera_optical')
     assert np.allclose(quat_xyzw_to_matrix(_quat(tr.transform.rotation)), rs.R_IMU_CAM)
@@ -155,19 +190,61 @@ def test_message_contents(data: dict[str, list]) -> None:
     assert len({mk.text for mk in arr.markers}) == len(arr.markers)
 
 
-def test_sidecar_params(authoring_bag: Path) -> None:
-    side = authoring_bag.with_name('authoring.params.yaml')
-    assert side.is_file()
-    p = _calibration(authoring_bag)
+@pytest.mark.parametrize('profile', ['hard', 'kind'])
+def test_sidecar_params(profile: str, request: pytest.FixtureRequest) -> None:
+    bag = request.getfixturevalue('authoring_bag' if profile == 'hard' else 'kind_bag')
+    side = bagmaker.sidecar_path(bag)
+    assert side.is_file() and side.name == bag.stem + '.params.yaml'
+    text = side.read_text()
+    assert text.startswith('# Calibration of the simulated device of ')
+    assert f'# Simulator profile: {profile} (' in text
+    doc = yaml.safe_load(text)
+    p = doc['imu_magnetometer']['ros__parameters']
     assert set(p) == {'gyro_bias', 'accel_bias', 'hard_iron_offset', 'soft_iron_matrix',
                       'declination_rad', 'expected_field_t', 'expected_dip_rad'}
     assert len(p['soft_iron_matrix']) == 9 and all(type(v) is float for v in p['soft_iron_matrix'])
     assert p['expected_field_t'] == pytest.approx(48e-6) and p['expected_dip_rad'] == 1.117
-    truth = rs.make_scenario(SEED, 'authoring', DURATION_S).errors
+    # The hybrid filter gets the same calibration values.
+    hybrid = doc['hybrid_orientation_filter']['ros__parameters']
+    assert hybrid == {k: p[k] for k in ('gyro_bias', 'accel_bias', 'hard_iron_offset',
+                                        'soft_iron_matrix', 'declination_rad')}
+    truth = rs.make_scenario(SEED, 'authoring', DURATION_S, profile=profile).errors
     rel = np.abs(np.array(p['gyro_bias']) / truth.gyro_bias_rad_s - 1)
-    assert np.all((rel > 0.005) & (rel < 0.035)), 'close to, not exactly, the truth'
-    assert np.allclose(np.array(p['soft_iron_matrix']).reshape(3, 3) @ truth.soft_iron, np.eye(3),
-                       atol=0.01)
+    assert np.all((rel > 0.005) & (rel < 0.035)), 'close to, not exactly, the (constant) truth'
+    S_est, S = np.array(p['soft_iron_matrix']).reshape(3, 3), np.linalg.inv(truth.soft_iron)
+    residual = np.abs(np.array(p['hard_iron_offset']) - truth.hard_iron_t)
+    if profile == 'kind':
+        assert np.allclose(S_est @ truth.soft_iron, np.eye(3), atol=0.01)
+        assert np.all(residual < 0.035 * np.abs(truth.hard_iron_t))
+    else:  # a rough calibration: hard iron 1-3 uT off per axis, soft iron 20-50 % off
+        assert np.all((residual > 0.999e-6) & (residual < 3.001e-6))
+        dev_rel = np.abs((S_est - np.eye(3)) / (S - np.eye(3)) - 1)
+        assert np.all((dev_rel > 0.2 - 1e-9) & (dev_rel < 0.5 + 1e-9))
+        assert np.allclose(S_est, S_est.T)
+
+
+def test_profile_recorded_for_evaluation(authoring_bag: Path, kind_bag: Path) -> None:
+    """Hard bags name their profile in an MCAP metadata record; kind bags carry none, exactly
+    like the bags of the earlier simulator."""
+    assert read_metadata(authoring_bag, bagmaker.SIM_METADATA) == {
+        'scenario': 'rotation_sweep', 'profile': 'hard', 'seed': str(SEED),
+        'session': 'authoring'}
+    assert read_metadata(kind_bag, bagmaker.SIM_METADATA) is None
+
+
+def test_kind_profile_is_the_earlier_simulator(kind_bag: Path) -> None:
+    assert hashlib.sha256(kind_bag.read_bytes()).hexdigest() == KIND_3S_SHA256
+
+
+def test_cli_profile_option() -> None:
+    from ar_tracking.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert parse(['make-bag', 'rotation_sweep', '-o', 'x.mcap']).profile == 'hard'
+    assert parse(['make-bag', 'rotation_sweep', '-o', 'x.mcap', '--profile', 'kind']).profile \
+        == 'kind'
+    with pytest.raises(SystemExit):
+        parse(['make-bag', 'rotation_sweep', '-o', 'x.mcap', '--profile', 'easy'])
 
 
 def test_same_seed_same_bytes_different_seed_different(bag_dir: Path, authoring_bag: Path,
@@ -188,7 +265,7 @@ def test_bad_arguments(tmp_path: Path, authoring_bag: Path) -> None:
     assert 'rotation_sweep' in SCENARIOS
     cases = [dict(scenario='nope'), dict(session='lunch'), dict(storage='zip'),
              dict(image_format='png'), dict(duration_s=-1.0), dict(duration_s=float('nan')),
-             dict(seed=-3)]
+             dict(seed=-3), dict(profile='easy')]
     for bad in cases:
         kwargs = dict(scenario='rotation_sweep', out=tmp_path / 'x.mcap')
         kwargs.update(bad)
@@ -203,9 +280,11 @@ def test_bad_arguments(tmp_path: Path, authoring_bag: Path) -> None:
 # Sensor physics
 
 
-def test_gyro_integrates_to_ground_truth(authoring_bag: Path, data: dict[str, list]) -> None:
+def test_gyro_integrates_to_ground_truth(profile_bag: tuple[str, Path, dict[str, list]]
+                                         ) -> None:
+    _, bag, data = profile_bag
     a = _imu_arrays(data)
-    bias = np.array(_calibration(authoring_bag)['gyro_bias'])
+    bias = np.array(_calibration(bag)['gyro_bias'])
     w_cam = (a['gyro'] - bias) @ rs.R_IMU_CAM  # imu -> camera_optical (R_IMU_CAM is symmetric)
     from scipy.spatial.transform import Rotation
     R = Rotation.from_matrix(a['R'][0])
@@ -221,15 +300,35 @@ def test_gyro_integrates_to_ground_truth(authoring_bag: Path, data: dict[str, li
     assert math.degrees((raw_R.inv() * Rotation.from_matrix(a['R'][-1])).magnitude()) > 1.5
 
 
-def test_accelerometer_points_up(authoring_bag: Path, data: dict[str, list]) -> None:
+def _angle_deg(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    cos = np.sum(u * v, axis=1) / np.linalg.norm(u, axis=1) / np.linalg.norm(v, axis=1)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+def test_accelerometer_points_up(profile_bag: tuple[str, Path, dict[str, list]]) -> None:
+    """Kind: the hand hardly accelerates, the accelerometer measures gravity. Hard: it measures
+    gravity plus the hand's acceleration (the second difference of the true position), with
+    0.5-1 % scale errors, and no longer points up."""
+    profile, bag, data = profile_bag
     a = _imu_arrays(data)
-    bias = np.array(_calibration(authoring_bag)['accel_bias'])
+    bias = np.array(_calibration(bag)['accel_bias'])
     f = a['accel'] - bias
-    up_imu = np.einsum('ij,njk,k->ni', rs.R_IMU_CAM, np.swapaxes(a['R'], 1, 2), [0, 0, 1.0])
-    cos = np.sum(f * up_imu, axis=1) / np.linalg.norm(f, axis=1)
-    ang = np.degrees(np.arccos(np.clip(cos, -1, 1)))
-    assert np.median(ang) < 1.0 and np.percentile(ang, 99) < 2.0
-    assert np.median(np.linalg.norm(f, axis=1)) == pytest.approx(9.81, abs=0.1)
+    R_imu_enu = np.einsum('ij,njk->nik', rs.R_IMU_CAM, np.swapaxes(a['R'], 1, 2))
+    up_imu = R_imu_enu @ np.array([0, 0, 1.0])
+    ang = _angle_deg(f, up_imu)
+    if profile == 'kind':
+        assert np.median(ang) < 1.0 and np.percentile(ang, 99) < 2.0
+        assert np.median(np.linalg.norm(f, axis=1)) == pytest.approx(9.81, abs=0.1)
+        return
+    pos = np.array([_vec(m.pose.position) for _, m in data['/ground_truth/pose']])
+    acc = (pos[2:] - 2 * pos[1:-1] + pos[:-2]) / 0.01 ** 2  # true sample times: 10 ms apart
+    f_true = np.einsum('nij,nj->ni', R_imu_enu[1:-1], acc + [0, 0, rs.GRAVITY_M_S2])
+    ang_true = _angle_deg(f[1:-1], f_true)
+    assert np.median(ang_true) < 1.0 and np.percentile(ang_true, 99) < 2.0
+    ratio = np.linalg.norm(f[1:-1], axis=1) / np.linalg.norm(f_true, axis=1)
+    assert abs(np.median(ratio) - 1) < 0.02
+    assert np.sqrt(np.mean(np.sum(acc ** 2, axis=1))) > 0.3  # m/s^2, the hand moves
+    assert np.median(ang) > 1.0  # so gravity alone no longer explains the samples
 
 
 def _tilt_compensated_heading_deg(accel: np.ndarray, mag: np.ndarray) -> np.ndarray:
@@ -243,26 +342,45 @@ def _tilt_compensated_heading_deg(accel: np.ndarray, mag: np.ndarray) -> np.ndar
     return heading
 
 
-def test_magnetometer_heading_and_disturbance(authoring_bag: Path, data: dict[str, list]
+def test_magnetometer_heading_and_disturbance(profile_bag: tuple[str, Path, dict[str, list]]
                                               ) -> None:
+    """Kind: a compass app (tilt from the accelerometer, the sidecar calibration) reads the true
+    heading plus the disturbance. Hard: the accelerometer tilt is spoiled by the hand's
+    acceleration and the sidecar calibration is rough, so the field is checked with the true
+    tilt and the true calibration; the sidecar's residual iron adds a heading error."""
+    profile, bag, data = profile_bag
     a = _imu_arrays(data)
-    p = _calibration(authoring_bag)
+    p = _calibration(bag)
     S = np.array(p['soft_iron_matrix']).reshape(3, 3)
     mag = (a['mag'] - np.array(p['hard_iron_offset'])) @ S.T
-    assert np.median(np.linalg.norm(mag, axis=1)) == pytest.approx(48e-6, rel=0.05)
-    heading = _tilt_compensated_heading_deg(a['accel'] - np.array(p['accel_bias']), mag)
-    true_heading, _, _ = camera_heading_pitch_roll_deg(a['R'])
-    err = (heading - true_heading + 180) % 360 - 180
     defl = np.degrees(a['defl'])
     calm, disturbed = np.abs(defl) < 0.05, np.abs(defl) > 2.0
     assert calm.sum() > 50 and disturbed.sum() > 30, 'the bag must contain a disturbance'
+    if profile == 'kind':
+        assert np.median(np.linalg.norm(mag, axis=1)) == pytest.approx(48e-6, rel=0.05)
+        heading = _tilt_compensated_heading_deg(a['accel'] - np.array(p['accel_bias']), mag)
+        true_heading, _, _ = camera_heading_pitch_roll_deg(a['R'])
+        err = (heading - true_heading + 180) % 360 - 180
+    else:
+        truth = rs.make_scenario(SEED, 'authoring', DURATION_S).errors
+        true_mag = (a['mag'] - truth.hard_iron_t) @ np.linalg.inv(truth.soft_iron).T
+        assert np.median(np.linalg.norm(true_mag, axis=1)) == pytest.approx(48e-6, rel=0.05)
+        R_enu_imu = a['R'] @ rs.R_IMU_CAM.T
+        b = rs.EarthField().vector_enu
+        def compass_error_deg(m: np.ndarray) -> np.ndarray:  # noqa: E306
+            m_enu = np.einsum('nij,nj->ni', R_enu_imu, m)
+            return np.degrees(rs.heading_deflection(np.broadcast_to(b, m_enu.shape), m_enu))
+        err = compass_error_deg(true_mag)
+        residual = compass_error_deg(mag) - err  # what the rough calibration adds
+        assert np.median(np.abs(residual)) > 1.0
     assert np.median(np.abs(err[calm])) < 1.5 and np.percentile(np.abs(err[calm]), 99) < 4.0
     assert np.median(np.abs(err[disturbed] - defl[disturbed])) < 1.5
     assert np.median(np.abs(err[disturbed])) > 1.5  # the disturbance really moves the compass
 
 
-def test_disturbance_schedule_and_truth() -> None:
-    scn = rs.make_scenario(5, 'authoring', 60.0)
+@pytest.mark.parametrize('profile', ['hard', 'kind'])
+def test_disturbance_schedule_and_truth(profile: str) -> None:
+    scn = rs.make_scenario(5, 'authoring', 60.0, profile=profile)
     d = scn.disturbances
     assert 3 <= len(d.start_s) <= 5
     t = np.arange(0, 60, 0.01)
@@ -271,9 +389,20 @@ def test_disturbance_schedule_and_truth() -> None:
              for s, w in zip(d.start_s, d.duration_s)]
     assert all(math.radians(1.9) < pk < math.radians(10.1) for pk in peaks)
     assert np.all(np.abs(np.diff(imu.deflection_rad)) < math.radians(0.5)), 'smooth onsets'
-    # Some events change |B| too; without disturbance the truth field is 48 uT, 64 deg dip.
-    assert np.max(np.abs(imu.extra_field_t)) > 0.5e-6
     b = scn.earth.vector_enu
+    b_meas = b + d.field(t)
+    dip = np.arctan2(-b_meas[:, 2], np.hypot(b_meas[:, 0], b_meas[:, 1]))
+    if profile == 'kind':  # some events change |B| too
+        assert np.max(np.abs(imu.extra_field_t)) > 0.5e-6
+    else:  # every event only turns the horizontal field: |B| and dip stay, also in the ramps
+        assert np.max(np.abs(np.linalg.norm(b_meas, axis=1) / np.linalg.norm(b) - 1)) < 1e-9
+        assert np.max(np.abs(dip / scn.earth.dip_rad - 1)) < 1e-9
+        assert np.max(np.abs(imu.extra_field_t)) < 1e-9 * np.linalg.norm(b)
+        kind = rs.make_scenario(5, 'authoring', 60.0, profile='kind').disturbances
+        assert np.array_equal(kind.start_s, d.start_s)  # the same schedule as the kind profile
+        kind_defl = rs.heading_deflection(np.broadcast_to(b, b_meas.shape), b + kind.field(t))
+        assert np.max(np.abs(kind_defl - imu.deflection_rad)) < math.radians(1.0)
+    # Without disturbance the truth field is 48 uT, 64 deg dip.
     assert np.linalg.norm(b) == pytest.approx(48e-6)
     assert math.degrees(math.atan2(-b[2], math.hypot(b[0], b[1]))) == pytest.approx(64.0)
 
@@ -289,8 +418,14 @@ def test_trajectory_covers_full_turn_within_rate_limit() -> None:
             assert rate.max() <= 90.0 and rate.max() > 70.0
             assert np.degrees(np.abs(pitch)).max() <= 21.0 and np.degrees(pitch).std() > 3.0
             assert np.degrees(np.abs(roll)).max() <= 6.0
-            sway = np.linalg.norm(tr.position(t[::50]) - tr.spot_enu, axis=1)
+            kind = rs.make_trajectory(seed, session, 60.0, profile='kind')
+            sway = np.linalg.norm(kind.position(t[::50]) - kind.spot_enu, axis=1)
             assert sway.max() < 0.08
+            # The hard profile moves the hand (a few cm) at a 0.2-0.4 m lever arm; same angles.
+            assert np.array_equal(kind.angles(t[::50])[0], tr.angles(t[::50])[0])
+            assert 0.2 <= tr.lever_arm_m <= 0.4
+            sway = np.linalg.norm(tr.position(t[::50]) - tr.spot_enu, axis=1)
+            assert sway.max() < tr.lever_arm_m + 0.1
     tr = rs.make_trajectory(0, 'authoring', 60.0)
     starts = {round(rs.make_trajectory(s, 'authoring', 60.0).heading0_rad, 3) for s in range(5)}
     assert len(starts) == 5, 'start heading differs per seed'
@@ -306,6 +441,109 @@ def test_trajectory_covers_full_turn_within_rate_limit() -> None:
     fd = (Rotation.from_matrix(tr.R_enu_cam(tq - eps)).inv()
           * Rotation.from_matrix(tr.R_enu_cam(tq + eps))).as_rotvec() / (2 * eps)
     assert np.allclose(fd, tr.omega_cam(tq), atol=1e-6)
+
+
+def test_hand_linear_acceleration() -> None:
+    """Hard: the hand sways and trembles (a few cm at 0.5-3 Hz) and the phone is 0.2-0.4 m in
+    front of the turning body: |a| RMS above 0.3 m/s^2, peaks of 1-2.5 m/s^2 in the sweeps.
+    Kind: the earlier 1 cm sway and 2-4 cm lever arm, RMS below 0.1 m/s^2."""
+    t = np.arange(0.0, 60.0, 0.01)
+    for seed in range(3):
+        hard = rs.make_trajectory(seed, 'authoring', 60.0)
+        kind = rs.make_trajectory(seed, 'authoring', 60.0, profile='kind')
+        a_hard = np.linalg.norm(hard.acceleration(t), axis=1)
+        a_kind = np.linalg.norm(kind.acceleration(t), axis=1)
+        assert np.sqrt(np.mean(a_hard ** 2)) > 0.3 and 1.0 < a_hard.max() < 2.5
+        assert np.sqrt(np.mean(a_kind ** 2)) < 0.1
+        sweeping = np.abs(hard.pan.rate(t)) > math.radians(40)
+        assert np.percentile(a_hard[sweeping], 90) > 0.5
+    # The acceleration is exact: the second difference of the closed-form position.
+    tq, h = np.linspace(1, 59, 300), 1e-3
+    fd = (hard.position(tq + h) - 2 * hard.position(tq) + hard.position(tq - h)) / h ** 2
+    assert np.allclose(fd, hard.acceleration(tq), atol=1e-3)
+    # Bounded position: the hand motion is a sum of sines (zero-mean velocity).
+    for axis in hard.hand:
+        assert np.all(axis.freq_hz >= 0.08) and np.sum(np.abs(axis.amp)) < 0.06
+
+
+def test_gyro_bias_drift() -> None:
+    """Hard: the bias starts at the constant part (what the sidecar estimates) and drifts by a
+    random walk of a few mrad/s per minute, which the samples carry; kind: constant."""
+    t = np.arange(0.0, 60.0, 0.01)
+    scn = rs.make_scenario(SEED, 'authoring', 60.0)
+    imu = rs.simulate_imu(scn, t)
+    b = imu.gyro_bias_rad_s
+    assert np.allclose(b[0], scn.errors.gyro_bias_rad_s, atol=1e-12)
+    assert np.linalg.norm(b[-1] - b[0]) > 0.001
+    omega_imu = scn.trajectory.omega_cam(t) @ rs.R_IMU_CAM.T
+    drift = b - scn.errors.gyro_bias_rad_s
+    rest = imu.gyro_rad_s - omega_imu - scn.errors.gyro_bias_rad_s
+    slope = np.sum(rest * drift) / np.sum(drift * drift)
+    assert 0.7 < slope < 1.3, 'the samples carry the drift'
+    changes = [np.linalg.norm(np.diff(rs.make_scenario(s, 'authoring', 60.0).errors
+                                      .gyro_bias_at(np.array([0.0, 60.0])), axis=0))
+               for s in range(12)]
+    assert 0.0015 < np.median(changes) < 0.006
+    kind = rs.make_scenario(SEED, 'authoring', 60.0, profile='kind')
+    kind_imu = rs.simulate_imu(kind, t)
+    assert kind.errors.gyro_bias_drift is None
+    assert np.all(kind_imu.gyro_bias_rad_s == kind.errors.gyro_bias_rad_s)
+
+
+def test_residual_iron_makes_heading_error_vary_with_heading() -> None:
+    """Hard: the sidecar's rough calibration leaves a heading error that varies with heading
+    (mostly the residual hard iron against the 21 uT horizontal field); kind: well under a
+    degree. Measured as the compass error with the sidecar calibration minus the one with the
+    true calibration, on the same samples (so noise and disturbances cancel)."""
+    t = np.arange(0.0, 60.0, 0.05)
+    for profile, lo, hi in (('hard', 2.0, 30.0), ('kind', 0.0, 1.5)):
+        scn = rs.make_scenario(SEED, 'authoring', 60.0, profile=profile)
+        imu = rs.simulate_imu(scn, t)
+        p = rs.calibration_params(scn)
+        R_enu_imu = imu.R_enu_cam @ rs.R_IMU_CAM.T
+        b = scn.earth.vector_enu
+
+        def compass_error_deg(hard_iron: np.ndarray, S: np.ndarray) -> np.ndarray:
+            m = np.einsum('nij,nj->ni', R_enu_imu, (imu.mag_t - hard_iron) @ S.T)
+            return np.degrees(rs.heading_deflection(np.broadcast_to(b, m.shape), m))
+
+        residual = (compass_error_deg(np.array(p['hard_iron_offset']),
+                                      np.array(p['soft_iron_matrix']).reshape(3, 3))
+                    - compass_error_deg(scn.errors.hard_iron_t,
+                                        np.linalg.inv(scn.errors.soft_iron)))
+        heading = np.radians(camera_heading_pitch_roll_deg(imu.R_enu_cam)[0])
+        # First harmonic in heading: what a hard-iron residual gives.
+        X = np.stack([np.ones_like(heading), np.cos(heading), np.sin(heading)], 1)
+        coef = np.linalg.lstsq(X, residual, rcond=None)[0]
+        amplitude = math.hypot(coef[1], coef[2])
+        assert lo < 2 * amplitude < hi, (profile, amplitude)
+
+
+def test_imu_time_offset(data: dict[str, list], kind_data: dict[str, list]) -> None:
+    """Hard: IMU and magnetometer stamps = true sample time + a constant 2-8 ms offset (either
+    sign); the ground truth and the camera keep the true time. Kind: no offset."""
+    offsets = [rs.make_scenario(s, 'authoring', 10.0).imu_time_offset_ns for s in range(20)]
+    assert all(2_000_000 <= abs(o) <= 8_000_000 for o in offsets)
+    assert min(offsets) < 0 < max(offsets)
+    off = rs.make_scenario(SEED, 'authoring', DURATION_S).imu_time_offset_ns
+    assert off == offsets[SEED]
+    for d, expected in ((data, off), (kind_data, 0)):
+        imu = np.array([t for t, _ in d['/imu/data_raw']])
+        mag = np.array([stamp_to_ns(m.header.stamp) for _, m in d['/imu/mag']])
+        gt = np.array([stamp_to_ns(m.header.stamp) for _, m in d['/ground_truth/orientation']])
+        assert np.all(imu - gt == expected) and np.all(mag - gt == expected)
+        assert np.all((gt - bagmaker.START_NS) % 10_000_000 == 0)  # the true 100 Hz grid
+    assert rs.make_scenario(SEED, 'authoring', DURATION_S, profile='kind').imu_time_offset_ns == 0
+
+
+def test_exposure_jumps_larger_in_hard_profile() -> None:
+    hard = rs.make_exposure(SEED, 'authoring', 60.0)
+    kind = rs.make_exposure(SEED, 'authoring', 60.0, profile='kind')
+    assert np.array_equal(hard.jump_s, kind.jump_s) and len(kind.jump_s) >= 3
+    m_kind = np.exp(np.abs(np.log(kind.jump_factor))) - 1
+    m_hard = np.exp(np.abs(np.log(hard.jump_factor))) - 1
+    assert np.all((m_kind >= 0.2) & (m_kind <= 0.5))
+    assert np.allclose(m_hard, 1.5 * m_kind)
 
 
 # --------------------------------------------------------------------------------------------
