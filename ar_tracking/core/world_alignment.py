@@ -14,10 +14,10 @@ seen since the panorama started:
 * **gravity**: ``a_imu(t) = R_imu_P(t) g_P + b_a + e(t)``. The hand's linear acceleration is
   part of e(t), and in the (inertial) panorama frame its mean over the session is the change of
   velocity divided by the time (``(v(T) - v(0)) / T``): it vanishes as the session grows, whatever
-  its size - so no gating on |a| ~ g is needed. The samples are weighted by a Hann window over
-  the session (per window of ``window_s``): with weights that go to zero at both ends the
-  velocity term becomes the velocity projected on one slow sinusoid, far smaller than its end
-  values (which is what a plain mean keeps for the first tens of seconds). The accelerometer
+  its size - so no gating on |a| ~ g is needed (gating on |a| ~ g or on a low rotation rate was
+  tried and made the tilt worse on the hard simulator profile). The weights of the windows ramp
+  up and down over ``gravity_ramp_s`` at both ends of the session, so that the velocity term is
+  the mean velocity over the ramps rather than its end values. The accelerometer
   bias b_a is estimated with a ridge prior (only its horizontal part is observable, and only as
   the phone turns). O(1) per sample: the normal equations are sums, kept per window.
 * **magnetic field**: ``m_imu(t) = R_imu_P(t) f_P + h + e(t)``: the local field is a constant
@@ -59,6 +59,9 @@ class WorldAlignmentConfig:
     accel_bias_sigma_m_s2: float = 0.01
     #: Prior 1-sigma of the residual hard iron, relative to |B|.
     hard_iron_sigma: float = 0.2
+    #: Length of the gravity weights' ramps at both ends of the session, s (a taper kills the
+    #: velocity term of the mean at its ends).
+    gravity_ramp_s: float = 3.0
     #: At most this many windows are kept (then neighbours are merged two by two).
     max_windows: int = 20000
     #: Re-solve the field every this long (sample stamps), s.
@@ -245,7 +248,7 @@ class WorldAlignment:
         return (noise / max(scale * sigma_rad, 1e-9)) ** 2
 
     def _solve_gravity(self) -> tuple[Array, Array]:
-        """[g_P; b_a] from the window sums, Hann-weighted over the session (module docstring),
+        """[g_P; b_a] from the window sums, tapered at both ends of the session (module docstring),
         with the ridge on b_a (and the prior). Re-solved when a window has closed."""
         closed = self._gw.count - 1  # the open window changes with every sample
         if self._gravity is not None and self._gravity_windows == closed and closed >= 4:
@@ -254,7 +257,9 @@ class WorldAlignment:
         n_w, sums = self._gw.arrays()
         S_w, Rta_w, a_w = sums['S'], sums['Rta'], sums['a']
         k = len(n_w)
-        w = np.sin(np.pi * (np.arange(k) + 0.5) / k) ** 2 if k >= 4 else np.ones(k)
+        ramp = max(1.0, min(k / 2.0, c.gravity_ramp_s / c.window_s))
+        idx = np.arange(k) + 0.5
+        w = np.minimum(1.0, np.minimum(idx, k - idx) / ramp)
         n = float(w @ n_w)
         sum_R = np.einsum('k,kij->ij', w, S_w)
         sum_Rta = w @ Rta_w
