@@ -17,7 +17,10 @@ seen since the panorama started:
   its size - so no gating on |a| ~ g is needed (gating on |a| ~ g or on a low rotation rate was
   tried and made the tilt worse on the hard simulator profile). The weights of the windows ramp
   up and down over ``gravity_ramp_s`` at both ends of the session, so that the velocity term is
-  the mean velocity over the ramps rather than its end values. The accelerometer
+  the mean velocity over the ramps rather than its end values. A person turns the phone about
+  their own body, the phone at arm's length: that orbit's acceleration ``alpha x r + omega x
+  (omega x r)`` is modelled with the (low-passed) gyro rate and a lever arm r in the IMU frame,
+  estimated in the same least squares (linear in r). The accelerometer
   bias b_a is estimated with a ridge prior (only its horizontal part is observable, and only as
   the phone turns). O(1) per sample: the normal equations are sums, kept per window.
 * **magnetic field**: ``m_imu(t) = R_imu_P(t) f_P + h + e(t)``: the local field is a constant
@@ -62,6 +65,11 @@ class WorldAlignmentConfig:
     #: Length of the gravity weights' ramps at both ends of the session, s (a taper kills the
     #: velocity term of the mean at its ends).
     gravity_ramp_s: float = 3.0
+    #: Prior 1-sigma of the lever arm (the IMU's offset from the centre it turns about, in the
+    #: IMU frame), m; 0 switches the lever-arm model off.
+    lever_arm_sigma_m: float = 0.5
+    #: Low-pass time constant of the rate and specific force in the lever-arm model, s.
+    lever_arm_tau_s: float = 0.05
     #: At most this many windows are kept (then neighbours are merged two by two).
     max_windows: int = 20000
     #: Re-solve the field every this long (sample stamps), s.
@@ -172,9 +180,7 @@ class WorldAlignment:
         with the orientation carried over (e.g. by the gyro) from the previous one."""
         # Gravity: normal equations of [g_P; b_a] as sums.
         self._n = 0
-        self._sum_R = np.zeros((3, 3))  # sum of R_imu_P
-        self._sum_Rt_a = np.zeros(3)  # sum of R_P_imu a
-        self._sum_a = np.zeros(3)
+        self._lever = self.config.lever_arm_sigma_m > 0
         self._sum_aa = 0.0
         self._accel_var = 0.25
         self._sum_a_norm = 0.0
@@ -182,7 +188,14 @@ class WorldAlignment:
         self._t_last_ns = 0
         # Gravity per window: count, sum R_imu_P, sum R_P_imu a, sum a.
         win_ns = int(self.config.window_s * 1e9)
-        self._gw = _WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rta': (3,), 'a': (3,)})
+        self._gw = _WindowSums(win_ns, self.config.max_windows, {
+            'S': (3, 3), 'Rta': (3,), 'a': (3,),
+            'RtK': (3, 3), 'K': (3, 3), 'KtK': (3, 3), 'Kta': (3,)})
+        self._prev_omega: Array | None = None
+        self._prev_accel: Array | None = None
+        self._prev_omega_t_ns = 0
+        self._lever_arm = np.zeros(3)
+        self._lever_count = 0
         self._gravity: tuple[Array, Array] | None = None
         self._gravity_windows = -1
         # Field: the normal equations of m = R_imu_P f + h are sums, so each window keeps its
@@ -200,24 +213,25 @@ class WorldAlignment:
 
     # -- samples ---------------------------------------------------------------------------
 
-    def add(self, t_ns: int, R_pano_imu: Array, accel: Array, mag: Array | None = None) -> None:
-        """One calibrated IMU sample (specific force, m/s^2; field, any unit) with the IMU's
-        orientation in the panorama frame at the sample's stamp."""
+    def add(self, t_ns: int, R_pano_imu: Array, accel: Array, mag: Array | None = None,
+            omega: Array | None = None) -> None:
+        """One calibrated IMU sample (specific force, m/s^2; field, any unit; rate, rad/s, for
+        the lever-arm model) with the IMU's orientation in the panorama frame at its stamp."""
+        t_ns = int(t_ns)
         R_imu_P = R_pano_imu.T
         self._n += 1
         if self._t_first_ns is None:
-            self._t_first_ns = int(t_ns)
-        self._t_last_ns = int(t_ns)
-        Rta = R_pano_imu @ accel
-        self._sum_R += R_imu_P
-        self._sum_Rt_a += Rta
-        self._sum_a += accel
+            self._t_first_ns = t_ns
+        self._t_last_ns = t_ns
         gw = self._gw
-        k = gw.open(int(t_ns))
+        k = gw.open(t_ns)
         gw.n[k] += 1
-        gw.sums['S'][k] += R_imu_P
-        gw.sums['Rta'][k] += Rta
-        gw.sums['a'][k] += accel
+        sums = gw.sums
+        sums['S'][k] += R_imu_P
+        sums['Rta'][k] += R_pano_imu @ accel
+        sums['a'][k] += accel
+        if omega is not None and self._lever:
+            self._add_lever_arm(t_ns, R_pano_imu, omega, accel, k)
         aa = float(accel @ accel)
         self._sum_aa += aa
         self._sum_a_norm += math.sqrt(aa)
@@ -225,7 +239,7 @@ class WorldAlignment:
         if mag is None:
             return
         fw = self._fw
-        k = fw.open(int(t_ns))
+        k = fw.open(t_ns)
         fw.n[k] += 1
         fw.sums['S'][k] += R_imu_P
         fw.sums['Rtm'][k] += R_pano_imu @ mag
@@ -236,6 +250,38 @@ class WorldAlignment:
                 or self._field_samples < 8:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()
+
+    def _add_lever_arm(self, t_ns: int, R_pano_imu: Array, omega: Array, accel: Array, k: int) -> None:
+        """Sums of the lever-arm terms: a phone turning about a centre at r (IMU frame) feels
+        alpha x r + omega x (omega x r) = K r. The person's turn, not the wrist's tremor, carries
+        the phone around that centre, so rate and specific force are low-passed alike
+        (``lever_arm_tau_s``) and alpha is the difference of the low-passed rate."""
+        c = self.config
+        prev_t = self._prev_omega_t_ns
+        if self._prev_omega is None or not 0 < t_ns - prev_t < 100_000_000:
+            self._prev_omega, self._prev_accel, self._prev_omega_t_ns = omega, accel, t_ns
+            return
+        dt = (t_ns - prev_t) * 1e-9
+        gain = min(1.0, dt / c.lever_arm_tau_s)
+        w_prev = self._prev_omega
+        w_lp = w_prev + gain * (omega - w_prev)
+        a_lp = self._prev_accel + gain * (accel - self._prev_accel)
+        self._prev_omega, self._prev_accel, self._prev_omega_t_ns = w_lp, a_lp, t_ns
+        self._lever_count += 1
+        if self._lever_count % 2:
+            return  # every other sample, counted twice: the orbit is slow next to the rate
+        ax, ay, az = (w_lp - w_prev) / dt
+        wx, wy, wz = w_lp
+        ww = wx * wx + wy * wy + wz * wz
+        # K = [alpha]x + [omega]x^2 = [alpha]x + omega omega^T - |omega|^2 I, times 2.
+        K = 2.0 * np.array([[wx * wx - ww, wx * wy - az, wx * wz + ay],
+                            [wy * wx + az, wy * wy - ww, wy * wz - ax],
+                            [wz * wx - ay, wz * wy + ax, wz * wz - ww]])
+        sums = self._gw.sums
+        sums['RtK'][k] += R_pano_imu @ K
+        sums['K'][k] += K
+        sums['KtK'][k] += 0.5 * (K.T @ K)
+        sums['Kta'][k] += K.T @ a_lp
 
     @property
     def ready(self) -> bool:
@@ -268,26 +314,41 @@ class WorldAlignment:
         # Per-sample noise of the model, for the ridge weight: the scatter of |a| about g.
         var = max(self._accel_var, 0.05 ** 2)
         lam_b = var / c.accel_bias_sigma_m_s2 ** 2
-        A = np.zeros((6, 6))
+        lever = c.lever_arm_sigma_m > 0
+        dim = 9 if lever else 6
+        A = np.zeros((dim, dim))
         A[:3, :3] = np.eye(3) * n
-        A[:3, 3:] = sum_R.T
-        A[3:, :3] = sum_R
-        A[3:, 3:] = np.eye(3) * (n + lam_b)
-        rhs = np.concatenate([sum_Rta, sum_a])
+        A[:3, 3:6] = sum_R.T
+        A[3:6, :3] = sum_R
+        A[3:6, 3:6] = np.eye(3) * (n + lam_b)
+        rhs = np.zeros(dim)
+        rhs[:3], rhs[3:6] = sum_Rta, sum_a
+        if lever:
+            RtK = np.einsum('k,kij->ij', w, sums['RtK'])
+            K = np.einsum('k,kij->ij', w, sums['K'])
+            A[:3, 6:] = RtK
+            A[6:, :3] = RtK.T
+            A[3:6, 6:] = K
+            A[6:, 3:6] = K.T
+            A[6:, 6:] = np.einsum('k,kij->ij', w, sums['KtK']) + np.eye(3) * (var / c.lever_arm_sigma_m ** 2)
+            rhs[6:] = w @ sums['Kta']
         if self._prior is not None:
             R_pe, sigma = self._prior
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
             A[:3, :3] += np.eye(3) * wp
             rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
         x = np.linalg.solve(A, rhs)
-        g, b = x[:3], x[3:]
+        g, b = x[:3], x[3:6]
+        if lever:
+            self._lever_arm = x[6:]
         self._gravity = (g, b)
         self._gravity_windows = closed
         n = float(self._n)
         # Per-axis residual variance of a - R g - b from the sums (the hand's acceleration and
         # the sensor noise): it weighs the ridge of the next solve and sets the covariance.
-        sq = (self._sum_aa - 2.0 * g @ self._sum_Rt_a - 2.0 * b @ self._sum_a + n * (g @ g)
-              + 2.0 * g @ (self._sum_R.T @ b) + n * (b @ b))
+        all_R, all_Rta, all_a = S_w.sum(axis=0), Rta_w.sum(axis=0), a_w.sum(axis=0)
+        sq = (self._sum_aa - 2.0 * g @ all_Rta - 2.0 * b @ all_a + n * (g @ g)
+              + 2.0 * g @ (all_R.T @ b) + n * (b @ b))
         self._accel_var = max(sq / (3.0 * n), 0.0)
         return g, b
 

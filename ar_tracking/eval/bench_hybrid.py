@@ -382,7 +382,7 @@ def bench_core_rates(samples: int = 20000, seed: int = 0) -> dict[str, float]:
     align = WorldAlignment()
     start = time.perf_counter()
     for k in range(samples):
-        align.add(k * 10_000_000 + 1, R[k], accel[k], mag[k])
+        align.add(k * 10_000_000 + 1, R[k], accel[k], mag[k], gyro[k])
         if k % 3 == 0:
             align.estimate()
     hybrid_rate = samples / (time.perf_counter() - start)

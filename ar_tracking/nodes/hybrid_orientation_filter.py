@@ -110,6 +110,7 @@ class HybridOrientationFilterNode(TrackingNode):
             window_s=p('window_s', a.window_s, 'Window of the robust field fit, s (a disturbance is judged window by window)', min_value=0.01, max_value=60.0),
             solve_period_s=p('solve_period_s', a.solve_period_s, 'Re-solve the field fit this often (sample stamps), s', min_value=0.01, max_value=60.0),
             correlation_s=p('correlation_s', a.correlation_s, 'Correlation time of hand motion and field disturbances (window of the robust fit), s', min_value=0.05, max_value=60.0),
+            lever_arm_sigma_m=p('lever_arm_sigma_m', a.lever_arm_sigma_m, 'Prior 1-sigma of the lever arm (the IMU from the centre the user turns about), m; 0: no lever-arm model', min_value=0.0, max_value=10.0),
             cauchy_scale=p('cauchy_scale', a.cauchy_scale, 'Cauchy scale of the window weights, in robust sigmas', min_value=0.5, max_value=100.0),
             tilt_floor_rad=p('tilt_floor_rad', a.tilt_floor_rad, 'Floor of the reported tilt 1-sigma, rad', min_value=0.0, max_value=1.0),
             heading_floor_rad=p('heading_floor_rad', a.heading_floor_rad, 'Floor of the reported heading 1-sigma, rad', min_value=0.0, max_value=1.0),
@@ -137,7 +138,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.align = WorldAlignment(config)
         self.backup = GyroBackup(self.R_imu_cam, backup)
         self.visual = RotationBuffer(self.max_pair_gap_ns)
-        self.pending: deque[tuple[int, np.ndarray, np.ndarray | None]] = deque()
+        self.pending: deque[tuple[int, np.ndarray, np.ndarray | None, np.ndarray]] = deque()
         self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
         self.mag: np.ndarray | None = None
         self.mag_ns: int | None = None
@@ -258,7 +259,7 @@ class HybridOrientationFilterNode(TrackingNode):
         """Feed pending IMU samples to the alignment with the visual orientation at their stamps."""
         newest_visual = self.visual.newest_ns
         while self.pending:
-            t_s, accel, mag = self.pending[0]
+            t_s, accel, mag, omega = self.pending[0]
             if newest_visual is None or newest_visual < t_s:
                 # Wait for a visual sample at or after t_s, unless vision is lost by now.
                 if self.last_imu_ns is not None and self.last_imu_ns - t_s > self.visual_timeout_ns:
@@ -269,7 +270,7 @@ class HybridOrientationFilterNode(TrackingNode):
             R_pano_cam = self.visual.at(t_s)
             if R_pano_cam is None:  # before the buffer, or across a lost stretch
                 continue
-            self.align.add(t_s, R_pano_cam @ self.R_imu_cam.T, accel, mag)
+            self.align.add(t_s, R_pano_cam @ self.R_imu_cam.T, accel, mag, omega)
 
     def _vision_live(self, t_ns: int) -> bool:
         return self.last_visual_ns is not None and t_ns - self.last_visual_ns <= self.visual_timeout_ns
@@ -355,7 +356,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.backup.add_gyro(t_g, self.calibration.gyro(omega))
         mag = self.mag if self.mag_ns is not None and abs(t_g - self.mag_ns) <= self.max_mag_age_ns else None
         if self.last_visual_ns is not None:
-            self.pending.append((t_g, self.calibration.accel(accel), mag))
+            self.pending.append((t_g, self.calibration.accel(accel), mag, self.calibration.gyro(omega)))
             self._resolve()
         if self.last_visual_ns is None or self.backup.R_enu_cam is None or self.align.estimate() is None:
             return

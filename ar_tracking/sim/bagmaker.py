@@ -431,7 +431,7 @@ def write_sidecar(path: Path, scn: rs.Scenario, bag_path: Path) -> None:
     hybrid = {'hybrid_orientation_filter': {'ros__parameters': {
         k: cal[k] for k in HYBRID_CALIBRATION_KEYS}}}
     quality = ('with 1-3 % error' if scn.profile == 'kind' else
-               'from a rough calibration (biases 1-3 % off, hard iron 1-3 uT off per axis, '
+               'from a rough calibration (biases 1-3 % off, hard iron 0.4-1.2 uT off per axis, '
                'soft iron 20-50 % off)')
     head = (f'# Calibration of the simulated device of {bag_path.name} '
             f'(scenario rotation_sweep, seed {scn.seed}, session {scn.session}).\n'

@@ -28,9 +28,9 @@ Profiles (``profile`` argument of :func:`make_scenario`):
   (a hand motion of a few cm at 0.5-3 Hz and the phone 0.2-0.4 m in front of the body's
   turning axis: |a| RMS about 0.7 m/s^2, 1-2 m/s^2 in sweeps); magnetic disturbances that turn
   the horizontal field by 2-10 deg about the up axis with |B| and dip unchanged (also during
-  the ramps); a rough magnetometer calibration (residual hard iron 1-3 uT per axis, soft-iron
-  correction 20-50 % off its deviation from identity: against the 21 uT horizontal field a
-  compass error that varies with heading, about 2-7 deg RMS); a gyro bias that drifts by a random walk (a few mrad/s per minute) from the
+  the ramps); a rough magnetometer calibration (residual hard iron 0.4-1.2 uT per axis,
+  soft-iron correction 20-50 % off its deviation from identity: against the 21 uT horizontal
+  field a compass error that swings by about 3-9 deg peak to peak with heading); a gyro bias that drifts by a random walk (a few mrad/s per minute) from the
   constant part the calibration measured; accelerometer scale errors of 0.5-1 %; auto-exposure
   jumps 1.5 times larger; and a **camera-IMU time offset**: the IMU and magnetometer header
   stamps are the true sample time plus a constant offset of 2-8 ms (either sign,
@@ -78,7 +78,7 @@ HARD_LEVER_ARM_M = (0.2, 0.4)  # phone in front of the body's turning axis
 HARD_HAND_SWEEP_M = (0.01, 0.03)  # per axis, at 0.5-1.2 Hz (acceleration amplitude <= 0.5 m/s^2)
 HARD_HAND_SWEEP_MAX_ACCEL_M_S2 = 0.5
 HARD_HAND_TREMOR_ACCEL_M_S2 = (0.05, 0.2)  # per axis, at 1.5-3 Hz
-HARD_IRON_RESIDUAL_T = (1e-6, 3e-6)  # per axis, random sign
+HARD_IRON_RESIDUAL_T = (0.4e-6, 1.2e-6)  # per axis, random sign: 1.5-5 deg of heading error swing
 HARD_SOFT_IRON_RESIDUAL = (0.2, 0.5)  # of the soft-iron correction's deviation from identity
 HARD_GYRO_DRIFT_PER_MINUTE_RAD_S = (0.002, 0.005)  # typical |change| of the bias over 60 s
 HARD_ACCEL_SCALE_ERROR = (0.005, 0.01)  # per axis, random sign
@@ -693,7 +693,7 @@ def calibration_params(scn: Scenario) -> dict[str, list[float] | float]:
     The soft-iron matrix is the inverse of the true distortion with its deviation from identity
     a few percent off; everything is plain Python floats for YAML. In the 'hard' profile the
     magnetometer calibration is rough (stream 'calibration-residual'): the hard-iron offset is
-    1-3 uT off per axis and the soft-iron matrix's deviation from identity 20-50 % off; the
+    0.4-1.2 uT off per axis and the soft-iron matrix's deviation from identity 20-50 % off; the
     gyro bias is an estimate of the constant part only (the drift is not in it).
     """
     rng = rng_stream(scn.seed, 'calibration', scn.session)
