@@ -290,8 +290,12 @@ class WorldAlignment:
     # -- solves ----------------------------------------------------------------------------
 
     def _prior_weight(self, sigma_rad: float, noise: float, scale: float) -> float:
-        """Samples' worth of a prior vector known to sigma_rad, against per-sample noise."""
-        return (noise / max(scale * sigma_rad, 1e-9)) ** 2
+        """Samples' worth of a prior vector known to sigma_rad, against per-sample noise whose
+        errors are correlated over ``correlation_s`` (so the prior is set against correlation
+        times of data, not single samples)."""
+        span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
+        per_corr = self._n / span_s * self.config.correlation_s if span_s > 0.5 else 100.0
+        return (noise / max(scale * sigma_rad, 1e-9)) ** 2 * per_corr
 
     def _solve_gravity(self) -> tuple[Array, Array]:
         """[g_P; b_a] from the window sums, tapered at both ends of the session (module docstring),
@@ -400,7 +404,7 @@ class WorldAlignment:
             A[3:, 3:] = np.eye(3) * sw * (1.0 + lam)
             rhs = np.concatenate([w_win @ Rtm_w, w_win @ m_w])
             if prior is not None:
-                wp = (c.min_field_sigma / max(self._prior[1], 1e-6)) ** 2 * max(float(n_w.mean()), 1.0)  # type: ignore[index]
+                wp = self._prior_weight(self._prior[1], c.field_model_sigma, 1.0)  # type: ignore[index]
                 A[:3, :3] += np.eye(3) * wp
                 rhs[:3] += wp * prior
             x = np.linalg.solve(A, rhs)

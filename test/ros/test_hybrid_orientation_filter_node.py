@@ -104,7 +104,8 @@ class Harness:
         msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = map(float, field_imu)
         self.send(self.pub_mag, msg)
 
-    def play(self, t0_s, t1_s, rng, sensor=True, visual=True, field_turn=0.0, pose=False, ahrs=False):
+    def play(self, t0_s, t1_s, rng, sensor=True, visual=True, field_turn=0.0, pose=False, ahrs=False,
+             R_pano_enu=R_PANO_ENU):
         """IMU + field at 50 Hz (hand acceleration and noise), vision at 25 Hz, the motion of
         truth(); ``field_turn`` turns the horizontal field (|B| and dip kept)."""
         for k in range(int(round(t0_s * 50)), int(round(t1_s * 50))):
@@ -120,7 +121,7 @@ class Harness:
             if ahrs:
                 self.sensor(t_ns, rot_z(rng.normal(0, 0.02)) @ R @ R_IMU_CAM.T)
             if visual and k % 2 == 0:
-                self.visual(t_ns, R_PANO_ENU @ R, pose=pose)
+                self.visual(t_ns, R_pano_enu @ R, pose=pose)
 
     def close(self):
         self.ex.shutdown()
@@ -170,6 +171,24 @@ def test_gyro_backup_publishes_while_vision_is_lost_and_vision_resumes(ros_conte
         assert backup[-1].orientation_covariance[0] > h.out[n_before - 1].orientation_covariance[0]
         h.play(5.0, 5.6, rng)
         assert abs(heading_err(h.out[-1])) < 0.5
+    finally:
+        h.close()
+
+
+def test_a_restarted_panorama_is_placed_in_the_world_from_the_gyro(ros_context):
+    """Vision lost, then back in a new panorama frame (the tracker restarted 40 deg away): the
+    output carries on from the gyro backup without a jump, and the new frame is learnt."""
+    h = Harness(ros_context)
+    try:
+        rng = np.random.default_rng(7)
+        h.play(0.0, 4.0, rng)
+        h.play(4.0, 4.6, rng, visual=False)
+        n = len(h.out)
+        new_frame = rot_z(math.radians(40.0)) @ R_PANO_ENU
+        h.play(4.6, 7.0, rng, R_pano_enu=new_frame)
+        assert all(abs(heading_err(m)) < 1.0 for m in h.out[n:])
+        R_enu_pano = rotation_from_quaternion(h.frames[-1].transform.rotation)
+        assert heading_tilt_error_deg(R_enu_pano, new_frame.T)[0] < 1.0
     finally:
         h.close()
 
