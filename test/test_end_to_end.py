@@ -66,6 +66,11 @@ def test_run_and_evaluate_rotation_sweep(sweep, tmp_path):
     assert 0.5 < m['heading_rmse_deg'] < 8.0
     assert 3.0 < m['max_deg'] < 20.0
     assert m['tilt_rmse_deg'] < 1.5
+    # VQF on the same IMU samples is the reference row; imu_magnetometer is VQF on stamps.
+    ref = metrics['orientation']['reference/vqf']
+    assert ref['n'] >= 1100 and abs(ref['heading_rmse_deg'] - m['heading_rmse_deg']) < 0.5
+    assert metrics['orientation']['orientation/global']['n'] > 300
+    assert metrics['bag']['world_alignment'] == 'none'
 
 
 def test_two_runs_give_identical_estimates(sweep, tmp_path):
