@@ -29,19 +29,18 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.hybrid_orientation import GyroBackup, GyroBackupParams, RotationBuffer
-from ..core.imu_orientation import ImuCalibration
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig
 from ..ros.conversions import (
     ConversionError,
     covariance_is_known,
     finite_vector3,
+    imu_sample,
     rotation_from_quaternion,
     set_covariance,
     set_quaternion,
     stamp_ns,
     to_stamp,
-    vector3,
 )
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
@@ -49,18 +48,6 @@ from ..ros.stamp_guard import StampGuard, StampVerdict
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
 _EXTRINSIC_WARN_RAD = np.radians(1.0)
-
-
-def _length(n: int) -> Any:
-    return lambda v: None if len(v) == n else f'needs {n} values, got {len(v)}'
-
-
-def _matrix(v: Any) -> str | None:
-    if len(v) != 9:
-        return f'needs 9 values (row-major 3x3), got {len(v)}'
-    if abs(np.linalg.det(np.reshape(np.asarray(v, float), (3, 3)))) < 1e-6:
-        return 'matrix is singular'
-    return None
 
 
 def _unit_quat(v: Any) -> str | None:
@@ -98,12 +85,7 @@ class HybridOrientationFilterNode(TrackingNode):
                       'default the phone: diag(1, -1, -1)', read_only=True, validate=_unit_quat)
         self.camera_frame: str = p('camera_frame_id', 'camera_optical', 'frame_id of orientation/global (the camera)')
         self.world_frame: str = p('world_frame_id', 'enu', 'World frame of imu/data and of the outputs (ENU)')
-        self.calibration = ImuCalibration(
-            gyro_bias=p('gyro_bias', [0.0, 0.0, 0.0], 'Gyro bias subtracted from imu/data_raw, rad/s', validate=_length(3)),
-            accel_bias=p('accel_bias', [0.0, 0.0, 0.0], 'Accelerometer bias subtracted from imu/data_raw, m/s^2', validate=_length(3)),
-            hard_iron_offset=p('hard_iron_offset', [0.0, 0.0, 0.0], 'Hard-iron offset subtracted from imu/mag, tesla (as imu_magnetometer)', validate=_length(3)),
-            soft_iron_matrix=p('soft_iron_matrix', [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], 'Soft-iron correction of imu/mag, row-major 3x3 (as imu_magnetometer)', validate=_matrix),
-        )
+        self.calibration = self.imu_calibration_params()
         config = WorldAlignmentConfig(
             accel_bias_sigma_m_s2=p('accel_bias_sigma_m_s2', a.accel_bias_sigma_m_s2, 'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2 (tight: a loose bias absorbs scale errors)', min_value=1e-6, max_value=10.0),
             hard_iron_sigma=p('hard_iron_sigma', a.hard_iron_sigma, 'Prior 1-sigma of the residual hard iron, relative to the field strength', min_value=1e-6, max_value=10.0),
@@ -342,10 +324,7 @@ class HybridOrientationFilterNode(TrackingNode):
         """Gyro + accelerometer sample: to the alignment (paired with vision by stamp) and the
         gyro backup; while vision is lost, publish the backup."""
         try:
-            accel = finite_vector3(msg.linear_acceleration, 'imu/data_raw linear_acceleration')
-            omega = vector3(msg.angular_velocity)
-            if not np.all(np.isfinite(omega)):
-                raise ConversionError('imu/data_raw angular_velocity is not finite')
+            accel, omega = imu_sample(msg)
         except ConversionError as exc:
             self.warn_throttled(f'{exc}, message dropped')
             return

@@ -32,34 +32,22 @@ from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.ahrs import Ahrs, AhrsConfig, AhrsError
-from ..core.imu_orientation import FieldModel, GravityFieldOrientation, ImuCalibration
+from ..core.imu_orientation import FieldModel, GravityFieldOrientation
 from ..io.replay import ReplayOptions, ScheduledMessage
 from ..ros.conversions import (
     ConversionError,
     finite_vector3,
+    imu_sample,
     set_covariance,
     set_quaternion,
     set_vector3,
     stamp_ns,
-    vector3,
 )
 from ..ros.frames import WORLD_FROM_ENU, check_world_frame
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 
 METHODS = ('vqf', 'compass')
-
-
-def _length(n: int) -> Any:
-    return lambda v: None if len(v) == n else f'needs {n} values, got {len(v)}'
-
-
-def _matrix(v: Any) -> str | None:
-    if len(v) != 9:
-        return f'needs 9 values (row-major 3x3), got {len(v)}'
-    if abs(np.linalg.det(np.reshape(np.asarray(v, float), (3, 3)))) < 1e-6:
-        return 'matrix is singular'
-    return None
 
 
 def _tf_message_class() -> Any:
@@ -83,14 +71,8 @@ class ImuMagnetometerNode(TrackingNode):
         d = AhrsConfig()
         self.method: str = p('method', 'vqf', 'Orientation method: vqf (gyro-aided AHRS with rest and magnetic-disturbance handling) or compass (per-sample tilt-compass, Langlotz eq. 3-4, the paper\'s sensor-only baseline)',
                              read_only=True, validate=lambda v: None if v in METHODS else f'must be one of {", ".join(METHODS)}')
-        hard_iron = np.asarray(p('hard_iron_offset', [0.0, 0.0, 0.0], 'Hard-iron offset subtracted from the raw field, tesla', validate=_length(3)), dtype=float)
-        mag_bias = np.array([p(f'mag_bias_{axis}', 0.0, f'imu_filter_madgwick name: field bias along {axis}, tesla (added to hard_iron_offset)', min_value=-1e-3, max_value=1e-3) for axis in 'xyz'])
-        calibration = ImuCalibration(
-            gyro_bias=p('gyro_bias', [0.0, 0.0, 0.0], 'Gyro bias subtracted from angular_velocity, rad/s (x, y, z)', validate=_length(3)),
-            accel_bias=p('accel_bias', [0.0, 0.0, 0.0], 'Accelerometer bias subtracted from linear_acceleration, m/s^2', validate=_length(3)),
-            hard_iron_offset=hard_iron + mag_bias,
-            soft_iron_matrix=p('soft_iron_matrix', [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], 'Soft-iron correction, row-major 3x3: field = M (raw - hard_iron_offset)', validate=_matrix),
-        )
+        mag_bias = [p(f'mag_bias_{axis}', 0.0, f'imu_filter_madgwick name: field bias along {axis}, tesla (added to hard_iron_offset)', min_value=-1e-3, max_value=1e-3) for axis in 'xyz']
+        calibration = self.imu_calibration_params(extra_hard_iron=mag_bias)
         declination = p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north', min_value=-3.1416, max_value=3.1416)
         declination += p('declination', 0.0, 'imu_filter_madgwick name of the declination, rad (added to declination_rad)', min_value=-3.1416, max_value=3.1416)
         model = FieldModel(
@@ -246,10 +228,7 @@ class ImuMagnetometerNode(TrackingNode):
     def on_imu(self, msg: Imu) -> Imu | None:
         """Publish imu/data for one IMU sample; returns the calibrated raw message (replay mode)."""
         try:
-            accel = finite_vector3(msg.linear_acceleration, 'imu/data_raw linear_acceleration')
-            gyro = vector3(msg.angular_velocity)
-            if not np.all(np.isfinite(gyro)):
-                raise ConversionError('imu/data_raw angular_velocity is not finite')
+            accel, gyro = imu_sample(msg)
         except ConversionError as exc:
             self.warn_throttled(f'{exc}, message dropped')
             return None

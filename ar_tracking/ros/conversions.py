@@ -58,6 +58,16 @@ def finite_vector3(v: Any, what: str) -> NDArray[np.float64]:
     return arr
 
 
+def imu_sample(msg: Any, topic: str = 'imu/data_raw') -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(specific force, angular rate) of a sensor_msgs/Imu, else ConversionError: the
+    acceleration must be finite and non-zero, the rate finite."""
+    accel = finite_vector3(msg.linear_acceleration, f'{topic} linear_acceleration')
+    rate = vector3(msg.angular_velocity)
+    if not np.all(np.isfinite(rate)):
+        raise ConversionError(f'{topic} angular_velocity is not finite')
+    return accel, rate
+
+
 def set_vector3(target: Any, values: NDArray[np.float64]) -> Any:
     target.x, target.y, target.z = (float(values[0]), float(values[1]), float(values[2]))
     return target
