@@ -89,7 +89,7 @@ class WorldAlignmentConfig:
     correlation_s: float = 1.0
     #: Window of the robust field fit, s (short, so that a disturbance of a few seconds is a
     #: minority of the windows early in a session too).
-    window_s: float = 0.25
+    window_s: float = 0.5
     #: 1-sigma floors of the result, rad.
     tilt_floor_rad: float = math.radians(0.05)
     heading_floor_rad: float = math.radians(0.15)
