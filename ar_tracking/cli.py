@@ -88,6 +88,9 @@ def cmd_annotate(args: argparse.Namespace) -> int:
     return 0 if report.stored else 1
 
 
+LATENCY_LABEL = 'orientation/global (input stamp published -> received)'
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .ros.runner import GraphRunner, check_rate
 
@@ -118,7 +121,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         'dropped_deliveries': result.dropped_deliveries,
         # node -> topic -> count (see RunResult)
         'superseded': result.superseded, 'dropped': result.dropped, 'lost': result.lost,
+        # node -> why its thread died (realtime); any entry makes the exit code 1
+        'failed_nodes': result.failed_nodes,
     }
+    if args.rate > 0:
+        # realtime: inputs published to each node vs processed, orientation/global latency
+        summary['live'] = result.live_summary()
     if args.json:
         print(json.dumps(summary))
     else:
@@ -129,6 +137,18 @@ def cmd_run(args: argparse.Namespace) -> int:
                             ('dropped (queue overflow)', result.dropped), ('lost (not delivered)', result.lost)):
             for node, topics in sorted(table.items()):
                 print(f'  {node}: ' + ', '.join(f'{n} {kind} on {t}' for t, n in sorted(topics.items())))
+        if args.rate > 0:
+            live = summary['live']
+            for node, topics in live['inputs'].items():
+                print(f'  {node}: {live["dropped"][node]} inputs dropped ('
+                      + ', '.join(f'{c["processed"]} of {c["published"]} on {t}' for t, c in topics.items()) + ')')
+            if live['latency_n']:
+                print(f'  {LATENCY_LABEL}: latency p50 {live["latency_ms_p50"]:.1f} ms, '
+                      f'p95 {live["latency_ms_p95"]:.1f} ms ({live["latency_n"]} messages)')
+    for node, why in sorted(result.failed_nodes.items()):
+        print(f'ar-tracking run: error: node {node} died: {why}', file=sys.stderr)
+    if result.failed_nodes:
+        return EXIT_FAILED
     return 130 if result.interrupted else 0
 
 
@@ -294,8 +314,10 @@ def build_parser() -> argparse.ArgumentParser:
                             'slam = keyframe_slam_mapper; markers = marker_tracker, visual_inertial_filter')
     p.add_argument('--storage', choices=['mcap', 'sqlite3'])
     p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
-    p.add_argument('--executor', default='auto', choices=['auto', 'single', 'events'],
-                   help='rclpy executor (default auto: events in lockstep, single with --rate)')
+    p.add_argument('--executor', default='auto', choices=['auto', 'threads', 'single', 'events', 'multi'],
+                   help='rclpy executor (default auto: events in lockstep; with --rate, threads: each node on its '
+                        'own thread and executor, so a slow node cannot stall the others); single/events/multi '
+                        'with --rate put every node on one executor (multi: MultiThreadedExecutor, realtime only)')
     p.add_argument('--json', action='store_true', help='print the run summary as JSON')
     p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_run)

@@ -8,7 +8,9 @@ A node subclasses :class:`TrackingNode` and uses
   create_publisher. Subscriptions are wrapped so that a callback that raises logs one throttled
   line and the message is skipped (DESIGN sec. 7: a message it cannot use never crashes the
   graph), their processing time is recorded (for ``ar-tracking bench``), and the lockstep runner
-  can count deliveries and publications (:class:`LockstepHooks`).
+  can count deliveries and publications (:class:`LockstepHooks`). Publications are also
+  counted per topic (``publish_counts``) and callbacks per topic (``callback_stats``), from
+  which the realtime runner tells what each node received from what was published to it.
 """
 from __future__ import annotations
 
@@ -83,6 +85,7 @@ class _CountingPublisher:
 
     def publish(self, msg: Any) -> None:
         self._publisher.publish(msg)
+        self._node.publish_counts[self._publisher.topic_name] += 1
         hooks = self._node.lockstep_hooks
         if hooks is not None:
             hooks.published(self._publisher.topic_name)
@@ -112,6 +115,10 @@ class TrackingNode(Node):
         super().__init__(node_name, **kwargs)
         self.lockstep_hooks: LockstepHooks | None = None
         self.callback_stats: dict[str, CallbackStats] = defaultdict(CallbackStats)
+        #: fully qualified topic -> messages this node published on it (the realtime runner's
+        #: live accounting: published to a subscription vs processed by its callback). Each
+        #: node publishes from its own thread only, so a plain counter is enough.
+        self.publish_counts: dict[str, int] = defaultdict(int)
         self._validators: dict[str, Callable[[Any], str | None]] = {}
         self._warned_at: dict[tuple[Any, int], float] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)

@@ -11,7 +11,13 @@ Two clocks (DESIGN sec. 4):
   run result by node and topic (:class:`_DeliveryLedger`). Outputs are written with the log time of the
   input that caused them, in a fixed order, so two runs give byte-identical output bags.
 * **realtime** (``rate > 0``): the bag is played at ``rate`` times its speed with ``/clock``;
-  nodes use sim time and whatever they cannot keep up with is dropped, like on a device.
+  nodes use sim time and whatever they cannot keep up with is dropped, like on a device. Each
+  node spins on its own thread (its own SingleThreadedExecutor), so a slow node (SLAM, the
+  panorama) cannot stall the IMU path, and the player thread publishes on schedule whatever
+  the nodes do. The run counts, per node, the inputs published to it against those its
+  callbacks processed (:attr:`RunResult.live_dropped`), measures the end-to-end latency of
+  ``orientation/global`` (input stamp published -> output received by the recorder), and
+  reports a node whose thread died (then the run stops and ``ar-tracking run`` exits 1).
 
 Inputs the evaluation needs (ground truth, static transforms, the non-image sensor topics) are
 copied into the output bag; images only on request. The output bag is closed cleanly on every
@@ -75,6 +81,28 @@ RUN_METADATA = 'ar_tracking.run'
 #: Topics copied from the input bag to the output by default (prefix match).
 COPY_PREFIXES = ('/ground_truth/', '/tf_static', '/tf', '/gps/', '/imu/')
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
+#: Realtime: the output whose end-to-end latency the run measures (input stamp -> received).
+LATENCY_TOPIC = '/orientation/global'
+#: Realtime without a camera: the inputs whose stamps the latency is measured from.
+SENSOR_STAMP_TYPES = ('sensor_msgs/msg/Imu', 'sensor_msgs/msg/MagneticField')
+
+
+def header_stamp_ns(raw: bytes) -> int | None:
+    """The header stamp (ns) of a serialised message that starts with std_msgs/Header, read
+    from its CDR bytes without deserialising (4-byte encapsulation, then int32 sec and uint32
+    nanosec); None if too short."""
+    if len(raw) < 12:
+        return None
+    order = 'little' if raw[1] & 1 else 'big'
+    sec = int.from_bytes(raw[4:8], order, signed=True)
+    nsec = int.from_bytes(raw[8:12], order)
+    return sec * 1_000_000_000 + nsec
+
+
+#: ``--executor``: auto (events in lockstep, one thread per node with --rate), threads (one
+#: SingleThreadedExecutor per node on its own thread; realtime only, lockstep uses single),
+#: single, events, multi (one MultiThreadedExecutor, a callback group per node).
+EXECUTOR_CHOICES = ('auto', 'threads', 'single', 'events', 'multi')
 
 
 class RunError(Exception):
@@ -128,6 +156,19 @@ class RunResult:
     superseded: dict[str, dict[str, int]] = field(default_factory=dict)
     dropped: dict[str, dict[str, int]] = field(default_factory=dict)
     lost: dict[str, dict[str, int]] = field(default_factory=dict)
+    #: realtime only: node -> input topic -> (messages published on it, messages the node's
+    #: callback processed); the difference is what the node never saw (a full queue, a
+    #: best-effort loss) - see :attr:`live_dropped`
+    live_inputs: dict[str, dict[str, tuple[int, int]]] = field(default_factory=dict)
+    #: realtime only: end-to-end latency of each ``orientation/global`` message received by the
+    #: recorder, ms: wall time of receipt minus wall time at which the runner published the
+    #: input (a camera image if the graph is fed any, else any input) with the same stamp
+    live_latency_ms: list[float] = field(default_factory=list)
+    #: realtime only: how late the player published inputs against the bag schedule, ms (p95);
+    #: large values mean the player itself was starved, not the nodes
+    live_player_late_ms_p95: float = 0.0
+    #: node name -> why it stopped working (its thread died); the run ends non-zero
+    failed_nodes: dict[str, str] = field(default_factory=dict)
 
     @property
     def realtime_factor(self) -> float:
@@ -140,6 +181,38 @@ class RunResult:
     @property
     def dropped_deliveries(self) -> int:
         return sum(n for topics in self.dropped.values() for n in topics.values())
+
+    @property
+    def live_dropped(self) -> dict[str, int]:
+        """Realtime: node -> inputs published to it that its callbacks never processed."""
+        return {node: sum(max(0, pub - done) for pub, done in topics.values())
+                for node, topics in self.live_inputs.items()}
+
+    def live_latency_percentile(self, q: float) -> float | None:
+        """Percentile ``q`` (0-100) of :attr:`live_latency_ms`, ms; None without samples."""
+        if not self.live_latency_ms:
+            return None
+        ordered = sorted(self.live_latency_ms)
+        # linear interpolation between closest ranks (numpy's default)
+        pos = (len(ordered) - 1) * q / 100.0
+        lo = int(math.floor(pos))
+        hi = min(lo + 1, len(ordered) - 1)
+        return ordered[lo] + (ordered[hi] - ordered[lo]) * (pos - lo)
+
+    def live_summary(self) -> dict[str, Any]:
+        """The realtime figures as one JSON-ready dict (``live`` of the CLI summary and bench):
+        dropped per node, published/processed per node and topic, latency p50/p95 in ms."""
+        p50 = self.live_latency_percentile(50)
+        p95 = self.live_latency_percentile(95)
+        return {
+            'dropped': self.live_dropped,
+            'inputs': {node: {t: {'published': pub, 'processed': done} for t, (pub, done) in sorted(topics.items())}
+                       for node, topics in sorted(self.live_inputs.items())},
+            'latency_ms_p50': None if p50 is None else round(p50, 3),
+            'latency_ms_p95': None if p95 is None else round(p95, 3),
+            'latency_n': len(self.live_latency_ms),
+            'player_late_ms_p95': round(self.live_player_late_ms_p95, 3),
+        }
 
 
 class _SubscriptionAccount:
@@ -443,6 +516,8 @@ class GraphRunner:
         self._ledger = _DeliveryLedger()
         self._stop = threading.Event()
         self._consecutive_losses: dict[str, int] = {}
+        #: realtime: input header stamp (ns) -> perf_counter when the player published it
+        self._published_wall: dict[int | None, float] = {}
 
     # -- setup ------------------------------------------------------------------------------
 
@@ -451,6 +526,10 @@ class GraphRunner:
         from rclpy.context import Context
 
         self.rate = check_rate(self.rate, lockstep=True)
+        if self.executor_kind not in EXECUTOR_CHOICES:
+            raise RunError(f'unknown executor {self.executor_kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
+        if self.executor_kind == 'multi' and self.rate == 0:
+            raise RunError('--executor multi is for realtime runs (--rate R); lockstep spins one node at a time')
         reader = BagReader(self.bag_path)
         reader.open()
         try:
@@ -483,6 +562,7 @@ class GraphRunner:
         nodes: list[Any] = []
         writer = None
         executor = None
+        node_executors: dict[str, Any] = {}
         result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names,
                            not_started={**skipped, **ruled_out})
         ledger = self._ledger = _DeliveryLedger()
@@ -544,9 +624,19 @@ class GraphRunner:
             recorder = _Recorder(writer, output_types)
             clock_ns = [reader.start_ns]
 
+            published_wall = self._published_wall = {}
+
             def make_cb(topic: str) -> Callable[[bytes], None]:
                 if realtime:
+                    measure = topic == LATENCY_TOPIC
+                    latencies = result.live_latency_ms
+
                     def record_now(raw: bytes) -> None:
+                        if measure:  # before the writer lock: receipt, not recording, time
+                            received = time.perf_counter()
+                            sent = published_wall.get(header_stamp_ns(raw))
+                            if sent is not None:
+                                latencies.append((received - sent) * 1e3)
                         with recorder.lock:
                             writer.write(topic, clock_ns[0], raw, msgtype=output_types[topic])
                             recorder.count += 1
@@ -561,8 +651,17 @@ class GraphRunner:
                 for sub in n.subscriptions:
                     ledger.add(n.get_name(), sub)
             executor = self._make_executor(rclpy, context, realtime)
+            # Realtime with per-node threads: each processing node gets its own executor; the
+            # feeder and the recorder stay on the main executor.
+            if realtime and self._live_kind() == 'threads':
+                from rclpy.executors import SingleThreadedExecutor
+
+                for n in nodes[:-2]:
+                    node_executors[n.get_name()] = own = SingleThreadedExecutor(context=context)
+                    own.add_node(n)
             for n in nodes:
-                executor.add_node(n)
+                if n.get_name() not in node_executors:
+                    executor.add_node(n)
             self._wait_for_discovery(executor, nodes)
 
             total = reader.message_count(set(feed_pubs) | copy_topics)
@@ -573,7 +672,9 @@ class GraphRunner:
                 with _StopOnSignal() as stop:
                     self._stop = stop.requested
                     if realtime:
-                        self._play_realtime(reader, executor, feed_pubs, clock_pub, copy_topics, writer, recorder, clock_ns, result, total)
+                        stamp_topics = self._latency_stamp_topics(feed_pubs, bag_types)
+                        self._play_realtime(reader, executor, node_executors, nodes, feed_pubs, stamp_topics,
+                                            clock_pub, copy_topics, writer, recorder, clock_ns, result, total)
                     else:
                         self._play_lockstep(reader, executor, feed_pubs, copy_topics, writer, recorder, result, total)
                 result.interrupted = stop.requested.is_set()
@@ -583,7 +684,9 @@ class GraphRunner:
                 logger.warning('interrupted: closing %s with what was processed', self.out_path)
             result.wall_s = time.perf_counter() - start
             result.output_messages = recorder.count
-            if not realtime:
+            if realtime:
+                self._live_report(nodes, result)
+            else:
                 ledger.report(result)
                 self._log_drops(result)
                 if ledger.corrections:
@@ -593,6 +696,8 @@ class GraphRunner:
                     t: list(s.durations_ms) for t, s in n.callback_stats.items()
                 }
         finally:
+            for own in node_executors.values():
+                own.shutdown(timeout_sec=2.0)
             if executor is not None:
                 executor.shutdown(timeout_sec=2.0)
             if writer is not None:
@@ -639,15 +744,33 @@ class GraphRunner:
         # time (cProfile: 16 of 32 s in _wait_for_ready_callbacks), the EventsExecutor spends
         # ~1.5 s outside the nodes' callbacks; outputs are byte-identical. Realtime runs keep
         # the SingleThreadedExecutor (the player thread publishes concurrently; a
-        # MultiThreadedExecutor's per-callback overhead drops messages at IMU rates).
+        # MultiThreadedExecutor's per-callback overhead drops messages at IMU rates). With
+        # 'auto' or 'threads' in realtime this executor carries only the feeder and the
+        # recorder; each processing node has its own (see _live_kind).
         kind = self.executor_kind
+        if kind not in EXECUTOR_CHOICES:
+            raise RunError(f'unknown executor {kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
         if kind == 'auto':
             kind = 'single' if realtime else 'events'
+        if kind == 'multi' and not realtime:
+            raise RunError('--executor multi is for realtime runs (--rate R); lockstep spins one node at a time')
+        if kind == 'multi':
+            from rclpy.executors import MultiThreadedExecutor
+
+            # every rclpy Node has its own MutuallyExclusiveCallbackGroup as default group: a
+            # node's callbacks never overlap, different nodes run in parallel
+            return MultiThreadedExecutor(num_threads=max(2, len(self.graph) + 1), context=context)
         if kind == 'events':
             from rclpy.experimental import EventsExecutor
 
             return EventsExecutor(context=context)
         return SingleThreadedExecutor(context=context)
+
+    def _live_kind(self) -> str:
+        """Realtime executor layout: 'threads' (each node on its own thread and
+        SingleThreadedExecutor; the default) or 'shared' (every node on one executor of the
+        kind asked for: single, events or multi)."""
+        return 'threads' if self.executor_kind in ('auto', 'threads') else 'shared'
 
     def _wait_for_discovery(self, executor: Any, nodes: list[Any], timeout_s: float = 15.0) -> None:
         """Spin until every publisher sees the subscriptions of its topic in this graph."""
@@ -747,11 +870,27 @@ class GraphRunner:
 
     # -- realtime --------------------------------------------------------------------------
 
+    @staticmethod
+    def _latency_stamp_topics(feed_pubs: dict[str, Any], bag_types: dict[str, str]) -> set[str]:
+        """The fed topics whose publication times the latency is measured from: the camera
+        images (orientation/global carries the image stamp), or without a camera the IMU and
+        field samples (the hybrid filter then answers each sample with its stamp)."""
+        images = {t for t in feed_pubs if bag_types.get(t) in IMAGE_TYPES}
+        return images or {t for t in feed_pubs if bag_types.get(t) in SENSOR_STAMP_TYPES}
+
+    #: Realtime: after the last input, spin until the nodes have processed nothing more for
+    #: this long (their queues are empty), at most DRAIN_MAX_S.
+    DRAIN_QUIET_S = 0.5
+    DRAIN_MAX_S = 10.0
+
     def _play_realtime(
         self,
         reader: BagReader,
         executor: Any,
+        node_executors: dict[str, Any],
+        nodes: list[Any],
         feed_pubs: dict[str, Any],
+        stamp_topics: set[str],
         clock_pub: Any,
         copy_topics: set[str],
         writer: BagWriter,
@@ -760,13 +899,24 @@ class GraphRunner:
         result: RunResult,
         total: int,
     ) -> None:
+        """Play the bag from a player thread at ``rate`` while the nodes spin on theirs.
+
+        The player never waits for a node: it sleeps to each message's due time and publishes
+        (DDS queues it in each subscription's history; a full history drops its oldest). Each
+        node in ``node_executors`` spins on its own thread; the rest (feeder, recorder, or every
+        node with a shared executor) on this one. A node thread that dies is booked in
+        ``result.failed_nodes`` and ends the playback.
+        """
         from rosgraph_msgs.msg import Clock
 
         from .conversions import to_stamp
 
         clock = Clock()
         finished = threading.Event()
+        stop_nodes = threading.Event()
         errors: list[BaseException] = []
+        published_wall = self._published_wall
+        late_ms: list[float] = []
 
         def play() -> None:
             done = 0
@@ -779,6 +929,7 @@ class GraphRunner:
                     delay = due - time.monotonic()
                     if delay > 0 and finished.wait(delay):
                         break
+                    late_ms.append(max(0.0, -delay) * 1e3)
                     clock_ns[0] = msg.log_time_ns
                     clock_pub.publish(to_stamp(msg.log_time_ns, clock.clock) and clock)
                     if msg.topic in copy_topics:
@@ -786,6 +937,9 @@ class GraphRunner:
                             writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
                     pub = feed_pubs.get(msg.topic)
                     if pub is not None:
+                        if msg.topic in stamp_topics:
+                            # the first input of a stamp starts its clock (setdefault keeps it)
+                            published_wall.setdefault(header_stamp_ns(msg.rawdata), time.perf_counter())
                         pub.publish(msg.rawdata)
                         result.input_messages += 1
                     done += 1
@@ -796,22 +950,82 @@ class GraphRunner:
             finally:
                 finished.set()
 
+        def spin_node(name: str, own: Any) -> None:
+            try:
+                while not stop_nodes.is_set():
+                    own.spin_once(timeout_sec=0.05)
+            except BaseException as exc:  # the node is gone: report it, stop the run
+                result.failed_nodes[name] = f'{type(exc).__name__}: {exc}'
+                logger.error('%s died: %s: %s', name, type(exc).__name__, exc)
+                finished.set()
+
+        node_threads = [threading.Thread(target=spin_node, args=(name, own), name=f'node_{name}', daemon=True)
+                        for name, own in node_executors.items()]
+        for t in node_threads:
+            t.start()
         thread = threading.Thread(target=play, name='graph_player', daemon=True)
         thread.start()
+
+        def processed() -> int:
+            return recorder.count + sum(len(st.durations_ms) for n in nodes for st in n.callback_stats.values())
+
+        def spin_main() -> None:
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except BaseException as exc:  # a shared executor: the failing node is not known
+                result.failed_nodes.setdefault('executor', f'{type(exc).__name__}: {exc}')
+                logger.error('the executor died: %s: %s', type(exc).__name__, exc)
+                finished.set()
+
         try:
             while not finished.is_set():
                 if self._stop.is_set():
                     finished.set()
                     break
-                executor.spin_once(timeout_sec=0.05)
-            drain_until = time.monotonic() + 0.5
-            while time.monotonic() < drain_until:
-                executor.spin_once(timeout_sec=0.05)
+                spin_main()
+            # Drain: let the nodes empty their queues (until nothing moves for DRAIN_QUIET_S).
+            if not result.failed_nodes and not self._stop.is_set():
+                drain_until = time.monotonic() + self.DRAIN_MAX_S
+                last, quiet_since = processed(), time.monotonic()
+                while time.monotonic() < drain_until and not result.failed_nodes:
+                    spin_main()
+                    now_done = processed()
+                    if now_done != last:
+                        last, quiet_since = now_done, time.monotonic()
+                    elif time.monotonic() - quiet_since > self.DRAIN_QUIET_S:
+                        break
         finally:
             finished.set()
             thread.join(2.0)
+            stop_nodes.set()
+            for t in node_threads:
+                t.join(5.0)
+        if late_ms:
+            late_ms.sort()
+            result.live_player_late_ms_p95 = late_ms[min(len(late_ms) - 1, int(0.95 * len(late_ms)))]
         if errors:
             raise errors[0]
+
+    @staticmethod
+    def _live_report(nodes: list[Any], result: RunResult) -> None:
+        """Per processing node and input topic: messages published on the topic (by the player
+        and every node) against those the node's callback processed (``callback_stats``), into
+        ``result.live_inputs``; one warning line per node that missed inputs."""
+        published: dict[str, int] = defaultdict(int)
+        for n in nodes[:-1]:  # the processing nodes and the feeder (the recorder publishes nothing)
+            for topic, count in getattr(n, 'publish_counts', {}).items():
+                published[topic] += count
+        for n in nodes[:-2]:
+            inputs = {}
+            for topic, stats in n.callback_stats.items():
+                fq = '/' + topic.lstrip('/')
+                inputs[fq] = (published.get(fq, 0), len(stats.durations_ms))
+            result.live_inputs[n.get_name()] = inputs
+        for node, missed in sorted(result.live_dropped.items()):
+            if missed:
+                detail = ', '.join(f'{done} of {pub} on {t}' for t, (pub, done) in sorted(result.live_inputs[node].items())
+                                   if pub > done)
+                logger.warning('%s: %d inputs dropped (processed %s): it did not keep up', node, missed, detail)
 
 
 class _StopOnSignal:

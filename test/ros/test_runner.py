@@ -421,3 +421,107 @@ def test_runner_hands_the_bags_tf_static_to_nodes_that_take_it(tmp_path, caplog)
     np.testing.assert_allclose(tf.translation, np.zeros(3))
     assert sum(1 for c in calls if c == ('breaker', 'message')) == 10  # the failing node runs on
     assert any('breaker: cannot use /tf_static' in r.getMessage() for r in caplog.records)
+
+
+def _live_graph(slow_sleep_s: float = 0.05, die: bool = False) -> dict:
+    """The orientation nodes of an IMU bag plus a deliberately slow node on the IMU topic (and,
+    with ``die``, one whose timer raises: its thread dies)."""
+    import time as _time
+
+    from rclpy.clock import Clock, ClockType
+    from sensor_msgs.msg import Imu
+
+    from ar_tracking.ros.node_base import TrackingNode
+    from ar_tracking.ros.runner import GRAPH_NODES
+
+    class SlowNode(TrackingNode):
+        INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+        OUTPUTS: dict = {}
+
+        def __init__(self, **kwargs):
+            super().__init__('slow', **kwargs)
+            self.subscribe(Imu, 'imu/data_raw', lambda msg: _time.sleep(slow_sleep_s))
+
+    graph = {name: GRAPH_NODES[name] for name in ('imu_magnetometer', 'hybrid_orientation_filter')}
+    graph['slow'] = SlowNode
+    if die:
+        class DyingNode(TrackingNode):
+            INPUTS = {'imu/mag': 'sensor_msgs/msg/MagneticField'}
+            OUTPUTS: dict = {}
+
+            def __init__(self, **kwargs):
+                super().__init__('dying', **kwargs)
+                self.create_timer(0.2, self.fail, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+            def fail(self):
+                raise RuntimeError('sensor driver lost')
+
+        graph['dying'] = DyingNode
+    return graph
+
+
+def test_realtime_slow_node_does_not_stall_the_imu_path(tmp_path):
+    """Each node spins on its own thread: a node that takes 50 ms per IMU sample (100 Hz at 2x)
+    drops most of its inputs - counted and reported - while imu_magnetometer and the hybrid
+    filter on the same IMU stream process every one; orientation/global latency is measured."""
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=2.0)
+    result = GraphRunner(bag, tmp_path / 'out.mcap', rate=2.0, graph=_live_graph()).run()
+    assert result.failed_nodes == {} and not result.interrupted
+    inputs = result.live_inputs
+    assert inputs['imu_magnetometer'] == {'/imu/data_raw': (200, 200), '/imu/mag': (200, 200)}
+    assert inputs['hybrid_orientation_filter']['/imu/data'] == (200, 200)
+    assert result.live_dropped['imu_magnetometer'] == 0
+    assert result.live_dropped['hybrid_orientation_filter'] == 0
+    published, processed = inputs['slow']['/imu/data_raw']
+    assert published == 200 and processed < 200
+    assert result.live_dropped['slow'] == 200 - processed > 0
+    summary = result.live_summary()
+    assert summary['dropped']['slow'] == 200 - processed
+    assert summary['latency_n'] > 0 and 0 < summary['latency_ms_p50'] <= summary['latency_ms_p95']
+    with BagReader(result.out_path) as out:
+        assert out.message_count(['/orientation/global']) == 200
+
+
+def test_realtime_dead_node_is_reported_and_the_cli_exits_non_zero(tmp_path, monkeypatch):
+    import json
+
+    from ar_tracking import cli
+    from ar_tracking.ros import runner as runner_module
+
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=3.0)
+    graph = _live_graph(slow_sleep_s=0.0, die=True)
+    result = GraphRunner(bag, tmp_path / 'out.mcap', rate=2.0, graph=graph).run()
+    assert result.failed_nodes == {'dying': 'RuntimeError: sensor driver lost'}
+    with BagReader(result.out_path) as out:  # the output closes cleanly with what was recorded
+        assert out.message_count(['/ground_truth/orientation']) > 0
+
+    monkeypatch.setattr(runner_module, 'GRAPH_NODES', graph)
+    original = runner_module.GraphRunner.__init__
+
+    def with_graph(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        self.graph = graph
+    monkeypatch.setattr(runner_module.GraphRunner, '__init__', with_graph)
+    printed = []
+    monkeypatch.setattr('builtins.print', lambda *a, **k: printed.append(' '.join(map(str, a))))
+    code = cli.main(['run', str(bag), '-o', str(tmp_path / 'cli.mcap'), '--rate', '2', '--json', '-q'])
+    assert code == 1
+    assert any('node dying died: RuntimeError: sensor driver lost' in line for line in printed)
+    summary = json.loads(next(line for line in printed if line.startswith('{')))
+    assert summary['failed_nodes'] == {'dying': 'RuntimeError: sensor driver lost'}
+    assert set(summary['live']['dropped']) == {'imu_magnetometer', 'hybrid_orientation_filter', 'slow', 'dying'}
+
+
+def test_node_that_raises_while_starting_is_one_error(tmp_path):
+    from ar_tracking.ros.node_base import TrackingNode
+
+    class Broken(TrackingNode):
+        INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+        OUTPUTS: dict = {}
+
+        def __init__(self, **kwargs):
+            raise ValueError('parameter gain: must be positive')
+
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)
+    with pytest.raises(RunError, match=r'broken: cannot start \(parameter gain: must be positive\)'):
+        GraphRunner(bag, tmp_path / 'out.mcap', rate=2.0, graph={'broken': Broken}).run()
