@@ -517,7 +517,7 @@ class GraphRunner:
         self._stop = threading.Event()
         self._consecutive_losses: dict[str, int] = {}
         #: realtime: input header stamp (ns) -> perf_counter when the player published it
-        self._published_wall: dict[int | None, float] = {}
+        self._published_wall: dict[int, float] = {}
 
     # -- setup ------------------------------------------------------------------------------
 
@@ -634,7 +634,7 @@ class GraphRunner:
                     def record_now(raw: bytes) -> None:
                         if measure:  # before the writer lock: receipt, not recording, time
                             received = time.perf_counter()
-                            sent = published_wall.get(header_stamp_ns(raw))
+                            sent = published_wall.get(header_stamp_ns(raw))  # type: ignore[arg-type]
                             if sent is not None:
                                 latencies.append((received - sent) * 1e3)
                         with recorder.lock:
@@ -937,9 +937,10 @@ class GraphRunner:
                             writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
                     pub = feed_pubs.get(msg.topic)
                     if pub is not None:
-                        if msg.topic in stamp_topics:
+                        stamp = header_stamp_ns(msg.rawdata) if msg.topic in stamp_topics else None
+                        if stamp is not None:
                             # the first input of a stamp starts its clock (setdefault keeps it)
-                            published_wall.setdefault(header_stamp_ns(msg.rawdata), time.perf_counter())
+                            published_wall.setdefault(stamp, time.perf_counter())
                         pub.publish(msg.rawdata)
                         result.input_messages += 1
                     done += 1

@@ -24,6 +24,10 @@ def test_bench_reports_the_design_names(tmp_path):
     assert node['n'] == 400 and 0 < node['p50_ms'] <= node['p95_ms']
     assert graph['nodes']['panorama_mapper']['n'] == 120
     assert graph['lost_deliveries'] == 0 and graph['dropped_deliveries'] == 0  # lockstep loses nothing
+    live = graph['live']  # the realtime pass at 1x: counts per node and the latency keys
+    assert live['failed_nodes'] == {} and set(live['dropped']) == set(graph['nodes'])
+    assert live['inputs']['imu_magnetometer']['/imu/data_raw']['published'] == 200
+    assert live['latency_n'] > 0 and 'latency_ms_p95' in live
     json.dumps(results)  # JSON-able
 
 
