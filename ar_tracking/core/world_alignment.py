@@ -86,7 +86,7 @@ class WorldAlignmentConfig:
     field_model_sigma: float = 0.02
     #: Correlation time of the residuals (hand motion, disturbances), s: sets the effective
     #: sample count of the covariance.
-    correlation_s: float = 1.0
+    correlation_s: float = 0.5
     #: Window of the robust field fit, s (short, so that a disturbance of a few seconds is a
     #: minority of the windows early in a session too).
     window_s: float = 0.5
