@@ -33,9 +33,10 @@ seen since the panorama started:
   sums are kept (O(1) per sample, O(windows) per solve).
 
 R_PN follows from g_P and f_P by the gravity-first construction of eq. 3-4 (up = g, east =
-f x up, north = up x east), with the declination. Its covariance comes from the residual
-scatter with an effective sample count (samples per ``correlation_s``: hand motion and
-disturbances are correlated over about a second), plus floors for what the model leaves out
+f x up, north = up x east), with the declination. Its covariance: tilt from the hand's velocity
+term (``hand_velocity_m_s`` / (g T)), heading from the scatter of the window headings with an
+effective count (one per ``correlation_s``) and the tilt's leak through the dip, plus floors for
+what the model leaves out
 (soft-iron residuals, the camera-IMU time offset).
 Field vectors are used in units of their median norm, so any magnetometer unit works.
 """
@@ -86,7 +87,9 @@ class WorldAlignmentConfig:
     field_model_sigma: float = 0.02
     #: Correlation time of the residuals (hand motion, disturbances), s: sets the effective
     #: sample count of the covariance.
-    correlation_s: float = 0.5
+    correlation_s: float = 0.25
+    #: Typical speed of the phone in the hand (the velocity term of the gravity mean), m/s.
+    hand_velocity_m_s: float = 0.3
     #: Window of the robust field fit, s (short, so that a disturbance of a few seconds is a
     #: minority of the windows early in a session too).
     window_s: float = 0.5
@@ -470,7 +473,9 @@ class WorldAlignment:
         span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
         n_eff = max(1.0, span_s / c.correlation_s)
         g = float(np.linalg.norm(g_P))
-        tilt_var = self._accel_var / (g * g * n_eff) + c.tilt_floor_rad ** 2
+        # The hand's acceleration enters the mean as (v(T) - v(0)) / T: a tilt error that falls
+        # as 1/T, not as 1/sqrt(T) like white noise.
+        tilt_var = (c.hand_velocity_m_s / (g * max(span_s, 0.5))) ** 2 + c.tilt_floor_rad ** 2
         # f_sigma is the scatter of the window headings (rad): the mean of the kept windows.
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
         tan_dip = abs(float(f_P @ up)) / f_h
