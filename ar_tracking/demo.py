@@ -29,7 +29,7 @@ def sample_bag(workdir: Path) -> Path:
     if not path.is_file():
         logger.info('no sample bag in the package; simulating %s', path)
         make_bag('rotation_sweep', path, seed=7, duration_s=20.0, session='authoring',
-                 image_format='compressed', overwrite=True)
+                 image_format='compressed', overwrite=True, profile='kind')
     return path
 
 
