@@ -108,7 +108,7 @@ class WorldAlignmentEstimate:
     covariance_enu: Array
     gravity_samples: int
     field_samples: int
-    #: Share of the field samples the robust solve down-weighted below one half (disturbed).
+    #: Share of the field windows the robust solve down-weighted below one half (disturbed).
     field_outlier_share: float
     #: Residual hard iron (imu frame, relative to |B|) and accelerometer bias (m/s^2).
     hard_iron: Array
@@ -131,7 +131,6 @@ class _WindowSums:
     def __init__(self, window_ns: int, max_windows: int, shapes: dict[str, tuple[int, ...]]) -> None:
         self.window_ns = window_ns
         self.max_windows = max_windows
-        self.shapes = shapes
         self.n = np.zeros(64)
         self.sums = {k: np.zeros((64,) + shape) for k, shape in shapes.items()}
         self.count = 0  # windows used, the open one included
