@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .imu_orientation import STANDARD_GRAVITY_M_S2, ImuCalibration
-from .rotations import rot_z
+from .rotations import quat_wxyz_to_matrix, rot_z
 
 Array = NDArray[np.float64]
 
@@ -106,14 +106,8 @@ class AhrsEstimate:
     R_enu_body: Array
     #: 3x3, rad^2, about the ENU x, y, z axes (roll/pitch/yaw errors of REP-145).
     covariance: Array
-    #: The field sample was used (False: 6D update, missing/stale field or use_mag off).
+    #: The field sample was used (False: 6D update; missing, stale or disturbed field; use_mag off).
     mag_used: bool
-    #: VQF flagged the field as disturbed (norm or dip off its learnt reference).
-    mag_disturbed: bool
-    rest: bool
-    #: Calibrated rate and specific force of this sample (body frame).
-    gyro_rad_s: Array
-    accel_m_s2: Array
 
     @property
     def heading_sigma_rad(self) -> float:
@@ -122,17 +116,6 @@ class AhrsEstimate:
     @property
     def tilt_sigma_rad(self) -> float:
         return float(math.sqrt(self.covariance[0, 0]))
-
-
-def _quat_wxyz_to_matrix(q: Any) -> Array:
-    w, x, y, z = (float(v) for v in q)
-    n = w * w + x * x + y * y + z * z
-    s = 2.0 / n if n > 0 else 0.0
-    return np.array([
-        [1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)],
-        [s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)],
-        [s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)],
-    ])
 
 
 def _finite3(v: Any) -> Array | None:
@@ -165,7 +148,6 @@ class Ahrs:
         self._ts = self.config.sample_period_s
         self._probe: list[tuple[int, Array, Array, Array | None, int | None]] = []
         self._restart_state()
-        self.samples = 0
         if self._ts > 0:
             self._make_filter(self._ts)
 
@@ -252,7 +234,6 @@ class Ahrs:
         if fresh:
             vqf.updateMag(m)
         disturbed = bool(vqf.getMagDistDetected()) if fresh else False
-        rest = bool(vqf.getRestDetected())
         used = fresh and self._field_used(disturbed, dt)
         if used and not self._mag_ever_used:
             # VQF takes the first field samples with gain 1/N: the heading is that of a
@@ -260,12 +241,10 @@ class Ahrs:
             self._mag_ever_used = True
             self._heading_var_extra = c.heading_sigma_floor_rad ** 2
         q = vqf.getQuat9D() if (c.use_mag and self._mag_ever_used) else vqf.getQuat6D()
-        R = _quat_wxyz_to_matrix(q)
+        R = quat_wxyz_to_matrix(q)
         if c.use_mag and self._mag_ever_used and c.declination_rad:
             R = self._R_decl @ R
-        self.samples += 1
-        return AhrsEstimate(t_ns, R, self._covariance(dt, a, used), bool(used),
-                            disturbed, rest, g, a)
+        return AhrsEstimate(t_ns, R, self._covariance(dt, a, used), bool(used))
 
     def _field_used(self, disturbed: bool, dt: float) -> bool:
         """Whether VQF's heading correction took this field sample (mirrors its rejection

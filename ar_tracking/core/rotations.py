@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import math
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
@@ -24,6 +26,19 @@ Array = NDArray[np.float64]
 def quat_xyzw_to_matrix(quat_xyzw: Array) -> Array:
     """Rotation matrix (or stack) from quaternions in (x, y, z, w) order; normalises them."""
     return Rotation.from_quat(np.asarray(quat_xyzw, dtype=float)).as_matrix()
+
+
+def quat_wxyz_to_matrix(q_wxyz: Any) -> Array:
+    """Rotation matrix of one quaternion in (w, x, y, z) order (normalised), without scipy's
+    per-call overhead: for per-sample loops such as the AHRS (~20 us -> ~2 us)."""
+    w, x, y, z = (float(v) for v in q_wxyz)
+    n = w * w + x * x + y * y + z * z
+    s = 2.0 / n if n > 0 else 0.0
+    return np.array([
+        [1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)],
+        [s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)],
+        [s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)],
+    ])
 
 
 def matrix_to_quat_xyzw(R: Array) -> Array:

@@ -106,8 +106,6 @@ class WorldAlignmentEstimate:
     R_pano_enu: Array
     #: Covariance of the error of R_enu_pano in ENU axes (x, y: tilt, z: heading), rad^2.
     covariance_enu: Array
-    gravity_samples: int
-    field_samples: int
     #: Share of the field windows the robust solve down-weighted below one half (disturbed).
     field_outlier_share: float
     #: Residual hard iron (imu frame, relative to |B|) and accelerometer bias (m/s^2).
@@ -482,7 +480,7 @@ class WorldAlignment:
                        + tilt_var * tan_dip ** 2)
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),
-            gravity_samples=self._n, field_samples=self._field_samples, field_outlier_share=outliers,
+            field_outlier_share=outliers,
             hard_iron=h, accel_bias=b_a)
         self._dirty = False
         return self._estimate

@@ -260,16 +260,14 @@ def _aligned_stats(R_est: Array, R_true: Array, align: str) -> dict[str, Any]:
     """Heading / tilt / total RMSE (deg) over the samples where both are finite, after removing
     a constant heading offset (BROAD: ENU truth, not north-referenced) or a constant rotation
     (RepoIMU: the truth is relative to the first sensor orientation)."""
-    from ..core.rotations import angle_of, nearest_rotation
+    from ..core.rotations import angle_of
+    from .metrics import constant_world_rotation
 
     ok = np.all(np.isfinite(R_est), axis=(1, 2)) & np.all(np.isfinite(R_true), axis=(1, 2))
     if not ok.any():
         return {'heading_rmse_deg': None, 'tilt_rmse_deg': None, 'total_rmse_deg': None, 'n': 0}
     Re, Rt = R_est[ok], R_true[ok]
-    A = nearest_rotation(np.einsum('nij,nkj->ik', Rt, Re))
-    if align == 'heading':
-        yaw = math.atan2(A[1, 0] - A[0, 1], A[0, 0] + A[1, 1])
-        A = np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+    A = constant_world_rotation(Rt, Re, align)
     Re = A @ Re
     _, heading, tilt = heading_tilt_error_deg(Re, Rt)
     total = np.degrees(angle_of(np.einsum('nji,njk->nik', Rt, Re)))

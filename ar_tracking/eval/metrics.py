@@ -452,6 +452,17 @@ def topic_key(topic: str) -> str:
 WORLD_ALIGNMENTS = ('none', 'heading', 'rotation')
 
 
+def constant_world_rotation(R_true: Array, R_est: Array, mode: str) -> Array:
+    """The one rotation A of the world frame that best turns R_est onto R_true (paired
+    samples): ``rotation``, the chordal mean of R_true R_est^T; ``heading``, its part about up."""
+    A = nearest_rotation(np.einsum('nij,nkj->ik', R_true, R_est))  # sum R_true R_est^T
+    if mode == 'heading':
+        yaw = math.atan2(A[1, 0] - A[0, 1], A[0, 0] + A[1, 1])
+        c, s = math.cos(yaw), math.sin(yaw)
+        A = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return A
+
+
 def align_world(truth: OrientationSeries, estimate: OrientationSeries, mode: str) -> tuple[OrientationSeries, float]:
     """The estimate with its world frame turned onto the truth's by one constant rotation
     (``rotation``: the chordal mean of R_true R_est^T; ``heading``: its part about up only),
@@ -466,12 +477,7 @@ def align_world(truth: OrientationSeries, estimate: OrientationSeries, mode: str
                                            (estimate.stamps_ns - t0).astype(float))
     if not inside.any():
         return estimate, 0.0
-    M = np.einsum('nij,nkj->ik', R_true, estimate.R_enu_cam[inside])  # sum R_true R_est^T
-    A = nearest_rotation(M)
-    if mode == 'heading':
-        yaw = math.atan2(A[1, 0] - A[0, 1], A[0, 0] + A[1, 1])
-        c, s = math.cos(yaw), math.sin(yaw)
-        A = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    A = constant_world_rotation(R_true, estimate.R_enu_cam[inside], mode)
     angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(A) - 1.0) / 2.0))))
     return OrientationSeries(estimate.stamps_ns, A @ estimate.R_enu_cam), angle
 

@@ -52,8 +52,8 @@ def vqf_reference(path: str | Path, source_bag: Path | None = None) -> Orientati
     """R_enu_cam of VQF on the bag's IMU samples at the IMU stamps; None without them."""
     from vqf import VQF
 
-    from ..core.ahrs import _quat_wxyz_to_matrix
     from ..core.imu_orientation import ImuCalibration
+    from ..core.rotations import quat_wxyz_to_matrix
 
     with BagReader(path) as bag:
         topics = bag.topics
@@ -107,5 +107,5 @@ def vqf_reference(path: str | Path, source_bag: Path | None = None) -> Orientati
             if np.all(np.isfinite(field)) and np.any(field):
                 f.updateMag(field * 1e6)
         stamps.append(int(t[k]))
-        R.append(_quat_wxyz_to_matrix(f.getQuat9D()) @ R_imu_cam)
+        R.append(quat_wxyz_to_matrix(f.getQuat9D()) @ R_imu_cam)
     return OrientationSeries.from_lists(stamps, R) if stamps else None

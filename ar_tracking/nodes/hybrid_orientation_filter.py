@@ -128,7 +128,6 @@ class HybridOrientationFilterNode(TrackingNode):
         self.last_visual_ns: int | None = None
         self.last_imu_ns: int | None = None
         self.last_backup_pub_ns: int | None = None
-        self.last_global: np.ndarray | None = None
         self.last_published_ns: int | None = None
         self.panorama_frame = 'panorama'
         self.published = 0
@@ -229,7 +228,6 @@ class HybridOrientationFilterNode(TrackingNode):
         set_covariance(out.linear_acceleration_covariance, None)
         self.pub_global.publish(out)
         self.published += 1
-        self.last_global = R_enu_cam
         if R_enu_pano is not None:
             tf = TransformStamped()
             tf.header.stamp = out.header.stamp
@@ -254,9 +252,6 @@ class HybridOrientationFilterNode(TrackingNode):
             if R_pano_cam is None:  # before the buffer, or across a lost stretch
                 continue
             self.align.add(t_s, R_pano_cam @ self.R_imu_cam.T, accel, mag, omega)
-
-    def _vision_live(self, t_ns: int) -> bool:
-        return self.last_visual_ns is not None and t_ns - self.last_visual_ns <= self.visual_timeout_ns
 
     # -- callbacks -------------------------------------------------------------------------
 
@@ -338,7 +333,7 @@ class HybridOrientationFilterNode(TrackingNode):
         if self.last_visual_ns is not None:
             self.pending.append((t_g, self.calibration.accel(accel), mag, self.calibration.gyro(omega)))
             self._resolve()
-        if self.last_visual_ns is None or self.backup.R_enu_cam is None or self.align.estimate() is None:
+        if self.last_visual_ns is None or self.backup.R_enu_cam is None or not self.align.ready:
             return
         lost_for = t_g - self.last_visual_ns
         if lost_for <= self.visual_timeout_ns:
@@ -357,7 +352,7 @@ class HybridOrientationFilterNode(TrackingNode):
         """imu/data (the AHRS): without a camera (none yet, or lost beyond max_backup_s) the
         output is the AHRS orientation turned into the camera frame."""
         t_s = stamp_ns(msg.header)
-        if self._vision_live(t_s) or (self.last_visual_ns is not None and t_s - self.last_visual_ns <= self.max_backup_ns):
+        if self.last_visual_ns is not None and t_s - self.last_visual_ns <= max(self.visual_timeout_ns, self.max_backup_ns):
             return
         if covariance_is_known(msg.orientation_covariance):
             cov = np.asarray(msg.orientation_covariance, dtype=float).reshape(3, 3)

@@ -164,8 +164,6 @@ def test_undecodable_messages_end_the_run_with_one_error(tmp_path):
 
 def test_concurrent_lockstep_runs_on_one_domain_do_not_hear_each_other(tmp_path):
     """Two runs at once, forced onto the same DDS domain: each output is still its own bag's."""
-    import os
-
     fast = write_turning_imu_bag(tmp_path / 'a.mcap', seconds=3.0, yaw_rate_rad_s=0.5)
     slow = write_turning_imu_bag(tmp_path / 'b.mcap', seconds=3.0, yaw_rate_rad_s=-0.2)
     env = dict(os.environ, AR_TRACKING_DOMAIN_ID='77')
