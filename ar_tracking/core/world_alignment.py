@@ -28,7 +28,10 @@ seen since the panorama started:
   the panorama's rotations the two separate (a moving-body magnetometer calibration, linear in
   (f_P, h)). Disturbances that turn the field while keeping its strength and dip - invisible to
   a per-sample check - are outliers here: the estimate is an IRLS with a Cauchy loss on the
-  field each short window of samples implies (heading, strength, dip about their medians),
+  field each short window of samples implies (strength and dip about their medians, heading
+  about the densest cluster of window headings, kept from one solve to the next unless another
+  cluster clearly outgrows it - a turned field early in a session can hold as many windows as
+  the true one, and a median would sit between the two),
   re-solved every ``solve_period_s``; the normal equations are sums, so only each window's
   sums are kept (O(1) per sample, O(windows) per solve).
 
@@ -90,6 +93,10 @@ class WorldAlignmentConfig:
     correlation_s: float = 0.25
     #: Typical speed of the phone in the hand (the velocity term of the gravity mean), m/s.
     hand_velocity_m_s: float = 0.3
+    #: A denser cluster of window headings takes over from the one the last solve chose only
+    #: with this many times its support (hysteresis against a disturbance as long as the
+    #: clean data so far).
+    mode_switch_ratio: float = 1.25
     #: Window of the robust field fit, s (short, so that a disturbance of a few seconds is a
     #: minority of the windows early in a session too).
     window_s: float = 0.5
@@ -119,6 +126,19 @@ def _cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, f
     dev = np.abs(x - np.median(x))
     sigma = max(1.4826 * float(np.median(dev)), floor)
     return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
+
+
+def _shorth(x: Array) -> tuple[float, float]:
+    """Centre and robust sigma of the densest half of x: the shortest interval that holds half
+    of the values (Rousseeuw's shorth / least median of squares location). Unlike the median it
+    sits in the larger of two clusters instead of between them, and its width (1.349 sigma for
+    normal data) is not inflated by the other cluster."""
+    xs = np.sort(x)
+    n = len(xs)
+    h = n // 2 + 1
+    widths = xs[h - 1:] - xs[:n - h + 1]
+    i = int(np.argmin(widths))
+    return float(np.mean(xs[i:i + h])), float(widths[i]) / 1.349
 
 
 class _WindowSums:
@@ -207,6 +227,7 @@ class WorldAlignment:
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
         self._prior = prior
         self._h_last: Array | None = None
+        self._heading_mode: float | None = None
         self._field_enu_ref: Array | None = None if prior is None else getattr(self, '_field_enu_ref', None)
         self._estimate: WorldAlignmentEstimate | None = None
         self._dirty = True
@@ -362,9 +383,10 @@ class WorldAlignment:
         A disturbance lasts seconds and turns the field for all of its samples at once, so the
         samples are grouped in short windows (``window_s``): each window gives the heading
         of the field it implies in the panorama frame, the windows' headings are compared with
-        their median, and a window that departs gets a Cauchy weight for all its samples (a
-        median survives up to half of the windows disturbed; a per-sample loss started from
-        least squares does not, once a long disturbance has pulled the fit). f_P and h are
+        the centre of their densest half (with hysteresis, ``mode_switch_ratio``), and a window
+        that departs gets a Cauchy weight for all its samples (this survives up to half of the
+        windows disturbed; a per-sample loss started from least squares does not, once a long
+        disturbance has pulled the fit). f_P and h are
         then refitted by weighted least squares. The normal equations are sums, so only the
         windows' sums are kept. Returns f_P, h (relative to |B|), the residual sigma of the
         window headings (rad) and the share of windows weighted below one half."""
@@ -414,6 +436,12 @@ class WorldAlignment:
             w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f, h, up)
             outliers = float(np.mean(w_win < 0.5))
         self._h_last = h
+        if n_win >= 3:
+            e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
+            if float(e1 @ e1) < 1e-6:
+                e1 = np.array([0.0, 1.0, 0.0]) - up[1] * up
+            e1 /= float(np.linalg.norm(e1))
+            self._heading_mode = math.atan2(float(f @ cross3(up, e1)), float(f @ e1))
         return f, h, spread, outliers
 
     def _window_weights(self, n_w: Array, S_w: Array, Rtm_w: Array, f: Array, h: Array,
@@ -422,11 +450,26 @@ class WorldAlignment:
         in the panorama frame, about their medians) and the heading spread (rad)."""
         c = self.config
         mean_f = (Rtm_w - np.einsum('nji,j->ni', S_w, h)) / n_w[:, None]  # mean R_P_imu (m - h)
-        east = cross3(f, up)
-        east /= max(float(np.linalg.norm(east)), 1e-12)
-        north = cross3(up, east)
-        psi = np.arctan2(mean_f @ east, mean_f @ north)  # 0 for a window agreeing with f
-        w_psi, spread = _cauchy_about_median(psi, math.radians(0.25), c.cauchy_scale)
+        # Headings about up in a basis fixed in the panorama frame, relative to f's.
+        e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
+        if float(e1 @ e1) < 1e-6:
+            e1 = np.array([0.0, 1.0, 0.0]) - up[1] * up
+        e1 /= float(np.linalg.norm(e1))
+        e2 = cross3(up, e1)
+        f_abs = math.atan2(float(f @ e2), float(f @ e1))
+        rel = (np.arctan2(mean_f @ e2, mean_f @ e1) - f_abs + math.pi) % (2.0 * math.pi) - math.pi
+        centre, spread = _shorth(rel)
+        spread = max(spread, math.radians(0.25))
+        width = c.cauchy_scale * spread
+        if self._heading_mode is not None:
+            # Hysteresis between clusters of window headings (a turned field early in a session
+            # can hold as many windows as the true one): keep the cluster the last solve chose
+            # unless the densest one now holds clearly more support.
+            prev = (self._heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
+            support = lambda c0: float(n_w @ (1.0 / (1.0 + ((rel - c0) / width) ** 2)))  # noqa: E731
+            if support(centre) <= c.mode_switch_ratio * support(prev):
+                centre = prev
+        w_psi = 1.0 / (1.0 + ((rel - centre) / width) ** 2)
         # Most real disturbances also change the field's strength or dip: a window whose mean
         # field departs in either is down-weighted too (a turn that keeps both is left to the
         # heading test).

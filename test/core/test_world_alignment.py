@@ -61,6 +61,15 @@ def test_a_turned_field_that_keeps_strength_and_dip_is_rejected():
     assert 0.15 < est.field_outlier_share < 0.4
 
 
+def test_a_turned_field_as_long_as_the_clean_data_does_not_take_over():
+    """5 s clean, then 6 deg turned for 5 s (strength and dip kept): at the end half of the
+    windows are turned. A median would sit between the two clusters (~3 deg); the densest
+    cluster with hysteresis stays with the field the session started with."""
+    turn = lambda t: math.radians(6.0) if t >= 5.0 else 0.0  # noqa: E731
+    heading, _ = errors_deg(run(duration=10.0, turns=0.05, field_turn=turn))
+    assert heading < 1.0
+
+
 def test_residual_hard_iron_is_estimated_over_a_turn():
     h = np.array([3e-6, -2e-6, 1.5e-6])
     est = run(hard_iron=h)
