@@ -30,6 +30,13 @@ if [ ! -f "$STAMP" ]; then
   "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e '.[ros,test,bench]'
   rm -f "$VENV"/.ar_tracking-*; touch "$STAMP"
 fi
+# Message packages that no wheel ships (tf2_msgs, for /tf): built once from interfaces/ with the
+# rosidl generators from PyPI; skipped where they already import (e.g. a ROS install).
+ISTAMP="$VENV/.interfaces-$(cat interfaces/*/package.xml interfaces/*/CMakeLists.txt interfaces/*/msg/*.msg | "$VENV/bin/python" -c 'import hashlib,sys; print(hashlib.sha1(sys.stdin.buffer.read()).hexdigest()[:12])')"
+if [ ! -f "$ISTAMP" ]; then
+  interfaces/build.sh "$VENV"
+  rm -f "$VENV"/.interfaces-*; touch "$ISTAMP"
+fi
 
 cmd="${1:-demo}"; [ $# -gt 0 ] && shift
 case "$cmd" in
