@@ -97,6 +97,9 @@ class WorldAlignmentConfig:
     #: with this many times its support (hysteresis against a disturbance as long as the
     #: clean data so far).
     mode_switch_ratio: float = 1.25
+    #: Typical length of a magnetic disturbance, s: how fast the doubt between two clusters of
+    #: window headings fades as one outlasts the other (heading covariance).
+    disturbance_duration_s: float = 3.0
     #: Window of the robust field fit, s (short, so that a disturbance of a few seconds is a
     #: minority of the windows early in a session too).
     window_s: float = 0.5
@@ -227,6 +230,7 @@ class WorldAlignment:
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
         self._prior = prior
         self._h_last: Array | None = None
+        self._ambiguity_var = 0.0
         self._heading_mode: float | None = None
         self._field_enu_ref: Array | None = None if prior is None else getattr(self, '_field_enu_ref', None)
         self._estimate: WorldAlignmentEstimate | None = None
@@ -470,6 +474,7 @@ class WorldAlignment:
             if support(centre) <= c.mode_switch_ratio * support(prev):
                 centre = prev
         w_psi = 1.0 / (1.0 + ((rel - centre) / width) ** 2)
+        self._ambiguity_var = self._cluster_ambiguity(rel, centre, width)
         # Most real disturbances also change the field's strength or dip: a window whose mean
         # field departs in either is down-weighted too (a turn that keeps both is left to the
         # heading test).
@@ -478,6 +483,25 @@ class WorldAlignment:
         w_norm, _ = _cauchy_about_median(norm, 0.005, c.cauchy_scale)
         w_dip, _ = _cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
         return w_psi * w_norm * w_dip, spread
+
+    def _cluster_ambiguity(self, rel: Array, centre: float, width: float) -> float:
+        """Heading variance (rad^2) of the chance that the cluster of window headings not chosen
+        is the true field. Nothing in the field tells a turned field from the true one; what
+        does is time: with disturbances of ``disturbance_duration_s`` typical length, the
+        cluster that has lasted d_c against the other's d_o is the true one with odds
+        exp((d_c - d_o) / tau). A mixture of the two clusters, separated by delta, adds
+        p (1 - p) delta^2 - so the stated heading covariance is wide while a disturbance as long
+        as the clean data so far holds half the windows, and narrows as the chosen field outlasts it."""
+        c = self.config
+        far = np.abs(rel - centre) > 2.0 * width
+        if int(far.sum()) < 2:
+            return 0.0
+        other, _ = _shorth(rel[far])
+        d_chosen = float(np.sum(np.abs(rel - centre) <= 2.0 * width)) * c.window_s
+        d_other = float(np.sum(np.abs(rel - other) <= 2.0 * width)) * c.window_s
+        z = (d_chosen - d_other) / c.disturbance_duration_s
+        p = 1.0 / (1.0 + math.exp(min(z, 50.0)))
+        return p * (1.0 - p) * (other - centre) ** 2
 
     def _up_estimate(self) -> Array:
         """Gravity direction in the panorama frame from the current sums (z before any)."""
@@ -520,7 +544,7 @@ class WorldAlignment:
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
         tan_dip = abs(float(f_P @ up)) / f_h
         heading_var = (f_sigma ** 2 / max(1.0, n_eff * (1.0 - outliers)) + c.heading_floor_rad ** 2
-                       + tilt_var * tan_dip ** 2)
+                       + tilt_var * tan_dip ** 2 + self._ambiguity_var)
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),
             field_outlier_share=outliers,

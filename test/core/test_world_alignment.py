@@ -70,6 +70,18 @@ def test_a_turned_field_as_long_as_the_clean_data_does_not_take_over():
     assert heading < 1.0
 
 
+def test_heading_covariance_holds_the_doubt_between_two_field_clusters():
+    """While a turned field has lasted almost as long as the clean one, either could be the
+    Earth's: the stated heading sigma covers the 6 deg between them; once the clean field has
+    clearly outlasted the turn, the doubt fades."""
+    turn = lambda t: math.radians(6.0) if 5.0 <= t < 9.0 else 0.0  # noqa: E731
+    doubtful = run(duration=9.0, turns=0.1, field_turn=turn)
+    settled = run(duration=30.0, turns=0.6, field_turn=turn)
+    assert math.degrees(math.sqrt(doubtful.covariance_enu[2, 2])) > 2.0
+    assert math.degrees(math.sqrt(settled.covariance_enu[2, 2])) < 0.6
+    assert errors_deg(settled)[0] < 0.3
+
+
 def test_residual_hard_iron_is_estimated_over_a_turn():
     h = np.array([3e-6, -2e-6, 1.5e-6])
     est = run(hard_iron=h)
