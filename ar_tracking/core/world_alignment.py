@@ -288,9 +288,10 @@ class WorldAlignment:
             return
         dt = (t_ns - prev_t) * 1e-9
         gain = min(1.0, dt / c.lever_arm_tau_s)
-        w_prev = self._prev_omega
+        w_prev, a_prev = self._prev_omega, self._prev_accel
+        assert a_prev is not None  # set together with the rate
         w_lp = w_prev + gain * (omega - w_prev)
-        a_lp = self._prev_accel + gain * (accel - self._prev_accel)
+        a_lp = a_prev + gain * (accel - a_prev)
         self._prev_omega, self._prev_accel, self._prev_omega_t_ns = w_lp, a_lp, t_ns
         self._lever_count += 1
         if self._lever_count % 2:
@@ -366,7 +367,7 @@ class WorldAlignment:
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
             A[:3, :3] += np.eye(3) * wp
             rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
-        x = np.linalg.solve(A, rhs)
+        x = np.asarray(np.linalg.solve(A, rhs), dtype=np.float64)
         g, b = x[:3], x[3:6]
         if lever:
             self._lever_arm = x[6:]
