@@ -435,7 +435,7 @@ def _nees(path: Path, topic: str = '/orientation/global') -> float | None:
     return round(float(np.mean(values)), 3) if values else None
 
 
-def bench_seeds(workdir: Path, seeds: list[int] | range = range(101, 111), duration_s: float = 40.0,
+def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), duration_s: float = 40.0,
                 profile: str | None = None) -> dict[str, Any]:
     """The hybrid filter on fresh rotation_sweep seeds (the simulator's default, harder profile
     unless ``profile`` says otherwise): per seed the heading / tilt RMSE of orientation/global
