@@ -274,3 +274,20 @@ def test_nearest_rotation_reorthonormalises_and_gives_the_chordal_mean():
     # Samples symmetric about R: their chordal mean is R.
     d = rotations_about_axis([0.2, 1.0, -0.3], [0.03])[0]
     assert np.allclose(nearest_rotation(R @ d + R @ d.T), R, atol=1e-12)
+
+
+def test_single_matrix_quaternion_equals_scipy_with_canonical_sign():
+    """The fast one-matrix path agrees with scipy, 180 deg turns and the batch path included."""
+    from scipy.spatial.transform import Rotation
+
+    from ar_tracking.core.rotations import matrix_to_quat_xyzw
+
+    Rs = list(Rotation.random(500, random_state=3).as_matrix())
+    Rs += [Rotation.from_rotvec(np.pi * np.array(axis)).as_matrix() for axis in ([1, 0, 0], [0, 1, 0], [0, 0, 1])]
+    for R in Rs:
+        q = matrix_to_quat_xyzw(R)
+        ref = Rotation.from_matrix(R).as_quat()
+        ref = -ref if ref[3] < 0 else ref
+        assert q[3] >= 0
+        assert np.allclose(q, ref, atol=1e-12) or (abs(q[3]) < 1e-12 and np.allclose(q, -ref, atol=1e-12))
+    assert np.allclose(matrix_to_quat_xyzw(np.stack(Rs[:5])), [matrix_to_quat_xyzw(R) for R in Rs[:5]])
