@@ -120,8 +120,10 @@ class TrackingNode(Node):
         #: node publishes from its own thread only, so a plain counter is enough.
         self.publish_counts: dict[str, int] = defaultdict(int)
         self._validators: dict[str, Callable[[Any], str | None]] = {}
+        self._live: dict[str, Callable[[Any], None]] = {}
         self._warned_at: dict[tuple[Any, int], float] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
 
     # -- parameters ------------------------------------------------------------------------
 
@@ -133,15 +135,23 @@ class TrackingNode(Node):
         *,
         min_value: float | None = None,
         max_value: float | None = None,
-        read_only: bool = False,
+        read_only: bool = True,
         validate: Callable[[Any], str | None] | None = None,
+        live: Callable[[Any], None] | None = None,
     ) -> Any:
         """Declare a parameter with a description (and a range for numbers); return its value.
+
+        Every parameter either applies live or is read-only (a ``set_parameters`` that returned
+        success while nothing changed would mislead): with ``live`` the parameter can be set at
+        run time and ``live(value)`` reconfigures the node after each accepted change; without
+        it the parameter is declared read_only and a change is refused with that reason.
+        ``read_only`` is kept for callers that say so explicitly; it cannot make a parameter
+        without ``live`` writable.
 
         ``validate`` returns None for an acceptable value or the reason it is rejected; it runs
         for the initial value and for every later change (a rejected change leaves the state).
         """
-        descriptor = ParameterDescriptor(description=description, read_only=read_only)
+        descriptor = ParameterDescriptor(description=description, read_only=live is None)
         if min_value is not None or max_value is not None:
             lo = -1e300 if min_value is None else min_value
             hi = 1e300 if max_value is None else max_value
@@ -158,7 +168,13 @@ class TrackingNode(Node):
             if reason is not None:
                 raise ValueError(f'parameter {name}: {reason}')
             self._validators[name] = validate
+        if live is not None:
+            self._live[name] = live
         return value
+
+    def unknown_parameters(self) -> list[str]:
+        """Overrides (params file, ``-p``) that name no declared parameter: rclpy ignores them."""
+        return sorted(n for n in self._parameter_overrides if not self.has_parameter(n))
 
     def imu_calibration_params(self, extra_hard_iron: Any = (0.0, 0.0, 0.0)) -> Any:
         """Declare the device calibration every node that reads raw IMU samples shares
@@ -200,6 +216,19 @@ class TrackingNode(Node):
                 if reason is not None:
                     return SetParametersResult(successful=False, reason=f'{p.name}: {reason}')
         return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, params: Sequence[Parameter]) -> None:
+        """Apply accepted changes of live parameters (validated by :meth:`_on_set_parameters`)."""
+        for p in params:
+            apply = self._live.get(p.name)
+            if apply is None:
+                continue
+            try:
+                apply(p.value)
+            except Exception as exc:  # a live change must not end the node
+                self.get_logger().error(f'parameter {p.name}: cannot apply {p.value!r} ({type(exc).__name__}: {exc})')
+                continue
+            self.get_logger().info(f'parameter {p.name} set to {p.value!r}')
 
     # -- topics ----------------------------------------------------------------------------
 
@@ -260,26 +289,133 @@ class TrackingNode(Node):
         self.get_logger().warning(text)
 
 
-def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
-    """main() body of every node executable (CONVENTIONS habit 12)."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+def _params_files(args: Sequence[str]) -> list[str]:
+    """The ``--params-file`` paths of a ``--ros-args`` command line."""
+    files: list[str] = []
+    in_ros = False
+    it = iter(args)
+    for a in it:
+        if a == '--ros-args':
+            in_ros = True
+        elif a == '--':
+            in_ros = False
+        elif in_ros and a == '--params-file':
+            files.append(next(it, ''))
+    return files
 
-    rclpy.init(args=args)
+
+def _known_node_names() -> list[str]:
+    import pkgutil
+
+    from .. import nodes
+
+    return [m.name for m in pkgutil.iter_modules(nodes.__path__)]
+
+
+def params_file_warnings(node: Node, files: Sequence[str]) -> list[str]:
+    """What a params file says that this node ignores: unknown parameters in a section for
+    this node, and sections named like one of the package's nodes but misspelt."""
+    import difflib
+
+    from .params import ParamsError, load_params_file
+
+    known = set(_known_node_names()) | {node.get_name()}
+    fqn = node.get_fully_qualified_name().lstrip('/')
+    warnings: list[str] = []
+    for path in files:
+        try:
+            sections = load_params_file(path)
+        except ParamsError:
+            continue  # reported before rclpy.init
+        for section, values in sections.items():
+            if '*' in section:
+                continue  # wildcards (/**) apply to every node: nothing to check
+            if section == fqn:
+                declared = {n for n in values if node.has_parameter(n)}
+                unknown = sorted(set(values) - declared)
+                if unknown:
+                    warnings.append(f'{path}: {section}: unknown parameter(s) {", ".join(unknown)} (ignored)')
+                continue
+            base = section.rsplit('/', 1)[-1]
+            if base not in known:
+                close = difflib.get_close_matches(base, sorted(known), n=1, cutoff=0.75)
+                if close:
+                    warnings.append(f'{path}: section {section!r} names no node; did you mean {close[0]!r}? (ignored)')
+    return warnings
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+    """main() body of every node executable (CONVENTIONS habit 12).
+
+    A bad parameter or params file ends in one line on stderr and exit code 2 (never a
+    traceback); unknown parameters and misspelt node sections of a params file are warned
+    about; Ctrl-C (or SIGTERM) stops the node's threads before the context goes away, so it
+    exits 0 without a KeyboardInterrupt traceback or "publisher's context is invalid".
+    """
+    import signal
+
+    import rclpy
+    from rclpy.exceptions import NameValidationException, ParameterException
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+
+    from .params import ParamsError, load_params_file
+
+    argv = list(sys.argv if args is None else args)
+    for path in _params_files(argv):
+        try:
+            load_params_file(path)
+        except ParamsError as exc:
+            print(f'error: {exc}', file=sys.stderr)
+            return 2
+
+    def on_term(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
     node = None
+    code = 0
     try:
-        node = node_factory()
-        rclpy.spin(node)
+        signal.signal(signal.SIGTERM, on_term)
+        # Ctrl-C as a KeyboardInterrupt even where the launcher left SIGINT ignored (as rclpy's
+        # own handler would take it).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            # rclpy's own SIGINT handler shuts the context down at once, under the feet of
+            # threads still publishing; here Ctrl-C is a KeyboardInterrupt handled below.
+            rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        except Exception as exc:  # RCLError: unparsable --ros-args
+            print(f'error: {_first_line(exc)}', file=sys.stderr)
+            return 2
+        try:
+            node = node_factory()
+        except (ValueError, TypeError, ParameterException, NameValidationException) as exc:
+            print(f'error: {_first_line(exc)}', file=sys.stderr)
+            return 2
+        for text in params_file_warnings(node, _params_files(argv)):
+            node.get_logger().warning(text)
+        # Short waits, so that a signal is handled within 0.2 s (nothing wakes a wait up
+        # without rclpy's signal handler).
+        from rclpy.executors import SingleThreadedExecutor
+
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        while node.context.ok():
+            executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as exc:  # a rejected parameter: one line, non-zero exit
-        print(f'error: {exc}', file=sys.stderr)
-        return 2
     finally:
-        if node is not None:
-            close = getattr(node, 'close', None)
-            if callable(close):
-                close()
-            node.destroy_node()
+        try:
+            if node is not None:
+                close = getattr(node, 'close', None)
+                if callable(close):
+                    close()
+                node.destroy_node()
+        except KeyboardInterrupt:
+            pass
         rclpy.try_shutdown()
-    return 0
+    return code
