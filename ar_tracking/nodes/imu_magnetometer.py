@@ -22,6 +22,10 @@ downstream.
 
 Replay mode (parameter ``bag_path``): reads those topics from a bag itself and also publishes the
 calibrated ``imu/data_raw`` and ``imu/mag``.
+
+Live parameters (``ros2 param set`` applies them from the next sample on): ``declination_rad``
+and ``declination``, ``world_frame``, ``frame_id``, ``fixed_frame``, ``publish_tf``,
+``max_mag_age_s``, ``reset_after_s``; the others are read-only (the filter is built from them).
 """
 from __future__ import annotations
 
@@ -33,6 +37,7 @@ from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.ahrs import Ahrs, AhrsConfig, AhrsError
 from ..core.imu_orientation import FieldModel, GravityFieldOrientation
+from ..core.rotations import rot_z
 from ..io.replay import ReplayOptions, ScheduledMessage
 from ..ros.conversions import (
     ConversionError,
@@ -46,17 +51,9 @@ from ..ros.conversions import (
 from ..ros.frames import WORLD_FROM_ENU, check_world_frame
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
+from ..ros.tf import TfBroadcaster
 
 METHODS = ('vqf', 'compass')
-
-
-def _tf_message_class() -> Any:
-    """tf2_msgs/TFMessage when this ROS install has it (not on the pip-only path)."""
-    try:
-        from tf2_msgs.msg import TFMessage
-    except ImportError:
-        return None
-    return TFMessage
 
 
 class ImuMagnetometerNode(TrackingNode):
@@ -73,8 +70,17 @@ class ImuMagnetometerNode(TrackingNode):
                              read_only=True, validate=lambda v: None if v in METHODS else f'must be one of {", ".join(METHODS)}')
         mag_bias = [p(f'mag_bias_{axis}', 0.0, f'imu_filter_madgwick name: field bias along {axis}, tesla (added to hard_iron_offset)', min_value=-1e-3, max_value=1e-3) for axis in 'xyz']
         calibration = self.imu_calibration_params(extra_hard_iron=mag_bias)
-        declination = p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north', min_value=-3.1416, max_value=3.1416)
-        declination += p('declination', 0.0, 'imu_filter_madgwick name of the declination, rad (added to declination_rad)', min_value=-3.1416, max_value=3.1416)
+        self._declination_parts = {
+            'declination_rad': p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north', min_value=-3.1416, max_value=3.1416,
+                                 live=lambda v: self._set_declination('declination_rad', v)),
+            'declination': p('declination', 0.0, 'imu_filter_madgwick name of the declination, rad (added to declination_rad)', min_value=-3.1416, max_value=3.1416,
+                             live=lambda v: self._set_declination('declination', v)),
+        }
+        declination = sum(self._declination_parts.values())
+        #: The filter is built with the starting declination; a live change turns its output
+        #: about the vertical by the difference (the cores apply the declination the same way).
+        self.declination_start_rad = declination
+        self.R_declination_change = np.eye(3)
         model = FieldModel(
             gravity_m_s2=p('gravity_m_s2', 9.80665, 'Local gravity, m/s^2', min_value=9.7, max_value=9.9),
             field_t=p('expected_field_t', 0.0, 'Local magnetic field strength, tesla (0: learn it online; compass method)', min_value=0.0, max_value=1e-4),
@@ -84,7 +90,8 @@ class ImuMagnetometerNode(TrackingNode):
             mag_noise_t=p('mag_noise_t', 3e-7, 'Magnetometer white noise, 1-sigma per axis, tesla (compass covariance floor)', min_value=1e-12, max_value=1e-4),
         )
         self.use_mag: bool = p('use_mag', True, 'Use the magnetometer for heading (false: 6D, heading from the gyro only, arbitrary origin)', read_only=True)
-        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample (stamp difference to the IMU sample) still used; older: 6D update', min_value=0.0, max_value=10.0))
+        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample (stamp difference to the IMU sample) still used; older: 6D update', min_value=0.0, max_value=10.0,
+                                          live=lambda v: setattr(self, 'max_mag_age_ns', int(1e9 * v))))
         try:
             config = AhrsConfig(
                 sample_period_s=p('constant_dt', 0.0, 'IMU sample period, s (imu_filter_madgwick name; 0: measured from the stamps)', min_value=0.0, max_value=1.0, read_only=True),
@@ -100,11 +107,16 @@ class ImuMagnetometerNode(TrackingNode):
             )
         except AhrsError as exc:
             raise ValueError(str(exc)) from exc
-        self.world_frame: str = p('world_frame', 'enu', 'World frame of the published orientation: enu, ned or nwu', validate=check_world_frame)
-        self.frame_id: str = p('frame_id', '', 'Body frame id of the output (empty: the input frame_id)')
-        self.publish_tf: bool = p('publish_tf', False, 'Also publish the orientation on /tf (fixed_frame -> body frame), like imu_filter_madgwick', read_only=True)
-        self.fixed_frame: str = p('fixed_frame', '', 'Parent frame of the published TF (empty: the world_frame name)') or self.world_frame
-        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
+        self.world_frame: str = p('world_frame', 'enu', 'World frame of the published orientation: enu, ned or nwu', validate=check_world_frame,
+                                  live=self._set_world_frame)
+        self.frame_id: str = p('frame_id', '', 'Body frame id of the output (empty: the input frame_id)',
+                               live=lambda v: setattr(self, 'frame_id', v))
+        self.publish_tf: bool = p('publish_tf', False, 'Also publish the orientation on /tf (fixed_frame -> body frame), like imu_filter_madgwick',
+                                  live=lambda v: setattr(self, 'publish_tf', v))
+        self.fixed_frame_param: str = p('fixed_frame', '', 'Parent frame of the published TF (empty: the world_frame name)',
+                                        live=lambda v: setattr(self, 'fixed_frame_param', v))
+        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0,
+                    live=self._set_reset_after)
         bag_path: str = p('bag_path', '', 'Replay mode: read imu/data_raw and imu/mag from this bag instead of subscribing', read_only=True)
         rate = p('rate', 1.0, 'Replay mode: playback rate factor (0: as fast as possible)', min_value=0.0, max_value=1000.0, read_only=True)
         loop = p('loop', False, 'Replay mode: play the bag again when it ends', read_only=True)
@@ -121,13 +133,9 @@ class ImuMagnetometerNode(TrackingNode):
         self.published = 0
 
         self.pub_data = self.advertise(Imu, 'imu/data', RELIABLE_QOS)
-        self.pub_tf = None
-        if self.publish_tf:
-            tf_type = _tf_message_class()
-            if tf_type is None:
-                self.get_logger().warning('publish_tf: tf2_msgs is not installed here (pip-only ROS); no TF is published')
-            else:
-                self.pub_tf = self.advertise(tf_type, '/tf', RELIABLE_QOS)
+        self.tf = TfBroadcaster(self)
+        if self.publish_tf and not self.tf.available:
+            self.get_logger().warning('publish_tf: tf2_msgs is not installed here; no TF is published')
         self.player = None
         if bag_path:
             self.pub_raw = self.advertise(Imu, 'imu/data_raw', RELIABLE_QOS)
@@ -181,6 +189,26 @@ class ImuMagnetometerNode(TrackingNode):
     def close(self) -> None:
         if self.player is not None:
             self.player.stop()
+
+    # -- live parameters -------------------------------------------------------------------
+
+    @property
+    def fixed_frame(self) -> str:
+        return self.fixed_frame_param or self.world_frame
+
+    def _set_declination(self, name: str, value: float) -> None:
+        self._declination_parts[name] = float(value)
+        if not self.use_mag:
+            return  # 6D: the heading has no north to turn
+        self.R_declination_change = rot_z(-(sum(self._declination_parts.values()) - self.declination_start_rad))
+
+    def _set_world_frame(self, value: str) -> None:
+        self.world_frame = value
+        self.R_world_enu = WORLD_FROM_ENU[value]
+
+    def _set_reset_after(self, value: float) -> None:
+        for guard in (self.imu_guard, self.mag_guard):
+            guard.reset_after_ns = int(value * 1e9)
 
     # -- callbacks -------------------------------------------------------------------------
 
@@ -294,20 +322,19 @@ class ImuMagnetometerNode(TrackingNode):
         out.linear_acceleration = calibrated.linear_acceleration
         out.angular_velocity_covariance = calibrated.angular_velocity_covariance
         out.linear_acceleration_covariance = calibrated.linear_acceleration_covariance
-        R = self.R_world_enu @ R_enu_body
+        R_world = self.R_world_enu @ self.R_declination_change
+        R = R_world @ R_enu_body
         set_quaternion(out.orientation, R)
-        set_covariance(out.orientation_covariance, self.R_world_enu @ cov_enu @ self.R_world_enu.T)
+        set_covariance(out.orientation_covariance, R_world @ cov_enu @ R_world.T)
         self.pub_data.publish(out)
         self.published += 1
-        if self.pub_tf is not None:
+        if self.publish_tf:
             tf = TransformStamped()
             tf.header.stamp = out.header.stamp
             tf.header.frame_id = self.fixed_frame
             tf.child_frame_id = out.header.frame_id or 'imu'
             tf.transform.rotation = out.orientation
-            msg = self.pub_tf.msg_type()
-            msg.transforms = [tf]
-            self.pub_tf.publish(msg)
+            self.tf.send(tf)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -286,3 +286,45 @@ def test_throttling_is_per_warning_not_per_node(ros_context, capfd):
         assert err.count('first kind of problem') == 1 and err.count('second kind of problem') == 1
     finally:
         node.destroy_node()
+
+
+def test_live_parameters_change_the_output_and_read_only_ones_refuse(ros_context):
+    """declination_rad, world_frame and publish_tf apply from the next sample on; a parameter
+    the filter is built from (method) refuses a change instead of returning success."""
+    from tf2_msgs.msg import TFMessage
+
+    h = Harness(ros_context, {'method': 'compass', 'declination_rad': 0.1})
+    tf_seen: list = []
+    h.src.create_subscription(TFMessage, '/tf', tf_seen.append, 50)
+    try:
+        R = np.eye(3)  # body y axis = magnetic north
+        h.send(T0, *sample(R), mag_first=True)
+        assert h.wait(1)
+
+        def north_deg(msg):  # direction of the body y axis, degrees east of true north (ENU)
+            y = rotation_from_quaternion(msg.orientation)[:, 1]
+            return math.degrees(math.atan2(y[0], y[1]))
+
+        assert north_deg(h.out[-1]) == pytest.approx(math.degrees(0.1), abs=1e-6)
+        result = h.node.set_parameters([Parameter('declination_rad', value=0.5)])[0]
+        assert result.successful
+        h.send(T0 + 10_000_000, *sample(R), mag_first=True)
+        assert h.wait(2)
+        assert north_deg(h.out[-1]) == pytest.approx(math.degrees(0.5), abs=1e-6)
+
+        assert h.node.set_parameters([Parameter('world_frame', value='ned')])[0].successful
+        assert h.node.set_parameters([Parameter('publish_tf', value=True)])[0].successful
+        h.send(T0 + 20_000_000, *sample(R), mag_first=True)
+        assert h.wait(3)
+        assert rotation_from_quaternion(h.out[-1].orientation)[2, 2] == pytest.approx(-1.0)  # up is -down
+        assert spin_until(h.ex, lambda: len(tf_seen) >= 1, 5.0)
+        tf = tf_seen[-1].transforms[0]
+        assert (tf.header.frame_id, tf.child_frame_id) == ('ned', 'imu')
+
+        bad = h.node.set_parameters([Parameter('world_frame', value='xyz')])[0]
+        assert not bad.successful and h.node.world_frame == 'ned'
+        frozen = h.node.set_parameters([Parameter('method', value='vqf')])[0]
+        assert not frozen.successful and 'read-only' in frozen.reason
+        assert h.node.method == 'compass'
+    finally:
+        h.close()
