@@ -17,6 +17,11 @@ Publishes
 
 The IMU -> camera rotation comes from ``/tf_static`` when the graph or the bag has it (the
 parameter ``imu_to_camera_quat_xyzw`` is the fallback, with a warning when the two disagree).
+
+TF (``publish_tf``): every orientation/global is also broadcast on ``/tf`` as
+``world_frame_id`` -> ``camera_frame_id``, and, while the mount comes from the parameter, the
+IMU mount ``imu_frame_id`` -> ``camera_frame_id`` once on ``/tf_static`` (``publish_mount_tf``).
+Frame names, the TF switches and the timing/noise parameters apply live; the rest is read-only.
 The callbacks only validate, convert, call the cores and publish.
 """
 from __future__ import annotations
@@ -44,10 +49,15 @@ from ..ros.conversions import (
 )
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
+from ..ros.tf import TfBroadcaster, transform_stamped
 
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
 _EXTRINSIC_WARN_RAD = np.radians(1.0)
+
+
+def _frame_name(v: Any) -> str | None:
+    return None if v and v.strip() == v and not v.startswith('/') else 'a frame name: not empty, no leading slash or spaces'
 
 
 def _unit_quat(v: Any) -> str | None:
@@ -83,8 +93,17 @@ class HybridOrientationFilterNode(TrackingNode):
         q_imu_cam = p('imu_to_camera_quat_xyzw', [1.0, 0.0, 0.0, 0.0],
                       'Rotation imu -> camera_optical (R_imu_cam, x y z w), used when no /tf_static gives it; '
                       'default the phone: diag(1, -1, -1)', read_only=True, validate=_unit_quat)
-        self.camera_frame: str = p('camera_frame_id', 'camera_optical', 'frame_id of orientation/global (the camera)')
-        self.world_frame: str = p('world_frame_id', 'enu', 'World frame of imu/data and of the outputs (ENU)')
+        self.camera_frame: str = p('camera_frame_id', 'camera_optical', 'frame_id of orientation/global (the camera; the TF child frame)',
+                                   live=lambda v: setattr(self, 'camera_frame', v), validate=_frame_name)
+        self.world_frame: str = p('world_frame_id', 'enu', 'World frame of imu/data and of the outputs (ENU; the TF parent frame)',
+                                  live=lambda v: setattr(self, 'world_frame', v), validate=_frame_name)
+        self.imu_frame: str = p('imu_frame_id', 'imu', 'IMU frame of the static mount transform published with publish_mount_tf',
+                                live=self._set_imu_frame, validate=_frame_name)
+        self.publish_tf: bool = p('publish_tf', True, 'Broadcast each orientation/global on /tf (world_frame_id -> camera_frame_id)',
+                                  live=lambda v: setattr(self, 'publish_tf', v))
+        self.publish_mount_tf: bool = p('publish_mount_tf', True, 'Publish the IMU mount (imu_frame_id -> camera_frame_id) on /tf_static '
+                                        'while it comes from imu_to_camera_quat_xyzw (not when /tf_static gave it)',
+                                        live=self._set_publish_mount_tf)
         self.calibration = self.imu_calibration_params()
         config = WorldAlignmentConfig(
             accel_bias_sigma_m_s2=p('accel_bias_sigma_m_s2', a.accel_bias_sigma_m_s2, 'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2 (tight: a loose bias absorbs scale errors)', min_value=1e-6, max_value=10.0),
@@ -105,15 +124,26 @@ class HybridOrientationFilterNode(TrackingNode):
             bias_window_s=p('gyro_bias_window_s', g.bias_window_s, 'Interval over which gyro and visual rotations are compared to learn the bias, s', min_value=0.05, max_value=10.0),
             bias_gain=p('gyro_bias_gain', g.bias_gain, 'Weight of one comparison in the running gyro bias (0: no learning)', min_value=0.0, max_value=1.0),
         )
-        self.visual_noise_rad: float = p('visual_noise_rad', 0.001, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0)
-        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample still paired with an IMU sample, s', min_value=0.0, max_value=10.0))
+        def live_ns(attr: str, scale: float = 1e9) -> Any:
+            return lambda v: setattr(self, attr, int(scale * v))
+
+        self.visual_noise_rad: float = p('visual_noise_rad', 0.001, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0,
+                                         live=lambda v: setattr(self, 'visual_noise_rad', v))
+        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample still paired with an IMU sample, s', min_value=0.0, max_value=10.0,
+                                          live=live_ns('max_mag_age_ns')))
         self.max_pair_gap_ns = int(1e9 * p('max_pair_gap_s', 0.2, 'Largest gap between two visual orientations that is interpolated across, s', min_value=0.0, max_value=10.0))
-        self.visual_timeout_ns = int(1e9 * p('visual_timeout_s', 0.2, 'No visual orientation for this long (in stamps): the tracker is lost, the gyro backup publishes', min_value=0.0, max_value=60.0))
-        self.backup_period_ns = int(1e9 / p('backup_rate_hz', 30.0, 'Rate of orientation/global from the gyro backup, Hz', min_value=0.1, max_value=1000.0))
-        self.max_backup_ns = int(1e9 * p('max_backup_s', 30.0, 'After this long without vision the gyro backup stops and imu/data (the AHRS) is followed, s', min_value=0.0, max_value=3600.0))
-        self.gyro_rate_output: bool = p('gyro_rate_output', False, 'Also publish at every gyro sample between camera frames (the last frame carried forward by the gyro)')
-        self.reseed_rad: float = p('reseed_threshold_rad', 0.1, 'When vision returns this far from the gyro backup, its frame changed: restart the panorama-in-world estimate from the backup, rad', min_value=0.0, max_value=3.2)
-        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
+        self.visual_timeout_ns = int(1e9 * p('visual_timeout_s', 0.2, 'No visual orientation for this long (in stamps): the tracker is lost, the gyro backup publishes', min_value=0.0, max_value=60.0,
+                                             live=live_ns('visual_timeout_ns')))
+        self.backup_period_ns = int(1e9 / p('backup_rate_hz', 30.0, 'Rate of orientation/global from the gyro backup, Hz', min_value=0.1, max_value=1000.0,
+                                            live=lambda v: setattr(self, 'backup_period_ns', int(1e9 / v))))
+        self.max_backup_ns = int(1e9 * p('max_backup_s', 30.0, 'After this long without vision the gyro backup stops and imu/data (the AHRS) is followed, s', min_value=0.0, max_value=3600.0,
+                                         live=live_ns('max_backup_ns')))
+        self.gyro_rate_output: bool = p('gyro_rate_output', False, 'Also publish at every gyro sample between camera frames (the last frame carried forward by the gyro)',
+                                        live=lambda v: setattr(self, 'gyro_rate_output', v))
+        self.reseed_rad: float = p('reseed_threshold_rad', 0.1, 'When vision returns this far from the gyro backup, its frame changed: restart the panorama-in-world estimate from the backup, rad', min_value=0.0, max_value=3.2,
+                                   live=lambda v: setattr(self, 'reseed_rad', v))
+        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0,
+                    live=self._set_reset_after)
 
         self.R_imu_cam_param = quat_xyzw_to_matrix(np.asarray(q_imu_cam, dtype=float))
         self.R_imu_cam = self.R_imu_cam_param
@@ -134,6 +164,11 @@ class HybridOrientationFilterNode(TrackingNode):
 
         self.pub_global = self.advertise(Imu, 'orientation/global', RELIABLE_QOS)
         self.pub_frame = self.advertise(TransformStamped, 'orientation/panorama_in_world', RELIABLE_QOS)
+        self.tf = TfBroadcaster(self)
+        self.tf_static = TfBroadcaster(self, static=True)
+        self.mount_published = False
+        if (self.publish_tf or self.publish_mount_tf) and not self.tf.available:
+            self.get_logger().warning('publish_tf: tf2_msgs is not installed here; no TF is published')
         self.input_type = input_type
         self.subscribe(INPUT_TYPES[input_type], 'panorama/orientation', self.on_visual, SENSOR_QOS)
         self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
@@ -187,6 +222,27 @@ class HybridOrientationFilterNode(TrackingNode):
             self.extrinsic_source = f'/tf_static {parent} -> {child}'
             return
 
+    # -- TF and live parameters ------------------------------------------------------------
+
+    def _publish_mount(self, t_ns: int) -> None:
+        """The IMU mount on /tf_static, once, when it comes from the parameter."""
+        if self.mount_published or not self.publish_mount_tf or self.extrinsic_source != 'parameter':
+            return
+        self.mount_published = True
+        self.tf_static.send(transform_stamped(t_ns, self.imu_frame, self.camera_frame, self.R_imu_cam))
+
+    def _set_imu_frame(self, value: str) -> None:
+        self.imu_frame = value
+        self.mount_published = False  # published again under the new name
+
+    def _set_publish_mount_tf(self, value: bool) -> None:
+        self.publish_mount_tf = value
+        self.mount_published = False
+
+    def _set_reset_after(self, value: float) -> None:
+        for guard in self.stamp_guards.values():
+            guard.reset_after_ns = int(value * 1e9)
+
     # -- helpers ---------------------------------------------------------------------------
 
     def _reset(self, why: str) -> None:
@@ -228,6 +284,9 @@ class HybridOrientationFilterNode(TrackingNode):
         set_covariance(out.linear_acceleration_covariance, None)
         self.pub_global.publish(out)
         self.published += 1
+        if self.publish_tf:
+            self.tf.send(transform_stamped(t_ns, self.world_frame, self.camera_frame, R_enu_cam))
+            self._publish_mount(t_ns)
         if R_enu_pano is not None:
             tf = TransformStamped()
             tf.header.stamp = out.header.stamp

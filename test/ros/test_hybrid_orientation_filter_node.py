@@ -285,3 +285,51 @@ def test_config_file_keys_are_declared_with_equal_defaults(ros_context):
             assert declared[key] == pytest.approx(value) if isinstance(value, float) else declared[key] == value, key
     finally:
         node.destroy_node()
+
+
+def test_tf_follows_orientation_global_and_frames_switch_live(ros_context):
+    """/tf carries world -> camera with every orientation/global, the IMU mount comes once on
+    /tf_static; frame names and publish_tf change live, a read-only parameter refuses."""
+    from tf2_msgs.msg import TFMessage
+
+    from ar_tracking.ros.tf import TF_STATIC_QOS
+
+    h = Harness(ros_context)
+    tf_msgs: list = []
+    static: list = []
+    h.src.create_subscription(TFMessage, '/tf', tf_msgs.append, 500)
+    h.src.create_subscription(TFMessage, '/tf_static', static.append, TF_STATIC_QOS)
+    try:
+        assert spin_until(h.ex, lambda: h.node.tf._pub.get_subscription_count() > 0)
+        rng = np.random.default_rng(5)
+        h.play(0.0, 3.0, rng)
+        assert spin_until(h.ex, lambda: len(tf_msgs) >= len(h.out) > 0, 5.0)
+        tf = tf_msgs[-1].transforms[0]
+        assert (tf.header.frame_id, tf.child_frame_id) == ('enu', 'camera_optical')
+        assert tf.header.stamp == h.out[-1].header.stamp
+        np.testing.assert_allclose(rotation_from_quaternion(tf.transform.rotation),
+                                   rotation_from_quaternion(h.out[-1].orientation), atol=1e-9)
+        assert spin_until(h.ex, lambda: len(static) >= 1, 5.0)
+        mount = static[-1].transforms[0]
+        assert (mount.header.frame_id, mount.child_frame_id) == ('imu', 'camera_optical')
+        np.testing.assert_allclose(rotation_from_quaternion(mount.transform.rotation), R_IMU_CAM, atol=1e-9)
+
+        assert h.node.set_parameters([Parameter('world_frame_id', value='world'),
+                                      Parameter('camera_frame_id', value='phone_camera')])[0].successful
+        h.play(3.0, 3.5, rng)
+        assert spin_until(h.ex, lambda: tf_msgs[-1].transforms[0].child_frame_id == 'phone_camera', 5.0)
+        assert tf_msgs[-1].transforms[0].header.frame_id == 'world'
+        assert h.out[-1].header.frame_id == 'phone_camera'
+
+        assert h.node.set_parameters([Parameter('publish_tf', value=False)])[0].successful
+        spin_until(h.ex, lambda: False, 0.2)
+        before = len(tf_msgs)
+        h.play(3.5, 4.0, rng)
+        spin_until(h.ex, lambda: False, 0.3)
+        assert len(tf_msgs) == before and len(h.out) > 0
+
+        assert not h.node.set_parameters([Parameter('camera_frame_id', value='')])[0].successful
+        frozen = h.node.set_parameters([Parameter('window_s', value=2.0)])[0]
+        assert not frozen.successful and 'read-only' in frozen.reason
+    finally:
+        h.close()
