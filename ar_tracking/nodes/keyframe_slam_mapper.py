@@ -35,6 +35,7 @@ from ..core.stamp_pairing import NearestStampPairer
 from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
+from ..ros.tf import TfBroadcaster, transform_stamped
 
 Info = tuple[np.ndarray, np.ndarray, tuple[int, int]]  # K, D, (height, width)
 
@@ -53,6 +54,10 @@ def point_cloud(points_xyz: np.ndarray, frame_id: str, stamp: Any) -> PointCloud
     msg.is_dense = True
     msg.data = pts.tobytes()
     return msg
+
+
+def _frame_name(v: Any) -> str | None:
+    return None if v and v.strip() == v and not v.startswith('/') else 'a frame name: not empty, no leading slash or spaces'
 
 
 def _pose(R_w_c: np.ndarray, p_w_c: np.ndarray, target: Pose | None = None) -> Pose:
@@ -80,10 +85,16 @@ class KeyframeSlamMapperNode(TrackingNode):
         super().__init__('keyframe_slam_mapper', **kwargs)
         p = self.param
         self.readout_s = p('readout_s', 0.0, 'Rolling-shutter readout time, top to bottom row, s (0: global shutter; sec. 6)', min_value=0.0, max_value=0.2, read_only=True)
-        self.frame_id: str = p('map_frame_id', 'slam_map', 'frame_id of the outputs (the map frame: the first keyframe, scale set at initialisation)')
+        self.frame_id: str = p('map_frame_id', 'slam_map', 'frame_id of the outputs (the map frame: the first keyframe, scale set at initialisation; the TF parent)',
+                               live=self._set_map_frame, validate=_frame_name)
+        self.camera_frame: str = p('camera_frame_id', '', 'TF child frame: the camera (empty: the image header frame_id, else camera_optical)',
+                                   live=lambda v: setattr(self, 'camera_frame', v), validate=lambda v: None if not v else _frame_name(v))
+        self.publish_tf: bool = p('publish_tf', True, 'Broadcast each tracked pose on /tf (map_frame_id -> camera frame)',
+                                  live=lambda v: setattr(self, 'publish_tf', v))
         self.map_period_ns = int(1e9 / p('map_rate_hz', 1.0, 'Rate of slam/map_points, slam/keyframes and slam/path, by image stamps (also published at each new keyframe), Hz', min_value=0.01, max_value=100.0, read_only=True))
         self.max_info_gap_ns = int(1e9 * p('camera_info_max_gap_s', 0.005, 'Largest stamp difference between an image and the camera_info paired with it, s', min_value=0.0, max_value=1.0, read_only=True))
-        reset_s = p('reset_after_s', 1.0, 'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a new map', min_value=0.0, max_value=3600.0)
+        reset_s = p('reset_after_s', 1.0, 'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a new map', min_value=0.0, max_value=3600.0,
+                    live=lambda v: setattr(self.guard, 'reset_after_ns', int(v * 1e9)))
         self.config = SlamConfig(readout_s=self.readout_s)
 
         self.guard = StampGuard(reset_s)
@@ -102,6 +113,10 @@ class KeyframeSlamMapperNode(TrackingNode):
         self.pub_points = self.advertise(PointCloud2, 'slam/map_points', LATCHED_QOS)
         self.pub_keyframes = self.advertise(PoseArray, 'slam/keyframes', LATCHED_QOS)
         self.pub_path = self.advertise(Path, 'slam/path', LATCHED_QOS)
+        self.tf = TfBroadcaster(self)
+        self.image_frame = ''
+        if self.publish_tf and not self.tf.available:
+            self.get_logger().warning('publish_tf: tf2_msgs is not installed here; no TF is published')
         self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS)
         self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
         self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, SENSOR_QOS)
@@ -115,6 +130,7 @@ class KeyframeSlamMapperNode(TrackingNode):
         except ConversionError as exc:
             self.warn_throttled(f'camera/image_raw: {exc}; frame dropped')
             return
+        self.image_frame = msg.header.frame_id.lstrip('/')
         self._on_frame(stamp_ns(msg.header), gray)
 
     def on_compressed(self, msg: CompressedImage) -> None:
@@ -123,6 +139,7 @@ class KeyframeSlamMapperNode(TrackingNode):
         except ConversionError as exc:
             self.warn_throttled(f'camera/image_raw/compressed: {exc}; frame dropped')
             return
+        self.image_frame = msg.header.frame_id.lstrip('/')
         self._on_frame(stamp_ns(msg.header), arr)
 
     def on_camera_info(self, msg: CameraInfo) -> None:
@@ -200,6 +217,8 @@ class KeyframeSlamMapperNode(TrackingNode):
             out.header.frame_id = self.frame_id
             _pose(R_w_c, p_w_c, out.pose)
             self.pub_pose.publish(out)
+            if self.publish_tf:
+                self.tf.send(transform_stamped(t, self.frame_id, self.camera_frame or self.image_frame or 'camera_optical', R_w_c, p_w_c))
             self.path.poses.append(out)
             if len(self.path.poses) > self.config.max_path:
                 # Same bound as SlamSystem.path: drop the oldest tenth at once (amortised).
@@ -227,6 +246,10 @@ class KeyframeSlamMapperNode(TrackingNode):
         self.pub_points.publish(point_cloud(self.system.map_points(), self.frame_id, stamp))
         self.path.header.stamp = stamp
         self.pub_path.publish(self.path)
+
+    def _set_map_frame(self, value: str) -> None:
+        self.frame_id = value
+        self.path.header.frame_id = value
 
     def destroy_node(self) -> None:
         if self.system is not None:
