@@ -38,3 +38,32 @@ def spin_until(executor: Any, predicate: Callable[[], bool], timeout_s: float = 
             return True
         executor.spin_once(timeout_sec=0.02)
     return predicate()
+
+
+@pytest.fixture(scope='session')
+def pg_cluster() -> Iterator[Any]:
+    """A throwaway PostgreSQL + PostGIS cluster (initdb, pg_ctl, unix socket in a temp dir) for
+    the whole session; skipped with the reason when the binaries are missing
+    (./ar-tracking.sh test installs them as root: apt-get install postgresql postgis)."""
+    from ar_tracking.io.pg_cluster import ClusterError, TemporaryCluster, unavailable_reason
+
+    reason = unavailable_reason()
+    if reason is not None:
+        pytest.skip(reason)
+    try:
+        cluster = TemporaryCluster().start()
+    except ClusterError as exc:
+        pytest.skip(f'temporary PostgreSQL cluster did not start: {exc}')
+    try:
+        yield cluster
+    finally:
+        cluster.stop()
+
+
+_pg_schemas = itertools.count()
+
+
+@pytest.fixture
+def pg_store_url(pg_cluster: Any) -> str:
+    """A store URL in the session cluster with a schema of its own (a fresh, empty store)."""
+    return f'{pg_cluster.url}&schema=t{os.getpid()}_{next(_pg_schemas)}'
