@@ -28,6 +28,7 @@ from ..core.markers.pose import MarkerMap, estimate_camera_pose
 from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
+from ..ros.tf import TfBroadcaster, transform_stamped
 
 
 def _one_of(options: tuple[str, ...]) -> Any:
@@ -63,6 +64,10 @@ class MarkerTrackerNode(TrackingNode):
         self.max_position_sigma_m = p('max_position_sigma_m', 0.5, 'Poses whose position 1-sigma exceeds this are not published, m', min_value=1e-4, max_value=100.0)
         self.map_frame_id = p('map_frame_id', '', 'Frame of markers/pose (empty: the marker map frame_id)')
         reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
+        # TF: the map -> camera (the image frame) with every published pose; live switch.
+        self.publish_tf: bool = p('publish_tf', True, 'Broadcast each markers/pose on /tf (map frame -> the image frame_id)',
+                                  live=lambda v: setattr(self, 'publish_tf', v))
+        self.tf = TfBroadcaster(self)
 
         try:
             if map_file:
@@ -165,6 +170,9 @@ class MarkerTrackerNode(TrackingNode):
         out.pose.covariance = [float(v) for v in est.cov.ravel()]
         self.pub_pose.publish(out)
         self.poses_published += 1
+        if self.publish_tf:
+            self.tf.send(transform_stamped(stamp_ns(header), self.frame, header.frame_id.lstrip('/') or 'camera_optical',
+                                           est.R_map_cam, est.p_map_cam))
 
     def _publish_detections(self, header: Any, accepted: list, rejected: list) -> None:
         arr = MarkerArray()

@@ -142,3 +142,24 @@ def test_config_file_matches_declared_defaults(ros_context):
         node.destroy_node()
     with pytest.raises(ValueError):
         MarkerTrackerNode(context=ros_context, parameter_overrides=[Parameter('marker_map', value='markers: [{id: 1}]')])
+
+
+def test_pose_is_broadcast_on_tf(ros_context):
+    from tf2_msgs.msg import TFMessage
+
+    h = Harness(ros_context)
+    tf_msgs: list = []
+    h.src.create_subscription(TFMessage, '/tf', tf_msgs.append, 50)
+    try:
+        img, tr = _frame(2.0)
+        h.info()
+        h.image(img, T0)
+        assert spin_until(h.ex, lambda: len(h.poses) == 1 and len(tf_msgs) == 1, 3.0)
+        tf = tf_msgs[0].transforms[0]
+        assert (tf.header.frame_id, tf.child_frame_id) == ('enu', 'camera_optical')
+        assert tf.transform.translation.x == pytest.approx(h.poses[0].pose.pose.position.x)
+        assert h.node.set_parameters([Parameter('publish_tf', value=False)])[0].successful
+        h.image(img, T0 + 1)
+        assert spin_until(h.ex, lambda: len(h.poses) == 2, 3.0) and len(tf_msgs) == 1
+    finally:
+        h.close()
