@@ -160,10 +160,11 @@ def _sidecar_params(bag: Path) -> Path | None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .eval.console import format_console, strict_json
     from .eval.evaluate import evaluate_all
     from .eval.report import write_report
 
-    metrics = evaluate_all(args.bag, align=args.align_world)
+    metrics = strict_json(evaluate_all(args.bag, align=args.align_world))
     if args.align_world != 'none':
         print(f'world frames aligned to the truth by one constant {args.align_world} per estimate '
               '(the truth is not north-referenced): absolute heading is not scored', file=sys.stderr)
@@ -171,13 +172,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if recovered:
         print(recovered, file=sys.stderr if args.json else sys.stdout)
     if args.json:
-        print(json.dumps(metrics, indent=None if args.compact else 2, sort_keys=True))
+        # strict JSON: null for what could not be computed, never NaN or Infinity
+        print(json.dumps(metrics, indent=None if args.compact else 2, sort_keys=True, allow_nan=False))
         if not args.report:
             return 0
     report = Path(args.report) if args.report else Path(args.bag).with_suffix('.report.html')
     written = write_report(args.bag, report, metrics)
     if not args.json:
-        _print_metrics(metrics)
+        print(format_console(metrics, args.bag))
         print(f'report: {written}')
     return 0
 
@@ -192,20 +194,6 @@ def _recovered_line(bag: Path) -> str | None:
     rec = scan_unfinished_mcap(bag)  # cached: the evaluation already scanned it
     return (f'{bag}: recovered from an unfinished MCAP (the writer was killed): scored its '
             f'{rec.message_count} complete messages, {(rec.end_ns - rec.start_ns) * 1e-9:.1f} s of bag time')
-
-
-def _print_metrics(metrics: dict[str, Any]) -> None:
-    rows = metrics.get('orientation', {})
-    if not rows:
-        print('no orientation estimates in the bag')
-    for topic, m in sorted(rows.items()):
-        if 'error' in m:
-            print(f'{topic:32s} {m["error"]}')
-            continue
-        print(
-            f'{topic:32s} rmse {m["rmse_deg"]:.2f} deg  heading {m["heading_rmse_deg"]:.2f}  '
-            f'tilt {m["tilt_rmse_deg"]:.2f}  max {m["max_deg"]:.2f}  n {m["n"]}'
-        )
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -249,9 +237,36 @@ def cmd_convert_euroc(args: argparse.Namespace) -> int:
     """An EuRoC MAV folder (mav0/cam0, imu0, ground truth) as a bag the graph can run on."""
     from .io.euroc import euroc_to_bag
 
+    if args.groundtruth is None:
+        hint = _euroc_groundtruth_hint(Path(args.folder))
+        if hint:
+            print(hint, file=sys.stderr)
     print(euroc_to_bag(args.folder, args.out, args.groundtruth, args.invert_gt_quaternion,
                        gt_frame=args.gt_frame, storage=args.storage, overwrite=args.overwrite))
     return 0
+
+
+def _euroc_groundtruth_hint(folder: Path) -> str | None:
+    """One line when an EuRoC folder has no mav0/state_groundtruth_estimate0/data.csv (the
+    ground truth used by default) but a ground-truth file elsewhere, saying how to use it."""
+    mav0 = folder if folder.name == 'mav0' else folder / 'mav0'
+    if (mav0 / 'state_groundtruth_estimate0' / 'data.csv').is_file():
+        return None
+    root = folder.parent if folder.name == 'mav0' else folder
+    candidates = sorted(
+        p for pattern in ('*/*', '*', 'mav0/*/*') for p in root.glob(pattern)
+        if p.is_file() and p.suffix.lower() in ('.txt', '.csv')
+        and ('groundtruth' in p.name.lower() or 'ground_truth' in p.name.lower() or '_gt' in p.name.lower()
+             or 'groundtruth' in p.parent.name.lower())
+    )
+    if not candidates:
+        return None
+    gt = candidates[0]
+    orb = gt.name.upper().endswith('_GT.TXT')  # ORB-SLAM's files store R_cam_world, camera poses
+    return (f'convert-euroc: no mav0/state_groundtruth_estimate0/data.csv, so no ground truth is used; '
+            f'{gt} looks like one: add --groundtruth {gt}'
+            + (' --invert-gt-quaternion (ORB-SLAM *_GT.txt files store R_cam_world)' if orb
+               else ' (and --invert-gt-quaternion if it stores R_cam_world, --gt-frame body for IMU poses)'))
 
 
 # --- parser --------------------------------------------------------------------------------
@@ -262,68 +277,95 @@ def build_parser() -> argparse.ArgumentParser:
         description='AR tracking on ROS 2: make bags, run the node graph on them, evaluate, benchmark.',
     )
     parser.add_argument('-v', '--verbose', action='store_true', help='log debug messages')
-    sub = parser.add_subparsers(dest='command', required=True)
+    # -q on every command: only errors and the result
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument('--quiet', '-q', action='store_true',
+                        help='print only errors and the result (no progress bar, no info or warning logs, '
+                             "the nodes' logs included)")
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+    _add = sub.add_parser
+
+    def add_parser(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        kwargs.setdefault('description', kwargs.get('help'))
+        return _add(name, parents=[common], **kwargs)
+
+    sub.add_parser = add_parser  # type: ignore[method-assign]
 
     p = sub.add_parser('make-bag', help='simulate a scenario into a bag with ground truth')
-    p.add_argument('scenario', help='scenario name, e.g. rotation_sweep')
-    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('scenario',
+                   help='one of: rotation_sweep (a phone swept around in place: camera, IMU, magnetometer '
+                        'with disturbances, GPS), robot_arcs (a robot moving a camera in front of fiducial '
+                        'markers, with IMU), handheld_desk (a hand-held rolling-shutter camera over a desk, '
+                        'for SLAM)')
+    p.add_argument('--seed', type=int, default=0,
+                   help='random seed of the simulation: the same seed gives the same bag, byte for byte (default 0)')
     p.add_argument('--duration', type=float, default=60.0, help='seconds (default 60)')
-    p.add_argument('--session', default='authoring', choices=['authoring', 'browsing'])
+    p.add_argument('--session', default='authoring', choices=['authoring', 'browsing'],
+                   help='rotation_sweep: authoring = the first visit of the spot (annotations are made on it), '
+                        'browsing = a later visit from a few metres away, other lighting (default authoring)')
     p.add_argument('--out', '-o', required=True, help='output bag (.mcap file, or a directory with --storage sqlite3)')
-    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
-    p.add_argument('--image-format', default='raw', choices=['raw', 'compressed'])
+    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'],
+                   help='rosbag2 storage: mcap (one file, default) or sqlite3 (a directory with metadata.yaml)')
+    p.add_argument('--image-format', default='raw', choices=['raw', 'compressed'],
+                   help='camera images as sensor_msgs/Image (raw, default) or CompressedImage JPEG (compressed)')
     p.add_argument('--profile', default='hard', choices=['hard', 'kind'],
                    help="rotation_sweep sensor realism: 'hard' (default) = realistic phone: hand acceleration, "
                         'field turns that keep |B| and dip, residual iron after a rough calibration, gyro bias drift, '
                         "camera-IMU time offset; 'kind' = the earlier, easier simulator, for the paper's Fig. 8 comparison")
-    p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches at the anchors)')
     p.add_argument('bag', help='authoring-session bag')
     p.add_argument('--store', '-s', required=True, help='annotation store (SQLite file; created if missing)')
     p.add_argument('--positions', help='text file of "text,u,v" map positions (default: /ground_truth/annotations)')
-    p.add_argument('--patch-px', type=int, default=16, choices=[8, 16, 24, 32])
-    p.add_argument('--author', default='')
-    p.add_argument('--panorama-id', default=None)
+    p.add_argument('--patch-px', type=int, default=16, choices=[8, 16, 24, 32],
+                   help='side of the stored image patch of each annotation, map pixels (default 16)')
+    p.add_argument('--author', default='', help='author name stored with each annotation')
+    p.add_argument('--panorama-id', default=None,
+                   help='id of this authoring panorama in the store (default: derived from the bag)')
     p.add_argument('--no-edr', action='store_true', help='8-bit map instead of the EDR map')
-    p.add_argument('--world-orientation', default='ground_truth', choices=['ground_truth', 'none'])
+    p.add_argument('--world-orientation', default='ground_truth', choices=['ground_truth', 'none'],
+                   help="how the panorama is placed in the world for the stored 3-D directions: the bag's "
+                        "ground_truth/orientation (default), or none (directions in the panorama frame)")
     p.add_argument('--landmarks', type=int, default=24, metavar='N',
                    help='also store up to N landmarks of the panorama (distinctive patches that help '
                         'align it when browsing; never shown); 0: none (default 24)')
     p.add_argument('--support-landmarks', type=int, default=4, metavar='K',
                    help='with landmarks, also up to K landmarks next to each annotation (they pin '
                         'its parallax when browsing from another spot); 0: none (default 4)')
-    p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_annotate)
 
     p = sub.add_parser('run', help='run the graph a bag suits (or --graph/--nodes); record the outputs')
-    p.add_argument('bag')
+    p.add_argument('bag', help='input bag (rosbag2 mcap or sqlite3, or ROS 1 .bag)')
     p.add_argument('--out', '-o', help='output bag (default out/<bag>.out.mcap)')
     p.add_argument('--rate', type=float, default=0.0,
                    help='0 (default): lockstep, reproducible; R > 0 (finite): realtime at R x bag speed with /clock')
     p.add_argument('--params-file', action='append', help='ROS 2 params file (repeatable; later wins)')
     p.add_argument('--no-sidecar', action='store_true', help='ignore <bag>.params.yaml next to the bag')
     which = p.add_mutually_exclusive_group()
-    which.add_argument('--nodes', nargs='+', help='only these nodes')
+    which.add_argument('--nodes', nargs='+', metavar='NODE',
+                       help='only these nodes: imu_magnetometer, panorama_mapper, hybrid_orientation_filter, '
+                            'annotation_matcher, ar_view, keyframe_slam_mapper, marker_tracker, '
+                            'visual_inertial_filter')
     which.add_argument('--graph', default='auto', choices=['auto', 'orientation', 'annotations', 'slam', 'markers', 'all'],
                        help='which graph to start (default auto: every node the bag has inputs for, but '
                             'keyframe_slam_mapper not on a bag with /imu/mag - a phone turned in place, '
                             'where SLAM cannot initialise); orientation = imu_magnetometer, panorama_mapper, '
                             'hybrid_orientation_filter; annotations = orientation + annotation_matcher, ar_view; '
                             'slam = keyframe_slam_mapper; markers = marker_tracker, visual_inertial_filter')
-    p.add_argument('--storage', choices=['mcap', 'sqlite3'])
+    p.add_argument('--storage', choices=['mcap', 'sqlite3'],
+                   help='storage of the output bag (default: mcap, or from the --out name)')
     p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
-    p.add_argument('--executor', default='auto', choices=['auto', 'threads', 'single', 'events', 'multi'],
+    p.add_argument('--executor', default='auto', choices=['auto', 'threads', 'processes', 'single', 'events', 'multi'],
                    help='rclpy executor (default auto: events in lockstep; with --rate, threads: each node on its '
-                        'own thread and executor, so a slow node cannot stall the others); single/events/multi '
+                        'own thread and executor, so a slow node cannot stall the others; processes: each node in its own '
+                        'process, as ros2 launch starts them); single/events/multi '
                         'with --rate put every node on one executor (multi: MultiThreadedExecutor, realtime only)')
     p.add_argument('--json', action='store_true', help='print the run summary as JSON')
-    p.add_argument('--quiet', '-q', action='store_true')
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser('evaluate', help='metrics of an output bag against its ground truth')
-    p.add_argument('bag')
+    p.add_argument('bag', help='output bag of ar-tracking run (with the ground truth it copied)')
     p.add_argument('--json', action='store_true', help='print the metrics as one JSON object')
     p.add_argument('--compact', action='store_true', help='JSON on one line')
     p.add_argument('--report', help='write the report here (.html or .png); default <bag>.report.html')
@@ -334,36 +376,44 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser('demo', help='the whole job on the sample bag, ending in a report')
-    p.add_argument('--workdir', default='out/demo')
-    p.add_argument('--quiet', '-q', action='store_true')
+    p.add_argument('--workdir', default='out/demo', help='where the output bag and the report go (default out/demo)')
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser('bench', help='speed of the graph and the cores on this machine, as JSON')
-    p.add_argument('--workdir', default='out/bench')
+    p.add_argument('--workdir', default='out/bench', help='where benchmark bags are made and kept (default out/bench)')
     p.add_argument('--duration', type=float, default=60.0, help='length of the benchmark bag, s')
-    p.add_argument('--areas', nargs='+', help='only these areas (graph, orientation, ...)')
+    p.add_argument('--areas', nargs='+', metavar='AREA',
+                   help='only these areas: graph, orientation, orientation_seeds, panorama, markers_vi, '
+                        'annotations, slam (default: all)')
     p.add_argument('--json', action='store_true', help='(the output is always JSON)')
     p.add_argument('--out', '-o', help='also write the JSON here')
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser('replay', help='publish a bag on its topics (like ros2 bag play)')
-    p.add_argument('bag')
-    p.add_argument('--rate', type=float, default=1.0, help='playback speed factor, finite and > 0 (default 1)')
-    p.add_argument('--start-offset', type=float, default=0.0, help='seconds to skip')
-    p.add_argument('--loop', action='store_true')
+    p.add_argument('bag', help='bag to publish (rosbag2 mcap or sqlite3, or ROS 1 .bag)')
+    p.add_argument('--rate', type=float, default=1.0,
+                   help='playback speed: 1 = as recorded, 2 = twice as fast; finite and > 0 (default 1)')
+    p.add_argument('--start-offset', type=float, default=0.0, help='seconds of the bag to skip (default 0)')
+    p.add_argument('--loop', action='store_true', help='start again at the end (the clock jumps back; nodes reset)')
     p.add_argument('--topics', nargs='+', help='only these bag topics')
     p.add_argument('--remap', nargs='+', help='from:=to remappings of bag topics')
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser('convert-euroc', help='convert an EuRoC MAV folder (mav0/...) into a bag')
-    p.add_argument('folder')
-    p.add_argument('--out', '-o', required=True)
-    p.add_argument('--groundtruth', help='CSV: timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z')
+    p.add_argument('folder', help='the dataset folder (holding mav0/) or mav0 itself')
+    p.add_argument('--out', '-o', required=True, help='output bag (.mcap added for mcap storage)')
+    p.add_argument('--groundtruth', metavar='CSV',
+                   help='ground-truth CSV: timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z (default: '
+                        'mav0/state_groundtruth_estimate0/data.csv when present)')
     p.add_argument('--invert-gt-quaternion', action='store_true',
                    help='the CSV stores R_cam_world (e.g. the ORB-SLAM V101_GT.txt files)')
-    p.add_argument('--gt-frame', choices=['camera', 'body'])
-    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
-    p.add_argument('--overwrite', action='store_true')
+    p.add_argument('--gt-frame', choices=['camera', 'body'],
+                   help='what the ground-truth rows are poses of: camera (cam0, default for --groundtruth) or '
+                        "body (the IMU; moved to the camera with cam0's T_BS; default for "
+                        'state_groundtruth_estimate0)')
+    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'],
+                   help='rosbag2 storage: mcap (one file, default) or sqlite3 (a directory)')
+    p.add_argument('--overwrite', action='store_true', help='replace an existing output bag')
     p.set_defaults(func=cmd_convert_euroc)
     return parser
 
@@ -407,14 +457,37 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return tuple(errors)
 
 
+#: Commands that start rclpy nodes in this process (their logs go through rcutils, not logging).
+_ROS_COMMANDS = ('run', 'demo', 'replay')
+
+
+def _quiet_everything(command: str) -> None:
+    """-q: Python warnings off, and the nodes' rcutils loggers at ERROR (the default level of
+    every logger, set before the nodes exist, so that their info/warn lines are not printed)."""
+    import warnings
+
+    warnings.simplefilter('ignore')
+    if command not in _ROS_COMMANDS:
+        return
+    try:
+        import rclpy.logging
+
+        rclpy.logging.set_logger_level('', rclpy.logging.LoggingSeverity.ERROR)
+    except Exception as exc:  # no rclpy: nothing to quiet
+        logger.debug('node logs not quieted: %s', exc)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    quiet = bool(getattr(args, 'quiet', False)) and not args.verbose
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
+        level=logging.DEBUG if args.verbose else logging.ERROR if quiet else logging.INFO,
         format='%(levelname)s %(name)s: %(message)s',
         stream=sys.stderr,
     )
+    if quiet:
+        _quiet_everything(args.command)
     try:
         return int(args.func(args) or 0)
     except _user_errors() as exc:
