@@ -4,7 +4,17 @@ Like ``ros2 bag play`` for machines without the ROS CLI: a rate factor, a start 
 topic selection and remapping (``remap`` parameter or the usual ``--ros-args -r``), and
 ``/clock`` from the bag's time so that other nodes can run with ``use_sim_time``. Messages are
 published as the raw CDR bytes of the bag (no deserialize/serialize round). Bag topics are
-published under relative names, so a node namespace applies to them.
+published under relative names, so a node namespace applies to them; ``/tf_static`` stays
+absolute and latched (transient local), as tf2 expects.
+
+At the end of the bag the node exits (exit code 0, 1 when the bag could not be read), like
+``ros2 bag play``, unless ``loop`` is set.
+
+Two robots side by side: each replay in its own namespace with ``clock_topic: clock`` publishes
+its bag time on ``/<namespace>/clock`` instead of the shared ``/clock`` (two bags on one
+``/clock`` make time jump back and forth). The nodes of that namespace then take their time
+from it with the remap ``-r /clock:=/<namespace>/clock`` (in a launch file:
+``remappings=[('/clock', 'clock')]`` inside the namespace), each with a monotonic clock.
 """
 from __future__ import annotations
 
@@ -40,6 +50,11 @@ class BagReplayNode(TrackingNode):
         )
         options.topics = [t for t in options.topics if t]
         self.publish_clock: bool = p('publish_clock', True, 'Publish /clock from the bag time', read_only=True)
+        clock_topic: str = p('clock_topic', '/clock', 'Topic of the bag clock: /clock, or clock (relative: /<namespace>/clock, '
+                             'one clock per robot; remap /clock to it in that namespace\'s nodes)', read_only=True,
+                             validate=lambda v: None if v.strip('/') else 'must name a topic')
+        self.linger_s: float = p('linger_s', 0.5, 'Wall time to stay after the last message before exiting (late subscribers '
+                                 'and reliable deliveries), s', min_value=0.0, max_value=60.0, read_only=True)
         if not bag_path:
             raise ValueError('parameter bag_path is required (-p bag_path:=/path/to/bag)')
         try:
@@ -66,7 +81,7 @@ class BagReplayNode(TrackingNode):
                 name = name[1:]  # relative, so that the node's namespace applies
             self.publishers_by_topic[topic] = self.advertise(cls, name, LATCHED_QOS if latched else RELIABLE_QOS)
         options.topics = list(self.publishers_by_topic)
-        self.clock_pub = self.advertise(Clock, '/clock', RELIABLE_QOS) if self.publish_clock else None
+        self.clock_pub = self.advertise(Clock, clock_topic, RELIABLE_QOS) if self.publish_clock else None
         self._clock = Clock()
         self.player = BagPlayer(bag_path, options, self._publish, self._done)
         self.get_logger().info(
@@ -82,10 +97,16 @@ class BagReplayNode(TrackingNode):
         self.publishers_by_topic[item.message.topic].publish(item.message.rawdata)
 
     def _done(self, error: str | None) -> None:
+        """Runs on the player thread when the playback ends (the bag's end, an error, or stop)."""
         if error:
             self.get_logger().error(error)
+        elif self.player.stopped:
+            self.get_logger().info(f'replay stopped: {self.player.published} messages')
+            return
         else:
             self.get_logger().info(f'replay finished: {self.player.published} messages')
+        if not self.player.stopped and not self.player.wait_stop(self.linger_s):
+            self.exit_code = 1 if error else 0
 
     def close(self) -> None:
         self.player.stop()

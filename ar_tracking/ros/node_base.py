@@ -121,6 +121,9 @@ class TrackingNode(Node):
         self.publish_counts: dict[str, int] = defaultdict(int)
         self._validators: dict[str, Callable[[Any], str | None]] = {}
         self._live: dict[str, Callable[[Any], None]] = {}
+        #: Set by a node that has finished its job (a replay at the end of its bag): the node
+        #: script then exits with this code.
+        self.exit_code: int | None = None
         self._warned_at: dict[tuple[Any, int], float] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
@@ -404,8 +407,9 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
 
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
-        while node.context.ok():
+        while node.context.ok() and getattr(node, 'exit_code', None) is None:
             executor.spin_once(timeout_sec=0.2)
+        code = getattr(node, 'exit_code', None) or 0
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

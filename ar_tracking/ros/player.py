@@ -46,6 +46,15 @@ class BagPlayer:
     def running(self) -> bool:
         return self._thread.is_alive()
 
+    @property
+    def stopped(self) -> bool:
+        """stop() was called (Ctrl-C, node shutdown)."""
+        return self._stop.is_set()
+
+    def wait_stop(self, timeout_s: float) -> bool:
+        """Wait up to timeout_s for stop(); True if it came."""
+        return self._stop.wait(timeout_s)
+
     def _run(self) -> None:
         error: str | None = None
         try:
