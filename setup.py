@@ -50,11 +50,15 @@ setup(
         'PyYAML>=6.0',
         # The AHRS engine of imu_magnetometer (Laidig & Seel 2023; MIT).
         'vqf>=2.0',
+        # The shared annotation store on PostgreSQL/PostGIS (io/postgis_store.py).
+        'psycopg[binary]>=3.1',
+        # The live view: the graph's topics over the Foxglove WebSocket protocol (ros/foxglove.py).
+        'foxglove-sdk>=0.30',
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI, for machines without a ROS install.
         'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
-        'test': ['pytest>=7', 'hypothesis>=6'],
+        'test': ['pytest>=7', 'hypothesis>=6', 'websockets>=12'],
         # Peer estimators compared in `ar-tracking bench` only (never imported at runtime).
         'bench': ['imufusion>=1.2', 'ahrs>=0.3.1'],
     },
