@@ -39,6 +39,14 @@ if [ ! -f "$ISTAMP" ]; then
 fi
 
 cmd="${1:-demo}"; [ $# -gt 0 ] && shift
+# PostgreSQL + PostGIS for the shared-store tests (a throwaway cluster per test session): installed
+# from Debian when running the tests as root with apt; otherwise those tests skip and say why.
+if [ "$cmd" = test ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 \
+   && ! { compgen -G '/usr/lib/postgresql/*/bin/initdb' && compgen -G '/usr/share/postgresql/*/extension/postgis.control'; } >/dev/null; then
+  echo "ar-tracking.sh: installing PostgreSQL and PostGIS (apt) for the store tests ..." >&2
+  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql postgis; } >/dev/null 2>&1 \
+    || echo "ar-tracking.sh: PostgreSQL/PostGIS not installed; the PostGIS store tests will skip" >&2
+fi
 case "$cmd" in
   test) exec "$VENV/bin/python" -m pytest "$@" ;;
   *)    exec "$VENV/bin/ar-tracking" "$cmd" "$@" ;;
