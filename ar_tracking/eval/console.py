@@ -162,7 +162,7 @@ def panorama_rows(area: dict[str, Any]) -> list[Row]:
         rows.append(_row('lost frames below 90 deg/s', area['lost_frames_below_90dps'], '', 0, '<=', 0, '#3',
                          bound_text='0'))
     seam = area.get('seam_error')
-    if isinstance(seam, dict):
+    if isinstance(seam, dict) and _num(seam.get('edr')) is not None:
         rows.append(Row('seam error EDR / 8-bit', f'{_fmt(seam.get("edr"))} / {_fmt(seam.get("8bit"))} (8-bit units)'))
         rows.append(_row('seam error ratio EDR / 8-bit', seam.get('ratio'), '', 2, '<=', 0.5, '#3'))
     return rows
@@ -245,7 +245,9 @@ def area_rows(metrics: dict[str, Any]) -> dict[str, list[Row]]:
         values = metrics.get(area)
         if not isinstance(values, dict) or not values or not has_figures(values):
             continue
-        rows = AREA_ROWS[area](values)
+        # a row without any figure (a measure the bag could not give) is left out: the
+        # "not scored" lines say why
+        rows = [r for r in AREA_ROWS[area](values) if any(c.isdigit() for c in r.figure)]
         if rows:
             out[area] = rows
     return out

@@ -1,4 +1,10 @@
-"""The evaluation report: one figure of the orientations over time, as PNG or in an HTML page.
+"""The evaluation report: a section per area with its figures against the targets, and plots.
+
+Orientation: one figure of the orientations over time (below). Panorama, annotations, SLAM and
+VI: the same table of figures and targets that ``evaluate`` prints (console.py) and their plots
+(figures.py: tracking error and map, labels placed, trajectory and error, error over time). An
+area the bag has nothing of is listed under "Not in this bag" with the reason, never shown as
+an empty table.
 
 The figure has four panels sharing the time axis: the camera's heading, pitch and roll (what a
 person calls them, see ``camera_heading_pitch_roll_deg``) for the ground truth (black) and each
@@ -22,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ar_tracking.core.rotations import camera_heading_pitch_roll_deg
+from ar_tracking.eval.console import AREA_TITLES, AREAS, area_rows, display_name, unscored_areas
 from ar_tracking.eval.metrics import (
     BagOrientations,
     EvaluationError,
@@ -57,34 +64,43 @@ def write_report(bag: str | Path, out: str | Path, metrics: dict | None = None) 
     kind = out.suffix.lower()
     if kind not in ('.png', '.html', '.htm'):
         raise EvaluationError(f'{out}: a report ends in .png or .html')
-    from .figures import extra_figures
+    from .figures import area_figures
 
     try:
         data = load_orientations(bag)
     except EvaluationError:
         data = None  # no orientation ground truth (a SLAM or marker bag): the other areas only
+    figures: dict[str, list[tuple[str, bytes]]] = {}
     if data is not None:
         if metrics is None:
             metrics = evaluate_orientations(data)
-        png: bytes | None = render_figure_png(data, metrics)
-        extras = extra_figures(bag) if kind != '.png' else []
+        png: bytes | None = render_figure_png(data, metrics) if _scored_estimates(data) else None
+        if kind != '.png':
+            figures = area_figures(bag)
     else:
         if metrics is None:
             from .evaluate import evaluate_all
 
             metrics = evaluate_all(bag)
-        extras = extra_figures(bag)
-        if not extras and kind == '.png':
+        figures = area_figures(bag)
+        png = None
+    if kind == '.png' and png is None:
+        first = [fig for figs in figures.values() for fig in figs]
+        if not first:
             raise EvaluationError(f'{bag}: nothing to draw (no orientation ground truth and no other figure)')
-        png = extras[0][1] if kind == '.png' else None
+        png = first[0][1]
     out.parent.mkdir(parents=True, exist_ok=True)
     if kind == '.png':
         assert png is not None
         out.write_bytes(png)
     else:
-        out.write_text(render_html(Path(bag), metrics, png, extras), encoding='utf-8')
-    logger.info('report written to %s', out)
+        out.write_text(render_html(Path(bag), metrics, png, figures), encoding='utf-8')
+    logger.debug('report written to %s', out)
     return out
+
+
+def _scored_estimates(data: BagOrientations) -> bool:
+    return any(est.error is None and len(est.series) > 0 for est in data.estimates.values())
 
 
 # --------------------------------------------------------------------------------------------
@@ -164,7 +180,7 @@ def _plot_attitudes(axes: Any, data: BagOrientations, t0: int) -> None:
         h = _heading_near(truth_t, truth_heading, t, h)
         for ax, values in zip(axes, (h, p, r)):
             tt, v = _thin(t, values)
-            ax.plot(tt, v, color=_colour(i), linewidth=1.0, label=topic_key(topic))
+            ax.plot(tt, v, color=_colour(i), linewidth=1.0, label=display_name(topic_key(topic)))
 
 
 def _plot_heading_errors(ax: Any, data: BagOrientations, t0: int) -> None:
@@ -181,7 +197,7 @@ def _plot_heading_errors(ax: Any, data: BagOrientations, t0: int) -> None:
         if len(errors.heading_deg) == 0:
             continue
         t, e = _thin(_seconds(errors.stamps_ns, t0), errors.heading_deg)
-        ax.plot(t, e, color=_colour(i), linewidth=1.0, label=topic_key(topic))
+        ax.plot(t, e, color=_colour(i), linewidth=1.0, label=display_name(topic_key(topic)))
     ax.axhline(0.0, color=TRUTH_COLOUR, linewidth=0.5)
 
 
@@ -221,10 +237,10 @@ def _title(bag: Path, metrics: dict) -> str:
     entries = list(metrics.get('orientation', {}).items())
     for key, m in entries[:6]:
         if 'error' in m:
-            lines.append(f'{key}: {m["error"]}')
+            lines.append(f'{display_name(key)}: {m["error"]}')
         else:
             lines.append(
-                f'{key}: RMSE {_fmt(m.get("rmse_deg"))} deg (heading '
+                f'{display_name(key)}: RMSE {_fmt(m.get("rmse_deg"))} deg (heading '
                 f'{_fmt(m.get("heading_rmse_deg"))}, tilt {_fmt(m.get("tilt_rmse_deg"))}), '
                 f'max {_fmt(m.get("max_deg"))} deg, n={m.get("n", 0)}'
             )
@@ -242,6 +258,8 @@ table { border-collapse: collapse; margin: 1em 0; }
 th, td { border: 1px solid #bbb; padding: 0.3em 0.8em; text-align: right; }
 th:first-child, td:first-child { text-align: left; }
 img { max-width: 100%; }
+td.met { color: #1a7f37; } td.notmet { color: #c62828; font-weight: bold; }
+details { margin: 1em 0; }
 """
 
 _COLUMNS = (
@@ -256,7 +274,7 @@ _COLUMNS = (
 def _table_rows(metrics: dict) -> list[str]:
     rows = []
     for key, m in metrics.get('orientation', {}).items():
-        cells = [f'<td>{html.escape(key)}</td>']
+        cells = [f'<td>{html.escape(display_name(key))}</td>']
         if 'error' in m:
             cells.append(f'<td colspan="{len(_COLUMNS)}">{html.escape(m["error"])}</td>')
         else:
@@ -268,55 +286,120 @@ def _table_rows(metrics: dict) -> list[str]:
     return rows
 
 
-def render_html(bag: Path, metrics: dict, png: bytes | None, extras: list[tuple[str, bytes]] | None = None) -> str:
-    """A self-contained page: title, bag summary, metrics table, the embedded figure, and
-    extra figures (caption, PNG) such as the panorama map; other areas' metrics as JSON."""
+def _bag_info(bag: Path, metrics: dict) -> tuple[str, str, str]:
+    """(path, duration text, topic count text) from the metrics, or read from the bag."""
+    info = metrics.get('bag') if isinstance(metrics.get('bag'), dict) else {}
+    duration, topics = info.get('duration_s'), info.get('topics')
+    if duration is None or topics is None:
+        from ..io.bags import BagError, BagReader
+
+        try:
+            with BagReader(bag) as reader:
+                duration = reader.duration_s if duration is None else duration
+                topics = len(reader.topics) if topics is None else topics
+        except BagError:
+            pass
+    duration_text = f'{duration:.1f} s' if isinstance(duration, (int, float)) else 'duration unknown'
+    topics_text = f'{topics} topics' if isinstance(topics, int) else 'topics unknown'
+    return str(info.get('path', bag)), duration_text, topics_text
+
+
+def render_html(bag: Path, metrics: dict, png: bytes | None,
+                figures: dict[str, list[tuple[str, bytes]]] | list[tuple[str, bytes]] | None = None) -> str:
+    """A self-contained page: title, bag summary, then a section per area (its figures against
+    the targets, and its plots), the areas the bag has nothing of, and every measure by name."""
     name = html.escape(bag.name)
-    info = metrics.get('bag', {})
-    header = ''.join(f'<th>{html.escape(label)}</th>' for _, label in _COLUMNS)
-    rows = _table_rows(metrics) or [
-        f'<tr><td colspan="{len(_COLUMNS) + 1}">no orientation estimates</td></tr>'
-    ]
-    if png is None:  # no orientation ground truth: the other areas and their figures
-        orientation_part = ['<p>No orientation ground truth in this bag: the other areas follow.</p>']
-    else:
-        image = base64.b64encode(png).decode('ascii')
-        orientation_part = [
-            '<p>Errors are of the camera orientation against the ground truth, interpolated at each '
-            'estimate\'s header stamp; heading is about the world\'s up axis, tilt the rest.</p>',
-            '<table>',
-            f'<tr><th>topic</th>{header}</tr>',
-            *rows,
-            '</table>',
-            f'<img alt="orientation over time for {name}" src="data:image/png;base64,{image}">',
-        ]
+    if isinstance(figures, list):  # (caption, PNG) without areas: shown after the areas
+        figures = {'other': figures}
+    figures = figures or {}
+    path, duration, topics = _bag_info(bag, metrics)
+    rows = area_rows(metrics)
+    parts: list[str] = []
+    for area in AREAS:
+        if area == 'orientation':
+            if png is not None or area in rows:
+                parts += _orientation_section(name, metrics, png)
+            continue
+        if area not in rows and not figures.get(area):
+            continue
+        parts.append(f'<h2>{html.escape(AREA_TITLES[area])}</h2>')
+        parts += _rows_table(rows.get(area, []))
+        parts += _figure_tags(figures.get(area, []))
+    parts += _figure_tags(figures.get('other', []))
+    missing = unscored_areas(metrics, bag)
+    if missing:
+        parts.append('<h2>Not in this bag</h2><ul>')
+        parts += [f'<li><b>{html.escape(a)}</b>: {html.escape(why)}</li>' for a, why in missing]
+        parts.append('</ul>')
+    parts += _all_measures(metrics)
     return '\n'.join([
         '<!DOCTYPE html>',
         '<html lang="en"><head><meta charset="utf-8">',
         f'<title>ar_tracking evaluation: {name}</title>',
         f'<style>{_STYLE}</style></head><body>',
         f'<h1>Evaluation: {name}</h1>',
-        f'<p>Bag {html.escape(str(info.get("path", bag)))}, '
-        f'{_fmt(info.get("duration_s"), 1)} s, {info.get("topics", "?")} topics.</p>',
-        *orientation_part,
-        *_extra_sections(metrics, extras or []),
+        f'<p>Bag {html.escape(path)}, {duration}, {topics}.</p>',
+        *parts,
         '</body></html>',
         '',
     ])
 
 
-def _extra_sections(metrics: dict, extras: list[tuple[str, bytes]]) -> list[str]:
-    """HTML for the areas other than orientation (their measures) and the extra figures."""
-    import json
+def _orientation_section(name: str, metrics: dict, png: bytes | None) -> list[str]:
+    header = ''.join(f'<th>{html.escape(label)}</th>' for _, label in _COLUMNS)
+    rows = _table_rows(metrics) or [f'<tr><td colspan="{len(_COLUMNS) + 1}">no orientation estimates</td></tr>']
+    parts = [
+        f'<h2>{html.escape(AREA_TITLES["orientation"])}</h2>',
+        '<p>Errors are of the camera orientation against the ground truth, interpolated at each '
+        'estimate\'s header stamp; heading is about the world\'s up axis, tilt the rest.</p>',
+        '<table>', f'<tr><th>estimate</th>{header}</tr>', *rows, '</table>',
+    ]
+    parts += _rows_table([r for r in area_rows(metrics).get('orientation', []) if r.target])
+    if png is not None:
+        image = base64.b64encode(png).decode('ascii')
+        parts.append(f'<img alt="orientation over time for {name}" src="data:image/png;base64,{image}">')
+    return parts
 
+
+def _rows_table(rows: list[Any]) -> list[str]:
+    """The console rows of an area (measure, figure, target, verdict) as an HTML table."""
+    if not rows:
+        return []
+    out = ['<table>', '<tr><th>measure</th><th>figure</th><th>target (issue)</th><th></th></tr>']
+    for r in rows:
+        css = {'met': 'met', 'NOT met': 'notmet'}.get(r.verdict, '')
+        out.append(f'<tr><td>{html.escape(r.measure.strip())}</td><td>{html.escape(r.figure)}</td>'
+                   f'<td>{html.escape(r.target)}</td><td class="{css}">{html.escape(r.verdict)}</td></tr>')
+    out.append('</table>')
+    return out
+
+
+def _figure_tags(figures: list[tuple[str, bytes]]) -> list[str]:
     parts: list[str] = []
-    for area, values in sorted(metrics.items()):
-        if area in ('orientation', 'bag'):
-            continue
-        parts.append(f'<h2>{html.escape(area)}</h2>')
-        parts.append(f'<pre>{html.escape(json.dumps(values, indent=2, sort_keys=True))}</pre>')
-    for caption, png in extras:
+    for caption, png in figures:
         data = base64.b64encode(png).decode('ascii')
-        parts.append(f'<h2>{html.escape(caption)}</h2>')
+        parts.append(f'<h3>{html.escape(caption)}</h3>')
         parts.append(f'<img alt="{html.escape(caption)}" src="data:image/png;base64,{data}">')
     return parts
+
+
+def _flatten(prefix: str, value: Any, out: list[tuple[str, Any]]) -> None:
+    if isinstance(value, dict):
+        for k in sorted(value):
+            _flatten(f'{prefix}.{k}' if prefix else str(k), value[k], out)
+    else:
+        out.append((prefix, value))
+
+
+def _all_measures(metrics: dict) -> list[str]:
+    """Every measure by its JSON name (what ``evaluate --json`` prints), folded away."""
+    flat: list[tuple[str, Any]] = []
+    for area in sorted(metrics):
+        if area != 'bag':
+            _flatten(area, metrics[area], flat)
+    if not flat:
+        return []
+    rows = ''.join(f'<tr><td>{html.escape(k)}</td><td>{html.escape("null" if v is None else str(v))}</td></tr>'
+                   for k, v in flat)
+    return [f'<details><summary>Every measure by its JSON name ({len(flat)})</summary>',
+            f'<table><tr><th>name</th><th>value</th></tr>{rows}</table></details>']
