@@ -39,7 +39,7 @@ from ..core.annotations.matching import (Candidate, MatchConfig, ReDetector, Til
 from ..core.annotations.patches import cut_patch
 from ..core.panorama import MapConfig, MapperConfig, PanoramaMapper
 from ..core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
-from ..core.rotations import nearest_rotation
+from ..core.rotations import so3_log
 
 logger = logging.getLogger(__name__)
 
@@ -122,8 +122,13 @@ def bench_ransac(n: int = 200, seed: int = 0, gravity: bool = False, points: int
 # -- Fig. 7 ---------------------------------------------------------------------------------
 
 def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) -> dict[str, Any]:
-    """Run the mapper (EDR and 8-bit) over one simulated session; the truth and the sensor prior."""
-    from ..core.imu_orientation import FieldModel, GravityFieldOrientation, ImuCalibration
+    """Run the mapper (EDR and 8-bit) over one simulated session; per map the estimated
+    orientation in the world (what authoring stores and the browsing graph's prior is: the
+    hybrid filter's world alignment plus the AHRS on the session's own 100 Hz IMU and field
+    samples, :class:`PanoramaWorldEstimator`, with the device calibration of the sidecar) and,
+    for scoring only, the truth."""
+    from ..core.annotations.world_orientation import PanoramaWorldEstimator
+    from ..core.imu_orientation import ImuCalibration
     from ..sim import rotation_sweep as rs
     from ..sim.bagmaker import EXPOSURE_COMPENSATION, EXPOSURE_TARGET, session_view
     from ..sim.world import FrameRenderer, PinholeCamera, rng_stream
@@ -138,54 +143,61 @@ def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) 
     cam_ns = (np.arange(n_cam, dtype=np.int64) * 1_000_000_000) // rs.CAMERA_RATE_HZ
     factor, wb = rs.make_exposure(seed, trajectory, duration_s).at(cam_ns * 1e-9)
     gain = (EXPOSURE_TARGET / max(pano.mean_radiance, 1e-3)) ** EXPOSURE_COMPENSATION * factor
-    imu = rs.simulate_imu(scn, cam_ns * 1e-9)
+    truth = rs.simulate_imu(scn, cam_ns * 1e-9).R_enu_cam  # scoring only
+    n_imu = int(math.ceil(duration_s * rs.IMU_RATE_HZ))
+    imu_t = np.arange(n_imu) / rs.IMU_RATE_HZ
+    imu = rs.simulate_imu(scn, imu_t)
+    imu_ns = np.round(imu_t * 1e9).astype(np.int64) + scn.imu_time_offset_ns  # header stamps
     params = rs.calibration_params(scn)
-    core = GravityFieldOrientation(
-        ImuCalibration(gyro_bias=params['gyro_bias'], accel_bias=params['accel_bias'],
-                       hard_iron_offset=params['hard_iron_offset'], soft_iron_matrix=params['soft_iron_matrix']),
-        FieldModel(field_t=params['expected_field_t'], dip_rad=params['expected_dip_rad'],
-                   declination_rad=params['declination_rad']))
+    calibration = ImuCalibration(gyro_bias=params['gyro_bias'], accel_bias=params['accel_bias'],
+                                 hard_iron_offset=params['hard_iron_offset'],
+                                 soft_iron_matrix=params['soft_iron_matrix'])
     mappers = {edr: PanoramaMapper(MapperConfig(map=MapConfig(edr=edr))) for edr in (True, False)}
     init = {edr: None for edr in mappers}
-    prior: dict[bool, list[np.ndarray]] = {edr: [] for edr in mappers}
+    est = {edr: PanoramaWorldEstimator(calibration, rs.R_IMU_CAM) for edr in mappers}
     for k, t in enumerate(cam_ns):
         rgb = renderer.render(rs.blur_samples(scn.trajectory, t * 1e-9, cam.fx), float(gain[k]), wb[k])
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-        est = core.estimate(imu.accel_m_s2[k], imu.mag_t[k])
         for edr, m in mappers.items():
             res = m.process(gray, cam.K, int(t))
             m.background()
             if res.status == 'initialised':
                 init[edr] = k
-            if res.R_pano_cam is not None and est is not None:
-                prior[edr].append(est.R_enu_body @ rs.R_IMU_CAM @ res.R_pano_cam.T)
+            if res.R_pano_cam is not None:
+                est[edr].add_visual(int(t), res.R_pano_cam)
     out = {'spot': spot, 'anchors': world.anchors}
     for edr, m in mappers.items():
-        R_prior = nearest_rotation(np.sum(prior[edr], axis=0)) if prior[edr] else None  # chordal mean
+        for i in range(n_imu):
+            est[edr].add_imu(int(imu_ns[i]), imu.gyro_rad_s[i], imu.accel_m_s2[i])
+            est[edr].add_mag(int(imu_ns[i]), imu.mag_t[i])
+        world_est = est[edr].estimate()
         out[edr] = {'gray': m.map.gray.copy(), 'mapped': m.map.mapped.copy(), 'tiles': m.map.tiles_image(),
-                    'R_enu_pano': imu.R_enu_cam[init[edr]] if init[edr] is not None else None,
-                    'R_enu_pano_sensor': R_prior}
+                    'R_enu_pano_truth': truth[init[edr]] if init[edr] is not None else None,
+                    'world': world_est}
     return out
 
 
 def _authored(auth: dict[str, Any], edr: bool, geo: CylinderGeometry) -> dict[str, Any] | None:
     """What authoring stores from one source map: patches at the anchors whose support area
-    it covers (the others could not have been annotated), their directions, the anchors, and
-    the map's landmarks; None without the map's orientation."""
+    it covers (the others could not have been annotated), their directions, the anchors, the
+    map's landmarks and the estimated orientation; None without a map or an estimate. The
+    anchors are placed where they appear in the map (the truth stands in for the user who
+    clicks on them); everything stored is estimated (the landmarks' up too)."""
     src = auth[edr]
-    if src['R_enu_pano'] is None:
+    if src['R_enu_pano_truth'] is None or src['world'] is None:
         return None
     patches, dirs, labels = [], [], []
     for a in auth['anchors']:
-        u, v = geo.project(src['R_enu_pano'].T @ a.direction)
+        u, v = geo.project(src['R_enu_pano_truth'].T @ a.direction)
         patch, d, _ = cut_patch(src['gray'], src['mapped'], float(u), float(v), 16, geo)
         if patch is not None:
             patches.append(patch)
             dirs.append(d)
             labels.append(a)
-    landmarks = (select_landmarks(src['gray'], src['mapped'], geo, src['R_enu_pano'][2], avoid=np.array(dirs))
+    landmarks = (select_landmarks(src['gray'], src['mapped'], geo, src['world'].up, avoid=np.array(dirs))
                  if patches else [])
-    return {'patches': patches, 'dirs': dirs, 'labels': labels, 'landmarks': landmarks}
+    return {'patches': patches, 'dirs': dirs, 'labels': labels, 'landmarks': landmarks,
+            'R_enu_pano': src['world'].R_enu_pano}
 
 
 def fig7_spot(seed: int, duration_s: float = 30.0) -> dict[str, dict[str, list[float]]]:
@@ -196,6 +208,11 @@ def fig7_spot(seed: int, duration_s: float = 30.0) -> dict[str, dict[str, list[f
     browse = {col: _session_maps(seed, 'browsing', light, duration_s) for col, light in COLUMNS.items()}
     authored = {edr: _authored(auth, edr, geo) for edr in (True, False)}
     out: dict[str, dict[str, list[float]]] = {}
+    # Errors of the estimated orientations (EDR maps; scoring only).
+    out['orientation_error_deg'] = {
+        name: ([float(np.degrees(np.linalg.norm(so3_log(s[True]['R_enu_pano_truth'].T @ s[True]['world'].R_enu_pano))))]
+               if s[True]['world'] is not None and s[True]['R_enu_pano_truth'] is not None else [])
+        for name, s in (('authoring', auth), *(((f'browsing_{c}'), browse[c]) for c in COLUMNS))}
     for row, opts in ROWS.items():
         edr = opts['edr']
         stored = authored[edr]
@@ -206,23 +223,23 @@ def fig7_spot(seed: int, duration_s: float = 30.0) -> dict[str, dict[str, list[f
         all_patches = patches + [lm.patch for lm in landmarks]
         all_dirs = np.array(stored['dirs'] + [lm.direction for lm in landmarks]).reshape(-1, 3)
         flags = [False] * len(patches) + [True] * len(landmarks)
-        R_enu_source = auth[edr]['R_enu_pano']
+        R_enu_source = stored['R_enu_pano']  # estimated
         out[row] = {}
         for col in COLUMNS:
             tgt = browse[col][edr]
             errors = [math.inf] * len(labels)
-            if patches and tgt['R_enu_pano'] is not None:
+            if patches and tgt['R_enu_pano_truth'] is not None and tgt['world'] is not None:
                 cfg = MatchConfig(sensor_prior=opts['sensor_prior'], ransac=opts['ransac'])
                 det = ReDetector(all_patches, all_dirs, ['p'] * len(all_patches), cfg, geo,
                                  [R_enu_source] * len(all_patches), landmark=flags)
-                det.set_orientation(tgt['R_enu_pano_sensor'])
+                det.set_orientation(tgt['world'].R_enu_pano)  # estimated
                 det.add_finished_tiles(tgt['tiles'])
                 det.step(tgt['gray'], tgt['mapped'])
                 _, al = det.result()
                 spot = browse[col]['spot']
                 for p in al.placements:
                     d = labels[p.index].position_enu - spot
-                    truth = tgt['R_enu_pano'].T @ (d / np.linalg.norm(d))
+                    truth = tgt['R_enu_pano_truth'].T @ (d / np.linalg.norm(d))
                     errors[p.index] = float(np.degrees(math.acos(np.clip(p.direction @ truth, -1, 1))))
             out[row][col] = errors
     return out
@@ -236,9 +253,13 @@ def bench_fig7(spots: int = 10, first_seed: int = 1, duration_s: float = 30.0) -
         res = fig7_spot(seed, duration_s)
         for r, cols in res.items():
             for c, e in cols.items():
-                errors[r][c].extend(e)
+                errors.setdefault(r, {}).setdefault(c, []).extend(e)
         logger.info('fig7: spot %d done in %.1f s', seed, time.perf_counter() - t)
-    table: dict[str, Any] = {'spots': spots, 'annotations': len(errors['all']['changed_lighting'])}
+    table: dict[str, Any] = {'spots': spots, 'first_seed': first_seed,
+                             'annotations': len(errors['all']['changed_lighting'])}
+    table['orientation_error_deg'] = {
+        k: {'median': round(float(np.median(v)), 3), 'max': round(float(np.max(v)), 3)}
+        for k, v in errors.get('orientation_error_deg', {}).items() if v}
     for r in ROWS:
         table[r] = {}
         for c in COLUMNS:
