@@ -496,6 +496,7 @@ class GraphRunner:
         graph: dict[str, Any] | None = None,
         flush_every_s: float = 0.5,
         named_graph: str | None = None,
+        output_taps: list[Callable[[str, str], Callable[[bytes], None]]] | None = None,
     ) -> None:
         self.bag_path = Path(bag)
         #: The output MCAP closes a chunk every this much bag time (what a kill can lose).
@@ -505,6 +506,9 @@ class GraphRunner:
         self.only_nodes = nodes
         #: ``--graph``: a name of NAMED_GRAPHS, or None/'auto' for the automatic choice
         self.named_graph = named_graph
+        #: factories (topic, msgtype) -> callback that also get every recorded output as raw
+        #: CDR (the Foxglove live view: ros/foxglove.py)
+        self.output_taps = list(output_taps or [])
         self.rate = rate
         self.storage = storage
         self.copy_images = copy_images
@@ -645,7 +649,8 @@ class GraphRunner:
 
             # The recorder keeps every message: KEEP_ALL, so that no burst of a node is lost.
             for topic, msgtype in sorted(output_types.items()):
-                recorder_node.subscribe(message_class(msgtype), topic, make_cb(topic), RECORDER_QOS, raw=True)
+                recorder_node.subscribe(message_class(msgtype), topic, self._tapped(make_cb(topic), topic, msgtype),
+                                        RECORDER_QOS, raw=True)
 
             for n in nodes:
                 for sub in n.subscriptions:
@@ -709,6 +714,23 @@ class GraphRunner:
                 n.destroy_node()
             rclpy.try_shutdown(context=context)
         return result
+
+    def _tapped(self, record: Callable[[bytes], None], topic: str, msgtype: str) -> Callable[[bytes], None]:
+        """``record`` followed by the output taps of this topic; a failing tap is logged once
+        and left out, never ends the run."""
+        taps = [factory(topic, msgtype) for factory in self.output_taps]
+        if not taps:
+            return record
+
+        def record_and_tap(raw: bytes) -> None:
+            record(raw)
+            for tap in list(taps):
+                try:
+                    tap(raw)
+                except Exception as exc:  # noqa: BLE001 - a viewer must not end the run
+                    logger.warning('%s: output tap failed (%s); left out', topic, exc)
+                    taps.remove(tap)
+        return record_and_tap
 
     @staticmethod
     def _hand_static_transforms(reader: BagReader, nodes: list[Any]) -> None:
