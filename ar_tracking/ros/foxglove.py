@@ -1,0 +1,230 @@
+"""The live view: the graph's topics over the Foxglove WebSocket protocol (foxglove-sdk).
+
+:class:`FoxgloveBridge` starts a WebSocket server (``foxglove.start_server`` on a private SDK
+context) and serves each topic it is handed as it is: the raw CDR bytes with the message's
+``ros2msg`` definition as schema, which Foxglove decodes like a ROS 2 connection (Image,
+PointCloud2, Path, MarkerArray, ...). No conversion, no copy on the Python side, and nothing is
+sent on a channel no client subscribes to.
+
+Orientation and pose topics also become ``foxglove.FrameTransform`` messages on
+``/foxglove/transforms``, so the 3D panel shows the camera as a frame in the world:
+
+========================================  ======================  ===============================
+topic (type)                              parent                  child
+========================================  ======================  ===============================
+``orientation/global`` (Imu)              ``world_frame`` (enu)   header.frame_id (camera_optical)
+``imu/data`` (Imu)                        ``world_frame``         header.frame_id (imu)
+``orientation/panorama_in_world`` (TF)    header.frame_id         child_frame_id (panorama)
+``slam/pose`` (PoseStamped)               header.frame_id         ``slam_camera``
+``vi/predicted_pose`` (PoseStamped)       header.frame_id         ``vi_camera``
+``markers/pose`` (PoseWithCov.Stamped)    header.frame_id         ``marker_camera``
+========================================  ======================  ===============================
+
+(``panorama/orientation``, panorama -> camera, is served as a topic only: as a frame it would
+give the camera a second parent.) The annotation markers live in the ``panorama`` frame, which
+``orientation/panorama_in_world`` places in the world. ``config/foxglove_layout.json`` (made by
+:func:`make_layout`) arranges a 3D panel, the AR overlay and the panorama.
+
+Message time on the wire is the header stamp (capture time), so live and replayed data line up.
+The module needs no rclpy: the runner hands it the raw bytes its recorder already receives, and
+the ``foxglove_bridge`` node does the same for a live graph.
+"""
+from __future__ import annotations
+
+import logging
+import struct
+import threading
+from pathlib import Path
+from typing import Any, Callable
+
+logger = logging.getLogger(__name__)
+
+#: Default port of Foxglove's WebSocket connection.
+DEFAULT_PORT = 8765
+#: The channel of the derived frame transforms.
+TRANSFORMS_TOPIC = '/foxglove/transforms'
+#: topic -> child frame for pose topics (their parent is the message's header.frame_id).
+POSE_CHILD_FRAMES = {'/slam/pose': 'slam_camera', '/vi/predicted_pose': 'vi_camera', '/markers/pose': 'marker_camera'}
+#: Imu topics whose orientation is the header frame in the world frame.
+ORIENTATION_TOPICS = ('/orientation/global', '/imu/data')
+#: TransformStamped topics served as frames.
+TRANSFORM_TOPICS = ('/orientation/panorama_in_world',)
+#: The layout file in the repository.
+LAYOUT_PATH = Path(__file__).resolve().parents[2] / 'config' / 'foxglove_layout.json'
+
+
+class FoxgloveError(Exception):
+    """The live view cannot start (one line: the SDK is missing, the port is taken)."""
+
+
+def _stamp_ns(raw: bytes) -> int | None:
+    """header.stamp of a CDR message that starts with a std_msgs/Header (None if too short)."""
+    if len(raw) < 12:
+        return None
+    sec, nsec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
+    return sec * 1_000_000_000 + nsec
+
+
+class FoxgloveBridge:
+    """A Foxglove WebSocket server fed with raw CDR messages (see the module docstring).
+
+    ``port`` 0 takes a free port (see :attr:`port`). Thread-safe: the runner's recorder thread
+    and node threads may publish at once."""
+
+    def __init__(self, port: int = DEFAULT_PORT, host: str = '127.0.0.1', *, world_frame: str = 'enu',
+                 name: str = 'ar_tracking') -> None:
+        try:
+            import foxglove
+            from foxglove.channels import FrameTransformChannel
+        except ImportError as exc:
+            raise FoxgloveError('the live view needs foxglove-sdk: pip install foxglove-sdk') from exc
+        self._foxglove = foxglove
+        self.world_frame = world_frame
+        self._context = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context)
+        except Exception as exc:  # the SDK raises its own error types (port in use, bad host)
+            raise FoxgloveError(f'cannot start the Foxglove server on {host}:{port} ({exc})') from exc
+        self._channels: dict[str, Any] = {}
+        #: topics whose messages start with a std_msgs/Header (their stamp is the message time)
+        self._stamped: set[str] = set()
+        self._lock = threading.Lock()
+        self._transforms = FrameTransformChannel(TRANSFORMS_TOPIC, context=self._context)
+        self.published = 0
+        logger.info('Foxglove live view on ws://%s:%d', host, self.port)
+
+    @property
+    def port(self) -> int:
+        return int(self._server.port)
+
+    @property
+    def url(self) -> str:
+        return f'ws://127.0.0.1:{self.port}'
+
+    def advertise(self, topic: str, msgtype: str) -> Any:
+        """The channel of ``topic`` (created on first use, so clients see it before any data)."""
+        topic = '/' + topic.lstrip('/')
+        channel = self._channels.get(topic)
+        if channel is not None:
+            return channel
+        with self._lock:
+            channel = self._channels.get(topic)
+            if channel is None:
+                from ..io.bags import TYPESTORE
+
+                msgdef, _ = TYPESTORE.generate_msgdef(msgtype, ros_version=2)
+                schema = self._foxglove.Schema(name=msgtype, encoding='ros2msg', data=msgdef.encode())
+                channel = self._foxglove.Channel(topic, schema=schema, message_encoding='cdr',
+                                                 context=self._context)
+                first_field = next((line for line in msgdef.splitlines() if line.strip()
+                                    and not line.lstrip().startswith('#')), '')
+                if first_field.split()[:1] in (['std_msgs/Header'], ['Header']):
+                    self._stamped.add(topic)
+                self._channels[topic] = channel
+        return channel
+
+    def publish(self, topic: str, msgtype: str, raw: bytes) -> None:
+        """Serve one message (raw CDR) on its topic, and its frame on /foxglove/transforms."""
+        topic = '/' + topic.lstrip('/')
+        channel = self.advertise(topic, msgtype)
+        stamp = _stamp_ns(raw) if topic in self._stamped else None
+        if channel.has_sinks():
+            channel.log(bytes(raw), log_time=stamp)
+            self.published += 1
+        if (topic in ORIENTATION_TOPICS or topic in TRANSFORM_TOPICS or topic in POSE_CHILD_FRAMES) \
+                and self._transforms.has_sinks():
+            try:
+                frame = self._frame(topic, msgtype, raw)
+            except Exception as exc:  # noqa: BLE001 - a message we cannot decode: not a frame
+                logger.debug('%s: no frame (%s)', topic, exc)
+                return
+            if frame is not None:
+                self._transforms.log(frame, log_time=stamp)
+
+    def _frame(self, topic: str, msgtype: str, raw: bytes) -> Any:
+        """The FrameTransform a message stands for (None for other types)."""
+        from foxglove.messages import FrameTransform, Quaternion, Timestamp, Vector3
+
+        from ..io.bags import TYPESTORE
+
+        msg = TYPESTORE.deserialize_cdr(bytes(raw), msgtype)
+        h = msg.header
+        if msgtype == 'sensor_msgs/msg/Imu' and topic in ORIENTATION_TOPICS:
+            parent, child = self.world_frame, h.frame_id.lstrip('/') or ('camera_optical' if 'global' in topic else 'imu')
+            q, t = msg.orientation, None
+        elif msgtype == 'geometry_msgs/msg/TransformStamped':
+            parent, child = h.frame_id.lstrip('/'), msg.child_frame_id.lstrip('/')
+            q, t = msg.transform.rotation, msg.transform.translation
+        elif msgtype == 'geometry_msgs/msg/PoseStamped' and topic in POSE_CHILD_FRAMES:
+            parent, child = h.frame_id.lstrip('/'), POSE_CHILD_FRAMES[topic]
+            q, t = msg.pose.orientation, msg.pose.position
+        elif msgtype == 'geometry_msgs/msg/PoseWithCovarianceStamped' and topic in POSE_CHILD_FRAMES:
+            parent, child = h.frame_id.lstrip('/'), POSE_CHILD_FRAMES[topic]
+            q, t = msg.pose.pose.orientation, msg.pose.pose.position
+        else:
+            return None
+        if not parent or not child or not (q.x or q.y or q.z or q.w):
+            return None
+        return FrameTransform(timestamp=Timestamp(sec=int(h.stamp.sec), nsec=int(h.stamp.nanosec)),
+                              parent_frame_id=parent, child_frame_id=child,
+                              translation=Vector3(x=float(t.x), y=float(t.y), z=float(t.z)) if t is not None
+                              else Vector3(x=0.0, y=0.0, z=0.0),
+                              rotation=Quaternion(x=float(q.x), y=float(q.y), z=float(q.z), w=float(q.w)))
+
+    def tap(self, topic: str, msgtype: str) -> Callable[[bytes], None]:
+        """A callback that serves every raw message of one topic."""
+        self.advertise(topic, msgtype)
+        return lambda raw: self.publish(topic, msgtype, raw)
+
+    def close(self) -> None:
+        """Stop the server (clients are disconnected)."""
+        server = getattr(self, '_server', None)
+        if server is not None:
+            server.stop()
+            self._server = None
+
+    def __enter__(self) -> 'FoxgloveBridge':
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def make_layout() -> str:
+    """The Foxglove layout of config/foxglove_layout.json (as JSON text): a 3D panel in the world
+    frame (camera, panorama and SLAM frames, SLAM points and path, annotation markers) beside
+    the AR overlay and the panorama map."""
+    import foxglove.layouts as fl
+
+    three_d = fl.ThreeDeePanel(title='world (enu)', config=fl.ThreeDeeConfig(
+        follow_tf='enu', fixed_frame='enu',
+        topics={
+            '/slam/map_points': fl.BaseRendererPointCloudTopicSettings(visible=True),
+            '/slam/path': fl.BaseRendererBaseSettings(visible=True),
+            '/slam/keyframes': fl.BaseRendererPosesTopicSettings(visible=True),
+            '/annotations/markers': fl.BaseRendererRosMarkerTopicSettings(visible=True),
+            '/markers/detections': fl.BaseRendererRosMarkerTopicSettings(visible=True),
+        }))
+    overlay = fl.ImagePanel(title='AR overlay', config=fl.ImageConfig(
+        image_mode=fl.ImageModeConfig(image_topic='/ar/overlay')))
+    panorama = fl.ImagePanel(title='panorama', config=fl.ImageConfig(
+        image_mode=fl.ImageModeConfig(image_topic='/panorama/image')))
+    layout = fl.Layout(content=fl.SplitContainer(direction='row', items=[
+        fl.SplitItem(proportion=1, content=three_d),
+        fl.SplitItem(proportion=1, content=fl.SplitContainer(direction='column', items=[
+            fl.SplitItem(proportion=1, content=overlay),
+            fl.SplitItem(proportion=1, content=panorama),
+        ])),
+    ]))
+    import json
+
+    return json.dumps(json.loads(layout.to_json()), indent=1, sort_keys=True) + '\n'
+
+
+if __name__ == '__main__':  # python -m ar_tracking.ros.foxglove --layout: rewrite config/foxglove_layout.json
+    import sys
+
+    if sys.argv[1:] != ['--layout']:
+        sys.exit('usage: python -m ar_tracking.ros.foxglove --layout')
+    LAYOUT_PATH.write_text(make_layout())
+    print(LAYOUT_PATH)
