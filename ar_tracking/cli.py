@@ -102,14 +102,24 @@ def cmd_run(args: argparse.Namespace) -> int:
     if sidecar is not None and not args.no_sidecar:
         logger.info('using calibration %s (disable with --no-sidecar)', sidecar)
         params.insert(0, sidecar)
+    bridge = None
+    if args.foxglove is not None:  # the live view: every output served over Foxglove's WebSocket
+        from .ros.foxglove import FoxgloveBridge
+
+        bridge = FoxgloveBridge(port=args.foxglove)
+        print(f'Foxglove live view: open {bridge.url} in Foxglove (layout: config/foxglove_layout.json)',
+              file=sys.stderr)
     update, close = _progress_bar(not args.quiet and sys.stderr.isatty(), 'run')
     try:
         result = GraphRunner(
             bag, out, params_files=params, nodes=args.nodes, rate=args.rate, storage=args.storage,
             copy_images=args.copy_images, executor=args.executor, progress=update, named_graph=args.graph,
+            output_taps=[bridge.tap] if bridge is not None else None,
         ).run()
     finally:
         close()
+        if bridge is not None:
+            bridge.close()
     summary = {
         'out': str(result.out_path), 'nodes': result.nodes, 'not_started': result.not_started,
         'input_messages': result.input_messages,
@@ -362,6 +372,10 @@ def build_parser() -> argparse.ArgumentParser:
                         'process, as ros2 launch starts them); single/events/multi '
                         'with --rate put every node on one executor (multi: MultiThreadedExecutor, realtime only)')
     p.add_argument('--json', action='store_true', help='print the run summary as JSON')
+    p.add_argument('--foxglove', type=int, nargs='?', const=8765, default=None, metavar='PORT',
+                   help='serve the outputs live over the Foxglove WebSocket protocol on 127.0.0.1:PORT '
+                        '(default 8765): orientation as a 3D frame, panorama, AR overlay, SLAM points and path; '
+                        'layout in config/foxglove_layout.json')
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser('evaluate', help='metrics of an output bag against its ground truth')
@@ -454,6 +468,9 @@ def _user_errors() -> tuple[type[BaseException], ...]:
         errors.append(RunError)
     except ImportError:
         pass
+    from .ros.foxglove import FoxgloveError
+
+    errors.append(FoxgloveError)
     return tuple(errors)
 
 
@@ -496,6 +513,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f'ar-tracking {args.command}: interrupted', file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (| head): no traceback for that
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == '__main__':

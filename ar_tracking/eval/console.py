@@ -247,7 +247,7 @@ def area_rows(metrics: dict[str, Any]) -> dict[str, list[Row]]:
             continue
         # a row without any figure (a measure the bag could not give) is left out: the
         # "not scored" lines say why
-        rows = [r for r in AREA_ROWS[area](values) if any(c.isdigit() for c in r.figure)]
+        rows = [r for r in AREA_ROWS[area](values) if r.figure.replace('-', '').replace('/', '').strip()]
         if rows:
             out[area] = rows
     return out
