@@ -121,3 +121,12 @@ def test_layout_file_is_current() -> None:
     text = json.dumps(layout)
     for topic in ('/ar/overlay', '/panorama/image', '/slam/map_points', '/slam/path', '/annotations/markers'):
         assert topic in text
+
+
+def test_cli_foxglove_port_in_use_is_one_line(tmp_path, capsys) -> None:
+    from ar_tracking.cli import main
+
+    with FoxgloveBridge(port=0) as taken:
+        code = main(['run', str(SAMPLE_BAG), '-o', str(tmp_path / 'o.mcap'), '--foxglove', str(taken.port)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and 'cannot start the Foxglove server' in err[0]
