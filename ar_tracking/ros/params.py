@@ -61,8 +61,10 @@ def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     return out
 
 
-def params_for_node(node_name: str, files: list[str | Path], use_packaged: bool = True) -> dict[str, Any]:
-    """Merged parameters of one node: packaged config first, then each file in order."""
+def params_for_node(node_name: str, files: list[str | Path], use_packaged: bool = True,
+                    namespace: str = '') -> dict[str, Any]:
+    """Merged parameters of one node: packaged config first, then each file in order (in each
+    file ``/**``, then the node's name, then its namespaced name ``/<namespace>/<node>``)."""
     merged: dict[str, Any] = {}
     sources: list[str | Path] = []
     packaged = packaged_config(node_name) if use_packaged else None
@@ -71,7 +73,8 @@ def params_for_node(node_name: str, files: list[str | Path], use_packaged: bool 
     sources.extend(files)
     for src in sources:
         table = load_params_file(src)
-        for key in ('**', node_name):
+        ns = namespace.strip('/')
+        for key in ('**', node_name) + ((f'{ns}/{node_name}',) if ns else ()):
             merged.update(table.get(key, {}))
     return merged
 
