@@ -125,6 +125,7 @@ class TrackingNode(Node):
         #: script then exits with this code.
         self.exit_code: int | None = None
         self._warned_at: dict[tuple[Any, int], float] = {}
+        self._warned_skipped: dict[tuple[Any, int], int] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
@@ -287,9 +288,13 @@ class TrackingNode(Node):
         now = time.monotonic()
         last = self._warned_at.get(key)
         if last is not None and now - last < period_s:
+            self._warned_skipped[key] = self._warned_skipped.get(key, 0) + 1
             return
         self._warned_at[key] = now
-        self.get_logger().warning(text)
+        skipped = self._warned_skipped.pop(key, 0)
+        # the count of the lines the throttle held back, so a recurring problem shows its size
+        self.get_logger().warning(text + (f' ({skipped} more like this in the last {now - last:.1f} s)'
+                                          if skipped and last is not None else ''))
 
 
 def _params_files(args: Sequence[str]) -> list[str]:
