@@ -37,9 +37,10 @@ from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import numpy as np
 
-from ..core.annotations.store import (DEFAULT_RADIUS_M, SCHEMA, SCHEMA_VERSION, AddReport, Annotation,
-                                      AnnotationStore, Landmark, SqliteAnnotationStore, StoreError,
-                                      validate_annotation, validate_landmark)
+from ..core.annotations.store import (DEFAULT_RADIUS_M, PANORAMAS_VERSION, SCHEMA, SCHEMA_VERSION, AddReport,
+                                      Annotation, AnnotationStore, Landmark, PanoramaInfo,
+                                      SqliteAnnotationStore, StoreError, _panorama_row, panorama_from_row,
+                                      validate_annotation, validate_landmark, validate_panorama)
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +68,13 @@ MIGRATIONS: dict[int, tuple[str, ...]] = {
             patch_side INTEGER NOT NULL, dx DOUBLE PRECISION NOT NULL, dy DOUBLE PRECISION NOT NULL,
             dz DOUBLE PRECISION NOT NULL)''',
         'CREATE INDEX landmarks_panorama_id ON landmarks (panorama_id)',
+    ),
+    3: (
+        '''CREATE TABLE panoramas (
+            panorama_id TEXT PRIMARY KEY, qx DOUBLE PRECISION, qy DOUBLE PRECISION,
+            qz DOUBLE PRECISION, qw DOUBLE PRECISION, cov BYTEA, up_x DOUBLE PRECISION,
+            up_y DOUBLE PRECISION, up_z DOUBLE PRECISION, orientation_source TEXT NOT NULL,
+            created_ns BIGINT NOT NULL)''',
     ),
 }
 assert max(MIGRATIONS) == SCHEMA_VERSION
@@ -284,6 +292,51 @@ class PostgisAnnotationStore(AnnotationStore):
         rows = self._fetch('SELECT id, panorama_id, patch, patch_side, dx, dy, dz FROM landmarks '
                            'WHERE panorama_id = ANY(%s) ORDER BY id', (ids,))
         return self._collect(rows, SqliteAnnotationStore._landmark_from_row, 'landmark')
+
+    def put_panorama(self, info: PanoramaInfo) -> None:
+        reason = validate_panorama(info) or _nul_problem(info.panorama_id)
+        if reason is not None:
+            raise StoreError(f'panorama {getattr(info, "panorama_id", "")!r} not stored: {reason}')
+        if self.read_only:
+            raise StoreError(f'{self.path}: the annotation store is open read-only')
+        try:
+            with self._db.transaction():
+                self._db.execute(
+                    'INSERT INTO panoramas (panorama_id, qx, qy, qz, qw, cov, up_x, up_y, up_z, '
+                    'orientation_source, created_ns) VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s) '
+                    'ON CONFLICT (panorama_id) DO UPDATE SET qx = EXCLUDED.qx, qy = EXCLUDED.qy, '
+                    'qz = EXCLUDED.qz, qw = EXCLUDED.qw, cov = EXCLUDED.cov, up_x = EXCLUDED.up_x, '
+                    'up_y = EXCLUDED.up_y, up_z = EXCLUDED.up_z, '
+                    'orientation_source = EXCLUDED.orientation_source, created_ns = EXCLUDED.created_ns',
+                    _panorama_row(info))
+        except self._psycopg.Error as exc:
+            raise self._error(exc, 'cannot write') from exc
+
+    def panoramas(self, panorama_ids: Iterable[str]) -> dict[str, PanoramaInfo]:
+        if isinstance(panorama_ids, str):
+            raise TypeError('panorama_ids must be an iterable of panorama ids, not one string')
+        ids = [str(p) for p in dict.fromkeys(panorama_ids)]
+        if not ids or (self._version() or 0) < PANORAMAS_VERSION:
+            return {}
+        rows = self._fetch('SELECT panorama_id, qx, qy, qz, qw, cov, up_x, up_y, up_z, orientation_source, '
+                           'created_ns FROM panoramas WHERE panorama_id = ANY(%s)', (ids,))
+        return {p.panorama_id: p for p in self._collect(rows, panorama_from_row, 'panorama')}
+
+    def annotations_of(self, panorama_id: str) -> list[Annotation]:
+        return self._collect(self._fetch(f'SELECT {_ANNOTATION_COLUMNS} FROM annotations WHERE panorama_id = %s '
+                                         'ORDER BY id', (panorama_id,)), SqliteAnnotationStore._from_row, 'record')
+
+    def delete_panorama(self, panorama_id: str) -> int:
+        if self.read_only:
+            raise StoreError(f'{self.path}: the annotation store is open read-only')
+        try:
+            with self._db.transaction():
+                n = self._db.execute('DELETE FROM annotations WHERE panorama_id = %s', (panorama_id,)).rowcount
+                self._db.execute('DELETE FROM landmarks WHERE panorama_id = %s', (panorama_id,))
+                self._db.execute('DELETE FROM panoramas WHERE panorama_id = %s', (panorama_id,))
+        except self._psycopg.Error as exc:
+            raise self._error(exc, 'cannot write') from exc
+        return int(n)
 
     def count(self) -> int:
         return int(self._fetch('SELECT COUNT(*) FROM annotations', ())[0][0])

@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 
 from annotation_synth import annotation
-from ar_tracking.core.annotations.store import (Landmark, SqliteAnnotationStore, StoreError, distance_m,
-                                                open_store, validate_annotation, validate_landmark)
+from ar_tracking.core.annotations import store as store_module
+from ar_tracking.core.annotations.store import (SCHEMA_VERSION, Landmark, PanoramaInfo, SqliteAnnotationStore,
+                                                StoreError, distance_m, open_store, validate_annotation,
+                                                validate_landmark)
 
 LAT, LON = 47.0458, 15.4251
 
@@ -218,7 +220,7 @@ def test_invalid_query_position_is_an_error(store):
 def test_new_store_has_the_landmarks_table(tmp_path):
     path = tmp_path / 'n.db'
     SqliteAnnotationStore(path, create=True).close()
-    assert meta_version(path) == '2'
+    assert meta_version(path) == str(SCHEMA_VERSION)
     db = sqlite3.connect(path)
     names = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE tbl_name = 'landmarks'")}
     db.close()
@@ -313,13 +315,13 @@ def test_read_only_handle_never_upgrades_a_version_1_store(tmp_path):
 
 
 def test_newer_store_version_is_refused(tmp_path):
-    path = tmp_path / 'v3.db'
+    path = tmp_path / 'v99.db'
     SqliteAnnotationStore(path, create=True).close()
     db = sqlite3.connect(path)
-    db.execute("UPDATE meta SET value = '3' WHERE key = 'version'")
+    db.execute("UPDATE meta SET value = '99' WHERE key = 'version'")
     db.commit()
     db.close()
-    with pytest.raises(StoreError, match='version 3 is newer'):
+    with pytest.raises(StoreError, match='version 99 is newer'):
         SqliteAnnotationStore(path)
 
 
@@ -346,3 +348,97 @@ def test_integrity_ok_after_adding_landmarks(store):
     store.add_landmarks([landmark(k, f'p{k % 2}') for k in range(20)])
     assert store.integrity_ok() and store.count() == 2
     assert len(store.landmarks(['p0', 'p1'])) == 20
+
+
+# -- panoramas table (version 3), deletion, read-only stores -------------------------------------
+
+def panorama(pid: str = 'p1') -> PanoramaInfo:
+    q = np.array([0.1, -0.2, 0.3, 0.9])
+    return PanoramaInfo(pid, q / np.linalg.norm(q), np.diag([1e-5, 2e-5, 3e-4]), np.array([0.0, -1.0, 0.0]),
+                        'estimated', 123)
+
+
+def test_panorama_record_round_trip_and_replace(store):
+    store.put_panorama(panorama('p1'))
+    got = store.panoramas(['p1', 'p2'])
+    assert list(got) == ['p1']
+    p = got['p1']
+    assert np.allclose(p.covariance_enu, np.diag([1e-5, 2e-5, 3e-4])) and p.orientation_source == 'estimated'
+    assert np.allclose(p.up, [0, -1, 0]) and p.has_world_orientation()
+    assert math.isclose(p.heading_sigma_rad(), math.sqrt(3e-4))
+    store.put_panorama(PanoramaInfo('p1', orientation_source='none'))  # replaced, unknowns stay NULL
+    p = store.panoramas(['p1'])['p1']
+    assert not p.has_world_orientation() and np.all(np.isnan(p.covariance_enu)) and np.all(np.isnan(p.up))
+
+
+def test_bad_panorama_record_is_refused(store):
+    with pytest.raises(StoreError, match='orientation_source'):
+        store.put_panorama(PanoramaInfo('p1', orientation_source='guess'))
+    with pytest.raises(StoreError, match='unit quaternion'):
+        store.put_panorama(PanoramaInfo('p1', np.array([0.0, 0.0, 0.0, 2.0]), orientation_source='estimated'))
+
+
+def test_version_2_store_gets_the_panoramas_table_on_first_put(tmp_path):
+    path = tmp_path / 'v2.db'
+    with SqliteAnnotationStore(path, create=True) as s:
+        s.add([rec(1)])
+    db = sqlite3.connect(path)
+    db.execute('DROP TABLE panoramas')
+    db.execute("UPDATE meta SET value = '2' WHERE key = 'version'")
+    db.commit()
+    db.close()
+    with SqliteAnnotationStore(path, read_only=True) as s:
+        assert s.panoramas(['p1']) == {} and len(s.all()) == 1
+    assert meta_version(path) == '2'
+    with SqliteAnnotationStore(path) as s:
+        s.put_panorama(panorama())
+        assert 'p1' in s.panoramas(['p1'])
+    assert meta_version(path) == '3'
+
+
+def test_delete_panorama_removes_its_records_only(store):
+    store.add([rec(1, pano='p1'), rec(2, pano='p1'), rec(3, pano='p2')])
+    store.add_landmarks([landmark(1, 'p1'), landmark(2, 'p2')])
+    store.put_panorama(panorama('p1'))
+    assert [a.panorama_id for a in store.annotations_of('p1')] == ['p1', 'p1']
+    assert store.delete_panorama('p1') == 2
+    assert [a.panorama_id for a in store.all()] == ['p2']
+    assert [lm.panorama_id for lm in store.landmarks(['p1', 'p2'])] == ['p2']
+    assert store.panoramas(['p1']) == {} and store.integrity_ok()
+    assert store.near(47.0, 15.0, 50.0)[0].panorama_id == 'p2'  # the R-tree rows went too
+
+
+def _no_write_access(monkeypatch, what):
+    """The tests run as root, for whom every file is writable: os.access answers as for a user."""
+    real = store_module.os.access
+
+    def access(path, mode, *a, **kw):
+        if str(path) == str(what) and mode & store_module.os.W_OK:
+            return False
+        return real(path, mode, *a, **kw)
+    monkeypatch.setattr(store_module.os, 'access', access)
+
+
+def test_store_in_read_only_directory_is_browsed_without_wal_files(tmp_path, monkeypatch):
+    d = tmp_path / 'ro'
+    d.mkdir()
+    with SqliteAnnotationStore(d / 'a.db', create=True) as s:
+        s.add([rec(1)])
+    assert not (d / 'a.db-wal').exists()
+    _no_write_access(monkeypatch, d)
+    with SqliteAnnotationStore(d / 'a.db', read_only=True) as s:
+        assert len(s.all()) == 1
+    assert sorted(p.name for p in d.iterdir()) == ['a.db']  # nothing created beside it
+    with pytest.raises(StoreError, match='read-only directory'):
+        SqliteAnnotationStore(d / 'a.db')
+
+
+def test_read_only_file_opened_for_writing_says_read_only(tmp_path, monkeypatch):
+    path = tmp_path / 'a.db'
+    SqliteAnnotationStore(path, create=True).close()
+    _no_write_access(monkeypatch, path)
+    with pytest.raises(StoreError, match='read-only') as err:
+        SqliteAnnotationStore(path)
+    assert '\n' not in str(err.value) and 'not an annotation store' not in str(err.value)
+    with SqliteAnnotationStore(path, read_only=True) as s:  # browsing still works
+        assert s.count() == 0

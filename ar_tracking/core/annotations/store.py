@@ -24,7 +24,14 @@ Errors are :class:`StoreError` with one line (missing, locked or corrupt files);
 is never overwritten or re-initialised. Bad records (wrong patch size, NaN or zero vector, ...)
 are skipped and reported, never stored. Schema version 2 added the landmarks table: a version-1
 file opens as it is (it has no landmarks) and gets the table, in the same transaction, on its
-first ``add_landmarks``.
+first ``add_landmarks``. Schema version 3 added the panoramas table (:class:`PanoramaInfo`: the
+source panorama's estimated orientation in the world, its covariance, its up direction and where
+they came from), created the same way on the first :meth:`~AnnotationStore.put_panorama`.
+
+A store is opened read-only (``read_only=True``, what the matcher does) without writing anything:
+in a read-only directory, where SQLite cannot create the WAL's shared-memory file, it is opened
+as an immutable file; a file the user may not read, a store another process holds locked, and a
+read-only file opened for writing each get their own one-line StoreError.
 """
 from __future__ import annotations
 
@@ -32,6 +39,7 @@ import abc
 import contextlib
 import logging
 import math
+import os
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,9 +56,13 @@ PATCH_SIDES = (8, 16, 24, 32)
 DEFAULT_RADIUS_M = 50.0
 EARTH_RADIUS_M = 6_371_008.8
 SCHEMA = 'ar_tracking.annotations'
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: The schema version that added the landmarks table.
 LANDMARKS_VERSION = 2
+#: The schema version that added the panoramas table.
+PANORAMAS_VERSION = 3
+#: Where a panorama's orientation in the world came from.
+ORIENTATION_SOURCES = ('estimated', 'ground_truth', 'none')
 
 
 class StoreError(Exception):
@@ -104,6 +116,77 @@ class Landmark:
     @property
     def patch_side(self) -> int:
         return int(self.patch.shape[0])
+
+
+@dataclass(frozen=True)
+class PanoramaInfo:
+    """What authoring knows of a source panorama as a whole: its orientation in the world
+    (R_enu_panorama, x y z w; NaN when unknown), the covariance of that orientation's error about
+    the ENU axes (x, y: tilt, z: heading; rad^2), the up direction in the panorama frame (unit,
+    from gravity; NaN when unknown) and where they came from (:data:`ORIENTATION_SOURCES`:
+    ``estimated`` by the graph's cores from the session's own sensors, ``ground_truth`` for
+    evaluation only, ``none``)."""
+
+    panorama_id: str
+    panorama_in_world_quat_xyzw: NDArray[np.float64] = field(default_factory=lambda: np.full(4, np.nan))
+    covariance_enu: NDArray[np.float64] = field(default_factory=lambda: np.full((3, 3), np.nan))
+    up: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.nan))
+    orientation_source: str = 'none'
+    created_ns: int = 0
+
+    def has_world_orientation(self) -> bool:
+        q = np.asarray(self.panorama_in_world_quat_xyzw, float)
+        return q.shape == (4,) and bool(np.all(np.isfinite(q))) and abs(np.linalg.norm(q) - 1) < 1e-3
+
+    def heading_sigma_rad(self) -> float:
+        """1-sigma of the heading (NaN when unknown)."""
+        c = np.asarray(self.covariance_enu, float)
+        return float(math.sqrt(c[2, 2])) if c.shape == (3, 3) and np.isfinite(c[2, 2]) and c[2, 2] >= 0 else float('nan')
+
+
+def validate_panorama(info: PanoramaInfo) -> str | None:
+    """None if the panorama record can be stored, else the reason (one line)."""
+    if not isinstance(info, PanoramaInfo):
+        return f'not a PanoramaInfo ({type(info).__name__})'
+    if not info.panorama_id:
+        return 'panorama_id is empty'
+    if info.orientation_source not in ORIENTATION_SOURCES:
+        return f'orientation_source must be one of {ORIENTATION_SOURCES}, got {info.orientation_source!r}'
+    q = np.asarray(info.panorama_in_world_quat_xyzw, float)
+    if q.shape != (4,) or (np.any(np.isfinite(q)) and not info.has_world_orientation()):
+        return 'panorama_in_world_quat_xyzw must be a unit quaternion (or all NaN)'
+    c = np.asarray(info.covariance_enu, float)
+    if c.shape != (3, 3) or (np.all(np.isfinite(c)) and (np.any(np.diag(c) < 0) or not np.allclose(c, c.T))):
+        return 'covariance_enu must be a symmetric 3x3 matrix with a non-negative diagonal (or NaN)'
+    u = np.asarray(info.up, float)
+    if u.shape != (3,) or (np.all(np.isfinite(u)) and abs(np.linalg.norm(u) - 1.0) > 1e-3):
+        return 'up must be a unit 3-vector (or NaN)'
+    return None
+
+
+def _panorama_row(info: PanoramaInfo) -> tuple:
+    """(panorama_id, qx, qy, qz, qw, cov blob, up x y z, source, created_ns); NULL for unknowns."""
+    q = [float(v) for v in np.asarray(info.panorama_in_world_quat_xyzw, float)] \
+        if info.has_world_orientation() else [None] * 4
+    c = np.asarray(info.covariance_enu, float)
+    cov = c.astype('<f8').tobytes() if np.all(np.isfinite(c)) else None
+    u = np.asarray(info.up, float)
+    up = [float(v) for v in u] if np.all(np.isfinite(u)) else [None] * 3
+    return (info.panorama_id, *q, cov, *up, info.orientation_source, int(info.created_ns))
+
+
+def panorama_from_row(row: tuple) -> tuple[PanoramaInfo | None, str]:
+    """A :class:`PanoramaInfo` from a row in the order of :func:`_panorama_row` (or the reason)."""
+    try:
+        pid, qx, qy, qz, qw, cov, ux, uy, uz, source, created = row
+        q = np.array([np.nan] * 4 if qw is None else [qx, qy, qz, qw], float)
+        c = np.full((3, 3), np.nan) if cov is None else np.frombuffer(bytes(cov), '<f8').reshape(3, 3).copy()
+        u = np.array([np.nan] * 3 if ux is None else [ux, uy, uz], float)
+        info = PanoramaInfo(str(pid), q, c, u, str(source), int(created))
+    except (TypeError, ValueError) as exc:
+        return None, str(exc)
+    reason = validate_panorama(info)
+    return (None, reason) if reason else (info, '')
 
 
 def _patch_and_direction_problem(patch: NDArray[np.uint8], direction: NDArray[np.float64]) -> str | None:
@@ -199,6 +282,23 @@ class AnnotationStore(abc.ABC):
         be read back are skipped and listed in :attr:`skipped`."""
 
     @abc.abstractmethod
+    def put_panorama(self, info: PanoramaInfo) -> None:
+        """Store (or replace) what is known of a source panorama as a whole."""
+
+    @abc.abstractmethod
+    def panoramas(self, panorama_ids: Iterable[str]) -> dict[str, PanoramaInfo]:
+        """The stored panorama records of these ids (ids without one are left out)."""
+
+    @abc.abstractmethod
+    def annotations_of(self, panorama_id: str) -> list[Annotation]:
+        """Every record of one source panorama, ordered by id."""
+
+    @abc.abstractmethod
+    def delete_panorama(self, panorama_id: str) -> int:
+        """Remove a source panorama's annotations, landmarks and record in one transaction;
+        returns how many annotations were removed."""
+
+    @abc.abstractmethod
     def close(self) -> None:
         """Release the connection."""
 
@@ -216,6 +316,12 @@ _LANDMARKS_DDL = (
     'patch BLOB NOT NULL, patch_side INTEGER NOT NULL, dx REAL NOT NULL, dy REAL NOT NULL, '
     'dz REAL NOT NULL)',
     'CREATE INDEX IF NOT EXISTS landmarks_panorama_id ON landmarks (panorama_id)',
+)
+#: The panoramas table; idempotent, so it also upgrades a version-1/2 file.
+_PANORAMAS_DDL = (
+    'CREATE TABLE IF NOT EXISTS panoramas (panorama_id TEXT PRIMARY KEY, qx REAL, qy REAL, qz REAL, '
+    'qw REAL, cov BLOB, up_x REAL, up_y REAL, up_z REAL, orientation_source TEXT NOT NULL, '
+    'created_ns INTEGER NOT NULL)',
 )
 #: Panorama ids per landmark query (below sqlite's limit on bound parameters).
 _IDS_PER_QUERY = 500
@@ -236,10 +342,20 @@ class SqliteAnnotationStore(AnnotationStore):
             self._check_header()
         elif not self.path.parent.is_dir():
             raise StoreError(f'{self.path}: directory {self.path.parent} does not exist')
+        if exists and not read_only and not os.access(self.path, os.W_OK):
+            raise StoreError(f'{self.path}: the annotation store is read-only (no write permission); '
+                             'it can be browsed, not written')
+        if exists and not read_only and not os.access(self.path.parent, os.W_OK | os.X_OK):
+            raise StoreError(f'{self.path}: the annotation store is in a read-only directory '
+                             f'({self.path.parent}); it can be browsed, not written')
         mode = 'ro' if read_only else ('rwc' if create and not exists else 'rw')
+        # A reader in a directory it cannot write cannot create the WAL's -shm file: with no
+        # -wal file beside it nobody can be writing, so the file is opened as immutable.
+        immutable = (read_only and exists and not os.access(self.path.parent, os.W_OK)
+                     and not Path(str(self.path) + '-wal').exists())
+        uri = f'file:{self.path}?mode={mode}' + ('&immutable=1' if immutable else '')
         try:
-            self._db = sqlite3.connect(f'file:{self.path}?mode={mode}', uri=True,
-                                       timeout=timeout_s, isolation_level=None)
+            self._db = sqlite3.connect(uri, uri=True, timeout=timeout_s, isolation_level=None)
         except sqlite3.Error as exc:
             raise StoreError(f'{self.path}: cannot open the annotation store ({exc})') from exc
         try:
@@ -283,7 +399,7 @@ class SqliteAnnotationStore(AnnotationStore):
                 pano_qx REAL, pano_qy REAL, pano_qz REAL, pano_qw REAL)''')
             db.execute('CREATE VIRTUAL TABLE annotations_rtree USING rtree('
                        'id, min_lat, max_lat, min_lon, max_lon)')
-            for sql in _LANDMARKS_DDL:
+            for sql in _LANDMARKS_DDL + _PANORAMAS_DDL:
                 db.execute(sql)
             db.execute('COMMIT')
         except BaseException:
@@ -293,6 +409,8 @@ class SqliteAnnotationStore(AnnotationStore):
     def _check_schema(self) -> None:
         try:
             rows = dict(self._db.execute('SELECT key, value FROM meta').fetchall())
+        except sqlite3.OperationalError as exc:
+            raise self._error(exc, 'cannot read') from exc
         except sqlite3.DatabaseError as exc:
             raise self._error(exc, 'not an annotation store') from exc
         if rows.get('schema') != SCHEMA:
@@ -304,6 +422,11 @@ class SqliteAnnotationStore(AnnotationStore):
         text = str(exc)
         if 'locked' in text or 'busy' in text:
             return StoreError(f'{self.path}: annotation store is locked by another process ({text})')
+        if 'readonly' in text or 'read-only' in text:
+            return StoreError(f'{self.path}: the annotation store is read-only ({text}); it can be browsed, not written')
+        if 'unable to open' in text:
+            return StoreError(f'{self.path}: cannot open the annotation store ({text}; check the file '
+                              'and directory permissions)')
         if isinstance(exc, sqlite3.DatabaseError) and ('malformed' in text or 'not a database' in text
                                                        or 'no such table' in text):
             return StoreError(f'{self.path}: corrupt annotation store ({text}); left untouched')
@@ -396,6 +519,49 @@ class SqliteAnnotationStore(AnnotationStore):
     def all(self) -> list[Annotation]:
         return self._query('SELECT * FROM annotations ORDER BY id', ())
 
+    def put_panorama(self, info: PanoramaInfo) -> None:
+        reason = validate_panorama(info)
+        if reason is not None:
+            raise StoreError(f'panorama {getattr(info, "panorama_id", "")!r} not stored: {reason}')
+        with self._write_transaction() as db:
+            self._ensure_panoramas_table(db)
+            db.execute('INSERT OR REPLACE INTO panoramas (panorama_id, qx, qy, qz, qw, cov, up_x, up_y, '
+                       'up_z, orientation_source, created_ns) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
+                       _panorama_row(info))
+
+    def panoramas(self, panorama_ids: Iterable[str]) -> dict[str, PanoramaInfo]:
+        if isinstance(panorama_ids, str):
+            raise TypeError('panorama_ids must be an iterable of panorama ids, not one string')
+        ids = list(dict.fromkeys(panorama_ids))
+        try:
+            if not ids or self._db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND "
+                                           "name = 'panoramas'").fetchone() is None:
+                return {}
+            rows = []
+            for k in range(0, len(ids), _IDS_PER_QUERY):
+                chunk = ids[k:k + _IDS_PER_QUERY]
+                rows += self._db.execute('SELECT panorama_id, qx, qy, qz, qw, cov, up_x, up_y, up_z, '
+                                         'orientation_source, created_ns FROM panoramas WHERE panorama_id '
+                                         f'IN ({", ".join("?" * len(chunk))})', chunk).fetchall()
+        except sqlite3.Error as exc:
+            raise self._error(exc, 'cannot read') from exc
+        return {p.panorama_id: p for p in self._collect(rows, panorama_from_row, 'panorama')}
+
+    def annotations_of(self, panorama_id: str) -> list[Annotation]:
+        return self._query('SELECT * FROM annotations WHERE panorama_id = ? ORDER BY id', (panorama_id,))
+
+    def delete_panorama(self, panorama_id: str) -> int:
+        with self._write_transaction() as db:
+            ids = [r[0] for r in db.execute('SELECT id FROM annotations WHERE panorama_id = ?', (panorama_id,))]
+            db.executemany('DELETE FROM annotations_rtree WHERE id = ?', [(i,) for i in ids])
+            db.execute('DELETE FROM annotations WHERE panorama_id = ?', (panorama_id,))
+            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+            if 'landmarks' in tables:
+                db.execute('DELETE FROM landmarks WHERE panorama_id = ?', (panorama_id,))
+            if 'panoramas' in tables:
+                db.execute('DELETE FROM panoramas WHERE panorama_id = ?', (panorama_id,))
+        return len(ids)
+
     def count(self) -> int:
         try:
             return int(self._db.execute('SELECT COUNT(*) FROM annotations').fetchone()[0])
@@ -444,6 +610,14 @@ class SqliteAnnotationStore(AnnotationStore):
             db.execute(sql)
         db.execute("UPDATE meta SET value = ? WHERE key = 'version' AND CAST(value AS INTEGER) < ?",
                    (str(LANDMARKS_VERSION), LANDMARKS_VERSION))
+
+    @staticmethod
+    def _ensure_panoramas_table(db: sqlite3.Connection) -> None:
+        """As :meth:`_ensure_landmarks_table`, for the panoramas table (version 3)."""
+        for sql in _LANDMARKS_DDL + _PANORAMAS_DDL:
+            db.execute(sql)
+        db.execute("UPDATE meta SET value = ? WHERE key = 'version' AND CAST(value AS INTEGER) < ?",
+                   (str(PANORAMAS_VERSION), PANORAMAS_VERSION))
 
     # -- reading ---------------------------------------------------------------------------
 
