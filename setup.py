@@ -21,6 +21,7 @@ NODES = [
     'marker_tracker',
     'visual_inertial_filter',
     'keyframe_slam_mapper',
+    'foxglove_bridge',
 ]
 
 setup(
