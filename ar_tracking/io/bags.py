@@ -210,6 +210,32 @@ def scan_unfinished_mcap(path: str | Path) -> RecoveredMcap:
     return rec
 
 
+#: Topics written as latched (reliable, transient local, depth 1) unless a writer is told
+#: otherwise: a player that honours offered_qos_profiles (ros2 bag play, bag_replay) latches them again.
+LATCHED_TOPICS = frozenset({'/tf_static', '/ground_truth/annotations'})
+
+
+def offered_qos(latched: bool) -> Any:
+    """The rosbags Qos a publisher offers: reliable keep-last, transient local depth 1 when
+    latched, volatile depth 10 otherwise (what rosbag2 records in offered_qos_profiles)."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    zero = QosTime(0, 0)  # RMW_DURATION_UNSPECIFIED: the default (infinite)
+    return Qos(QosHistory.KEEP_LAST, 1 if latched else 10, QosReliability.RELIABLE,
+               QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+
+
+def normalize_topic(topic: str) -> str:
+    """The absolute topic name: rosbag2 writes '/camera/camera_info', some converters
+    'camera/camera_info'; both are read as the former (and asked for either way)."""
+    return topic if topic.startswith('/') else '/' + topic
+
+
+def _wanted(topics: Iterable[str] | None) -> set[str] | None:
+    return None if topics is None else {normalize_topic(t) for t in topics}
+
+
 class BagReader:
     """Sequential reader of any bag that rosbags understands.
 
@@ -278,20 +304,35 @@ class BagReader:
         return self._reader
 
     @property
-    def topics(self) -> dict[str, str]:
-        """Topic name -> message type, for every topic in the bag."""
+    def latched_topics(self) -> set[str]:
+        """Topics whose recorded publisher offered transient local durability (latched)."""
+        from rosbags.interfaces import QosDurability
+
         if self._recovered is not None:
-            return {topic: msgtype for topic, msgtype in self._recovered.channels.values()}
-        return {name: info.msgtype for name, info in self._r.topics.items() if info.msgtype}
+            return set()
+        out = set()
+        for c in self._r.connections:
+            profiles = getattr(c.ext, 'offered_qos_profiles', None) or []
+            if any(q.durability == QosDurability.TRANSIENT_LOCAL for q in profiles):
+                out.add(normalize_topic(c.topic))
+        return out
+
+    @property
+    def topics(self) -> dict[str, str]:
+        """Topic name -> message type, for every topic in the bag (names absolute, see
+        :func:`normalize_topic`)."""
+        if self._recovered is not None:
+            return {normalize_topic(topic): msgtype for topic, msgtype in self._recovered.channels.values()}
+        return {normalize_topic(name): info.msgtype for name, info in self._r.topics.items() if info.msgtype}
 
     def message_count(self, topics: Iterable[str] | None = None) -> int:
         """Number of messages on the given topics (all topics when None)."""
-        wanted = None if topics is None else set(topics)
+        wanted = _wanted(topics)
         rec = self._recovered
         if rec is not None:
-            return sum(n for cid, n in rec.counts.items() if wanted is None or rec.channels[cid][0] in wanted)
+            return sum(n for cid, n in rec.counts.items() if wanted is None or normalize_topic(rec.channels[cid][0]) in wanted)
         return sum(
-            c.msgcount for c in self._r.connections if wanted is None or c.topic in wanted
+            c.msgcount for c in self._r.connections if wanted is None or normalize_topic(c.topic) in wanted
         )
 
     @property
@@ -321,11 +362,11 @@ class BagReader:
         A bag that turns out to be truncated or corrupt part-way raises :class:`BagError`
         after the messages that could be read.
         """
-        wanted = None if topics is None else set(topics)
+        wanted = _wanted(topics)
         if self._recovered is not None:
             yield from self._recovered_messages(wanted, start_ns, stop_ns)
             return
-        conns = [c for c in self._r.connections if wanted is None or c.topic in wanted]
+        conns = [c for c in self._r.connections if wanted is None or normalize_topic(c.topic) in wanted]
         if not conns:
             return
         # Over the whole bag the count is known: a damaged index can otherwise lose messages
@@ -345,7 +386,7 @@ class BagReader:
                     # ROS 1 serialisation -> ROS 2 CDR (rosbags converts between the ROS 2
                     # definitions of a type, dropping e.g. Header.seq).
                     rawdata = TYPESTORE.ros1_to_cdr(bytes(rawdata), conn.msgtype)
-                yield BagMessage(conn.topic, conn.msgtype, int(timestamp), bytes(rawdata))
+                yield BagMessage(normalize_topic(conn.topic), conn.msgtype, int(timestamp), bytes(rawdata))
         except BagError:
             raise
         except Exception as exc:
@@ -363,11 +404,11 @@ class BagReader:
         from mcap.records import Message
 
         rec = self._r
-        ids = {cid for cid, (topic, _) in rec.channels.items() if wanted is None or topic in wanted}
+        ids = {cid for cid, (topic, _) in rec.channels.items() if wanted is None or normalize_topic(topic) in wanted}
         if not ids:
             return
         out: Iterator[BagMessage] = (
-            BagMessage(rec.channels[r.channel_id][0], rec.channels[r.channel_id][1], int(r.log_time), bytes(r.data))
+            BagMessage(normalize_topic(rec.channels[r.channel_id][0]), rec.channels[r.channel_id][1], int(r.log_time), bytes(r.data))
             for r in rec.records()
             if isinstance(r, Message) and r.channel_id in ids
             and (start_ns is None or r.log_time >= start_ns) and (stop_ns is None or r.log_time < stop_ns)
@@ -413,8 +454,10 @@ class BagWriter:
         *,
         flush_every_s: float | None = None,
         chunk_size: int = 1024 * 1024,
+        latched_topics: Iterable[str] = LATCHED_TOPICS,
     ) -> None:
         self.path = Path(path)
+        self.latched_topics = set(latched_topics)
         if storage is None:
             storage = 'mcap' if self.path.suffix in ('.mcap', '') else 'sqlite3'
             if self.path.suffix == '.db3':
@@ -473,8 +516,9 @@ class BagWriter:
         except Exception as exc:
             raise BagError(f'{target}: cannot create bag ({_reason(exc)})') from exc
 
-    def add_topic(self, topic: str, msgtype: str) -> None:
-        """Declare a topic; a topic may have only one type."""
+    def add_topic(self, topic: str, msgtype: str, latched: bool | None = None) -> None:
+        """Declare a topic; a topic may have only one type. Its offered_qos_profiles say
+        latched (``latched``; default: the topic is one of ``latched_topics``) or volatile."""
         if topic in self._channels:
             if self._channels[topic][1] != msgtype:
                 raise BagError(
@@ -485,16 +529,25 @@ class BagWriter:
             msg_class(msgtype)  # unknown types fail here with a clear message
         except BagError as exc:
             raise BagError(f'{self.path}: {exc}') from exc
+        qos = offered_qos(self.latched_topics.__contains__(topic) if latched is None else latched)
         if self.storage == 'mcap':
+            import io
+
+            import yaml
+            from rosbags.rosbag2.metadata import dump_qos_v9
+
             msgdef, _ = TYPESTORE.generate_msgdef(msgtype, ros_version=2)
             schema_id = self._impl.register_schema(
                 name=msgtype, encoding='ros2msg', data=msgdef.encode()
             )
+            text = io.StringIO()
+            yaml.safe_dump(dump_qos_v9([qos]), text, sort_keys=False)
             channel = self._impl.register_channel(
-                topic=topic, message_encoding='cdr', schema_id=schema_id
+                topic=topic, message_encoding='cdr', schema_id=schema_id,
+                metadata={'offered_qos_profiles': text.getvalue().strip()},
             )
         else:
-            channel = self._impl.add_connection(topic, msgtype, typestore=TYPESTORE)
+            channel = self._impl.add_connection(topic, msgtype, typestore=TYPESTORE, offered_qos_profiles=[qos])
         self._channels[topic] = (channel, msgtype)
 
     def write(self, topic: str, log_time_ns: int, msg: Any, msgtype: str | None = None) -> None:

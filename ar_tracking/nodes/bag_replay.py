@@ -22,7 +22,7 @@ from typing import Any
 
 from rosgraph_msgs.msg import Clock
 
-from ..io.bags import BagError, BagReader
+from ..io.bags import BagError, BagReader, normalize_topic
 from ..io.replay import ReplayOptions, ScheduledMessage, parse_remaps
 from ..ros.conversions import ConversionError, message_class, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, TrackingNode, run_node
@@ -48,7 +48,7 @@ class BagReplayNode(TrackingNode):
             topics=list(p('topics', self.DEFAULT_TOPICS or [''], 'Bag topics to play (empty: all)', read_only=True)),
             remap=parse_remaps([r for r in p('remap', [''], 'Remappings from:=to applied to bag topics', read_only=True) if r]),
         )
-        options.topics = [t for t in options.topics if t]
+        options.topics = [normalize_topic(t) for t in options.topics if t]
         self.publish_clock: bool = p('publish_clock', True, 'Publish /clock from the bag time', read_only=True)
         clock_topic: str = p('clock_topic', '/clock', 'Topic of the bag clock: /clock, or clock (relative: /<namespace>/clock, '
                              'one clock per robot; remap /clock to it in that namespace\'s nodes)', read_only=True,
@@ -60,6 +60,7 @@ class BagReplayNode(TrackingNode):
         try:
             with BagReader(bag_path) as bag:
                 types = bag.topics
+                latched_in_bag = bag.latched_topics
         except BagError as exc:
             raise ValueError(str(exc)) from exc
         if self.DEFAULT_TOPICS and options.topics == self.DEFAULT_TOPICS:
@@ -76,8 +77,8 @@ class BagReplayNode(TrackingNode):
                 self.get_logger().warning(f'{topic}: {exc}; not played')
                 continue
             name = options.remap.get(topic, topic)
-            latched = topic in LATCHED_TOPICS
-            if not latched and name.startswith('/'):
+            latched = topic in LATCHED_TOPICS or topic in latched_in_bag  # as recorded (offered_qos_profiles)
+            if topic not in LATCHED_TOPICS and name.startswith('/'):
                 name = name[1:]  # relative, so that the node's namespace applies
             self.publishers_by_topic[topic] = self.advertise(cls, name, LATCHED_QOS if latched else RELIABLE_QOS)
         options.topics = list(self.publishers_by_topic)

@@ -541,3 +541,22 @@ def test_static_transforms_are_read_without_ros(tmp_path):
     np.testing.assert_allclose(found[('base', 'imu')].rotation @ x_child, [np.cos(-1.1), np.sin(-1.1), 0.0], atol=1e-12)
     with BagReader(write_sample_bag(tmp_path / 'none.mcap')) as bag:
         assert static_transforms(bag) == []
+
+
+@pytest.mark.parametrize('storage, name', [('mcap', 'b.mcap'), ('sqlite3', 'b')])
+def test_topic_names_without_leading_slash_and_offered_qos(tmp_path, storage, name):
+    """A converter's 'camera/camera_info' reads as '/camera/camera_info' (asked for either way);
+    /tf_static is written with latched offered_qos_profiles, other topics volatile."""
+    from ar_tracking.io.bags import BagReader, BagWriter, msg_class
+
+    path = tmp_path / name
+    with BagWriter(path, storage=storage) as w:
+        w.write('/tf_static', 1, msg_class('tf2_msgs/msg/TFMessage')(transforms=[]))
+        w.write('camera/camera_info', 2, msg_class('std_msgs/msg/String')(data='x'))
+        w.add_topic('/panorama/image', 'std_msgs/msg/String', latched=True)
+    with BagReader(w.path) as r:
+        assert set(r.topics) == {'/tf_static', '/camera/camera_info', '/panorama/image'}
+        for asked in ('camera/camera_info', '/camera/camera_info'):
+            assert [m.topic for m in r.messages([asked])] == ['/camera/camera_info']
+            assert r.message_count([asked]) == 1
+        assert r.latched_topics == {'/tf_static', '/panorama/image'}
