@@ -34,6 +34,7 @@ def sample_bag(workdir: Path) -> Path:
 
 
 def run_demo(workdir: Path, quiet: bool = False) -> int:
+    from .eval.console import strict_json
     from .eval.evaluate import evaluate_all
     from .eval.report import write_report
     from .ros.runner import GraphRunner
@@ -64,8 +65,8 @@ def run_demo(workdir: Path, quiet: bool = False) -> int:
     print(f'    {result.input_messages} input messages in {result.wall_s:.1f} s '
           f'({result.realtime_factor:.1f}x realtime), nodes: {", ".join(result.nodes)}', file=sys.stderr)
     print('2/3 evaluating against the ground truth', file=sys.stderr)
-    metrics = evaluate_all(result.out_path)
-    (workdir / 'metrics.json').write_text(json.dumps(metrics, indent=2, sort_keys=True) + '\n')
+    metrics = strict_json(evaluate_all(result.out_path))
+    (workdir / 'metrics.json').write_text(json.dumps(metrics, indent=2, sort_keys=True, allow_nan=False) + '\n')
     print('3/3 writing the report', file=sys.stderr)
     html = write_report(result.out_path, workdir / 'report.html', metrics)
     png = write_report(result.out_path, workdir / 'report.png', metrics)

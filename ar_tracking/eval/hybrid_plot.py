@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from ..core.rotations import camera_heading_pitch_roll_deg
+from .console import display_name
 from .metrics import load_orientations, orientation_errors
 
-TOPICS = (('/imu/data', 'sensor only (imu/data)', 'tab:orange'),
-          ('/orientation/global', 'hybrid (orientation/global)', 'tab:blue'))
+TOPICS = (('/imu/data', display_name('imu/data'), 'tab:orange'),
+          ('/orientation/global', display_name('orientation/global'), 'tab:blue'))
 
 
 def plot_hybrid(bag: str | Path, out_png: str | Path) -> Path:
@@ -35,7 +36,7 @@ def plot_hybrid(bag: str | Path, out_png: str | Path) -> Path:
     truth_hpr[0] = np.degrees(np.unwrap(np.radians(truth_hpr[0])))  # no 360 -> 0 jumps
     t_truth = (data.truth.stamps_ns - t0) * 1e-9
     for ax, values, name in zip(axes[:3], truth_hpr, names):
-        ax.plot(t_truth, values, color='k', lw=1.0, label='truth')
+        ax.plot(t_truth, values, color='k', lw=1.0, label='ground truth')
         ax.set_ylabel(name)
     for topic, label, color in TOPICS:
         est = data.estimates.get(topic)
@@ -55,7 +56,7 @@ def plot_hybrid(bag: str | Path, out_png: str | Path) -> Path:
         ts, defl = data.disturbance
         # The deflection is clockwise-positive (a compass reading); the error is about up.
         axes[3].plot((ts - t0) * 1e-9, -np.degrees(defl), color='tab:red', lw=0.8, ls='--',
-                     label='compass disturbance (truth)')
+                     label='heading error of a compass-only estimate (simulated disturbance)')
     axes[3].set_ylabel('heading error (deg)')
     axes[3].set_xlabel('time (s)')
     axes[3].axhline(0.0, color='k', lw=0.5)
