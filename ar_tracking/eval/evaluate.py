@@ -74,4 +74,7 @@ def evaluate_all(path: str | Path, align: str = 'none', reference: bool = True) 
             metrics[area] = result
     if missing_truth is not None and not metrics:
         raise missing_truth
+    if missing_truth is not None:
+        # Other areas were scored: say which truth topic the orientation section looked for.
+        logger.warning('no orientation section: %s', missing_truth)
     return metrics
