@@ -321,6 +321,8 @@ _KEY_FIGURE = {'panorama': 'tracking_rmse_deg', 'slam': 'ate_rmse_m', 'annotatio
 
 
 def _why(area: str, have: set[str], values: Any) -> str:
+    if isinstance(values, dict) and isinstance(values.get('error'), str):
+        return values['error']
     produced, producer = _PRODUCERS[area]
     if area == 'orientation':
         if '/ground_truth/orientation' not in have:

@@ -69,7 +69,11 @@ def evaluate_all(path: str | Path, align: str = 'none', reference: bool = True) 
     except EvaluationError as exc:
         missing_truth = exc
     for area, spec in AREA_EVALUATORS.items():
-        result = _load(spec)(path)
+        try:
+            result = _load(spec)(path)
+        except Exception as exc:  # one failing area must not hide the others: say why instead
+            logger.warning('%s: not scored: %s: %s', area, type(exc).__name__, exc)
+            result = {'error': f'evaluation failed: {type(exc).__name__}: {exc}'}
         if result is not None:
             metrics[area] = result
     if missing_truth is not None and not metrics:

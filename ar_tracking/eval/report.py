@@ -328,7 +328,7 @@ def render_html(bag: Path, metrics: dict, png: bytes | None,
     parts += _figure_tags(figures.get('other', []))
     missing = unscored_areas(metrics, bag)
     if missing:
-        parts.append('<h2>Not in this bag</h2><ul>')
+        parts.append('<h2>Not in this bag, or not scored</h2><ul>')
         parts += [f'<li><b>{html.escape(a)}</b>: {html.escape(why)}</li>' for a, why in missing]
         parts.append('</ul>')
     parts += _all_measures(metrics)

@@ -316,3 +316,25 @@ def test_convert_euroc_points_at_a_ground_truth_file(tmp_path: Path) -> None:
     body.parent.mkdir()
     body.write_text('')
     assert _euroc_groundtruth_hint(tmp_path) is None  # the default one is used
+
+
+def test_a_failing_area_is_named_and_does_not_hide_the_others(bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import ar_tracking.eval.evaluate as evaluate
+    from ar_tracking.eval.console import format_console
+
+    real = evaluate._load
+
+    def load(spec: str) -> Any:
+        if 'slam' in spec:
+            def broken(path: Path) -> None:
+                raise RuntimeError('boom')
+            return broken
+        return real(spec)
+
+    monkeypatch.setattr(evaluate, '_load', load)
+    metrics = evaluate.evaluate_all(bag, reference=False)
+    assert metrics['slam'] == {'error': 'evaluation failed: RuntimeError: boom'}
+    assert metrics['orientation']['orientation/global']['n'] == 200
+    text = format_console(metrics, bag)
+    assert 'slam         evaluation failed: RuntimeError: boom' in text
+    assert text.startswith('orientation (')
