@@ -83,7 +83,7 @@ class BagReplayNode(TrackingNode):
             self.publishers_by_topic[topic] = self.advertise(cls, name, LATCHED_QOS if latched else RELIABLE_QOS)
         options.topics = list(self.publishers_by_topic)
         self.clock_pub = self.advertise(Clock, clock_topic, RELIABLE_QOS) if self.publish_clock else None
-        self._clock = Clock()
+        self._clock_msg = Clock()  # not _clock: rclpy.Node keeps its clock there
         self.player = BagPlayer(bag_path, options, self._publish, self._done)
         self.get_logger().info(
             f'playing {len(options.topics)} topics of {bag_path} at rate {options.rate:g}'
@@ -93,8 +93,8 @@ class BagReplayNode(TrackingNode):
 
     def _publish(self, item: ScheduledMessage) -> None:
         if self.clock_pub is not None:
-            to_stamp(item.message.log_time_ns, self._clock.clock)
-            self.clock_pub.publish(self._clock)
+            to_stamp(item.message.log_time_ns, self._clock_msg.clock)
+            self.clock_pub.publish(self._clock_msg)
         self.publishers_by_topic[item.message.topic].publish(item.message.rawdata)
 
     def _done(self, error: str | None) -> None:
