@@ -145,7 +145,7 @@ def test_config_file_matches_declared_defaults(ros_context):
 
 
 def test_pose_is_broadcast_on_tf(ros_context):
-    from tf2_msgs.msg import TFMessage
+    TFMessage = pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs not built (./ar-tracking.sh builds it)').TFMessage
 
     h = Harness(ros_context)
     tf_msgs: list = []
