@@ -183,8 +183,11 @@ def annotation_figures_of(bag_path: str | Path) -> Figures:
         if written is not None:
             figures.append(('Annotations placed in the panorama (matched green, inferred by alignment '
                             'another colour) and AR overlay frames', written.read_bytes()))
-        timeline: Callable[..., Any] | None = getattr(af, 'annotation_timeline', None) or getattr(
-            af, 'annotation_timeline_figure', None)
+        # the timeline (which label was shown when, and whether it was right) is annotation_figures'
+        # own: drawn when that module has a public ``*timeline*(bag, png)`` function
+        timeline: Callable[..., Any] | None = next(
+            (getattr(af, n) for n in sorted(dir(af)) if 'timeline' in n and not n.startswith('_')
+             and callable(getattr(af, n))), None)
         if timeline is not None:
             try:
                 out = timeline(bag_path, Path(tmp) / 'timeline.png')
