@@ -17,7 +17,8 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-AREAS = ('graph', 'orientation', 'orientation_seeds', 'panorama', 'markers_vi', 'annotations', 'slam')
+AREAS = ('graph', 'orientation', 'orientation_seeds', 'panorama', 'markers_vi', 'annotations', 'slam', 'store',
+         'foxglove')
 
 
 def percentiles_ms(values: list[float]) -> dict[str, float]:
@@ -126,4 +127,13 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
         from .bench_slam import bench_slam
 
         results['slam'] = bench_slam()
+    if 'store' in chosen:
+        from .bench_store import bench_store
+
+        # near() on 100,000 annotations (SQLite, PostGIS), 8 writers + 8 readers for 30 s (~2 min)
+        results['store'] = bench_store(workdir / 'store')
+    if 'foxglove' in chosen:
+        from .bench_foxglove import bench_foxglove
+
+        results['foxglove'] = bench_foxglove(workdir, duration_s=min(duration_s, 20.0))
     return results
