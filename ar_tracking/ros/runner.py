@@ -102,7 +102,7 @@ def header_stamp_ns(raw: bytes) -> int | None:
 #: ``--executor``: auto (events in lockstep, one thread per node with --rate), threads (one
 #: SingleThreadedExecutor per node on its own thread; realtime only, lockstep uses single),
 #: single, events, multi (one MultiThreadedExecutor, a callback group per node).
-EXECUTOR_CHOICES = ('auto', 'threads', 'single', 'events', 'multi')
+EXECUTOR_CHOICES = ('auto', 'threads', 'processes', 'single', 'events', 'multi')
 
 
 class RunError(Exception):
@@ -248,6 +248,8 @@ class _DeliveryLedger:
     def __init__(self) -> None:
         self.by_topic: dict[str, list[_SubscriptionAccount]] = defaultdict(list)
         self.by_sub: dict[int, _SubscriptionAccount] = {}
+        #: subscriptions of node processes (realtime only: not accounted, only waited for)
+        self.external: dict[str, int] = defaultdict(int)
         self.outstanding = 0
         #: deliveries of messages the ledger had booked as replaced (0 when DDS keeps depth
         #: exactly as modelled; tests check it)
@@ -263,7 +265,7 @@ class _DeliveryLedger:
         self.by_sub[id(subscription)] = account
 
     def subscribers(self, topic: str) -> int:
-        return len(self.by_topic.get(topic, ()))
+        return len(self.by_topic.get(topic, ())) + self.external.get(topic, 0)
 
     def published(self, topic: str) -> None:
         for a in self.by_topic.get(topic, ()):
@@ -423,7 +425,7 @@ def _satisfied(requirement: str | tuple[str, ...], available: set[str]) -> bool:
     return any(t in available for t in requirement)
 
 
-def _init_private_context(rclpy: Any, context: Any, lockstep: bool) -> None:
+def _init_private_context(rclpy: Any, context: Any, lockstep: bool) -> int:
     """Initialise the runner's context so that no other process can join its graph.
 
     Lockstep graphs live in one process: DDS discovery is switched off for them
@@ -434,13 +436,20 @@ def _init_private_context(rclpy: Any, context: Any, lockstep: bool) -> None:
     key = 'ROS_AUTOMATIC_DISCOVERY_RANGE'
     previous = os.environ.get(key)
     os.environ[key] = 'OFF' if lockstep else (previous or 'LOCALHOST')
+    domain_id = _domain_id()
     try:
-        rclpy.init(context=context, domain_id=_domain_id())
+        rclpy.init(context=context, domain_id=domain_id)
     finally:
         if previous is None:
             del os.environ[key]
         else:
             os.environ[key] = previous
+    return domain_id
+
+
+def _node_class(node: Any) -> Any:
+    """The node class of an in-process node or of a node process's handle."""
+    return getattr(node, 'node_class', None) or type(node)
 
 
 def _domain_id() -> int:
@@ -532,8 +541,9 @@ class GraphRunner:
         self.rate = check_rate(self.rate, lockstep=True)
         if self.executor_kind not in EXECUTOR_CHOICES:
             raise RunError(f'unknown executor {self.executor_kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
-        if self.executor_kind == 'multi' and self.rate == 0:
-            raise RunError('--executor multi is for realtime runs (--rate R); lockstep spins one node at a time')
+        if self.executor_kind in ('multi', 'processes') and self.rate == 0:
+            raise RunError(f'--executor {self.executor_kind} is for realtime runs (--rate R); '
+                           'lockstep spins one node at a time')
         reader = BagReader(self.bag_path)
         reader.open()
         try:
@@ -562,7 +572,7 @@ class GraphRunner:
                 f'{self.bag_path}: no node can run on this bag '
                 f'(topics: {", ".join(sorted(bag_types)) or "none"})'
             )
-        _init_private_context(rclpy, context, lockstep=self.rate == 0)
+        domain_id = _init_private_context(rclpy, context, lockstep=self.rate == 0)
         nodes: list[Any] = []
         writer = None
         executor = None
@@ -572,26 +582,36 @@ class GraphRunner:
         ledger = self._ledger = _DeliveryLedger()
         hooks = LockstepHooks(ledger.delivered, ledger.published, ledger.taken)
         realtime = self.rate > 0
+        in_processes = realtime and self.executor_kind == 'processes'
         try:
+            transforms = static_transforms(reader) if in_processes and TF_STATIC_TOPIC in reader.topics else []
             for name in names:
-                cls = load_node_class(self.graph[name])
                 params = dict(node_params[name])
                 if realtime:
                     params['use_sim_time'] = True
+                if in_processes:
+                    from .node_process import NodeProcess
+
+                    handle = NodeProcess(name, self.graph[name], params, domain_id, transforms)
+                    handle.start()
+                    nodes.append(handle)
+                    continue
+                cls = load_node_class(self.graph[name])
                 try:
                     node = cls(context=context, parameter_overrides=to_overrides(params))
                 except Exception as exc:  # a rejected parameter, a bad params file value
                     raise RunError(f'{name}: cannot start ({exc})') from exc
                 node.lockstep_hooks = None if realtime else hooks
                 nodes.append(node)
-            self._hand_static_transforms(reader, nodes)
+            if not in_processes:
+                self._hand_static_transforms(reader, nodes)
 
-            consumed = {t for n in nodes for t in type(n).INPUTS}
+            consumed = {t for n in nodes for t in _node_class(n).INPUTS}
             feeder = TrackingNode('graph_feeder', context=context)
             feeder.lockstep_hooks = None if realtime else hooks
             nodes.append(feeder)
             feed_pubs: dict[str, Any] = {}
-            produced = {t for n in nodes[:-1] for t in type(n).OUTPUTS}
+            produced = {t for n in nodes[:-1] for t in _node_class(n).OUTPUTS}
             for topic, msgtype in bag_types.items():
                 if topic.lstrip('/') in produced:
                     logger.warning('%s is in the bag and produced by a node: the node wins', topic)
@@ -606,7 +626,7 @@ class GraphRunner:
 
             output_types: dict[str, str] = {}
             for n in nodes[:-1]:
-                for topic, msgtype in type(n).OUTPUTS.items():
+                for topic, msgtype in _node_class(n).OUTPUTS.items():
                     output_types['/' + topic.lstrip('/')] = msgtype
             recorder_node = TrackingNode('graph_recorder', context=context)
             recorder_node.lockstep_hooks = None if realtime else hooks
@@ -653,9 +673,11 @@ class GraphRunner:
                                         RECORDER_QOS, raw=True)
 
             for n in nodes:
-                for sub in n.subscriptions:
+                for sub in getattr(n, 'subscriptions', ()):
                     ledger.add(n.get_name(), sub)
             executor = self._make_executor(rclpy, context, realtime)
+            if in_processes:
+                self._connect_node_processes(nodes, ledger)
             # Realtime with per-node threads: each processing node gets its own executor; the
             # feeder and the recorder stay on the main executor.
             if realtime and self._live_kind() == 'threads':
@@ -665,7 +687,7 @@ class GraphRunner:
                     node_executors[n.get_name()] = own = SingleThreadedExecutor(context=context)
                     own.add_node(n)
             for n in nodes:
-                if n.get_name() not in node_executors:
+                if n.get_name() not in node_executors and not hasattr(n, 'node_class'):
                     executor.add_node(n)
             self._wait_for_discovery(executor, nodes)
 
@@ -688,6 +710,8 @@ class GraphRunner:
             if result.interrupted:
                 logger.warning('interrupted: closing %s with what was processed', self.out_path)
             result.wall_s = time.perf_counter() - start
+            if in_processes:
+                self._stop_node_processes(nodes, executor, recorder)
             result.output_messages = recorder.count
             if realtime:
                 self._live_report(nodes, result)
@@ -774,8 +798,10 @@ class GraphRunner:
             raise RunError(f'unknown executor {kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
         if kind == 'auto':
             kind = 'single' if realtime else 'events'
-        if kind == 'multi' and not realtime:
-            raise RunError('--executor multi is for realtime runs (--rate R); lockstep spins one node at a time')
+        if kind in ('multi', 'processes') and not realtime:
+            raise RunError(f'--executor {kind} is for realtime runs (--rate R); lockstep spins one node at a time')
+        if kind == 'processes':
+            kind = 'single'  # the feeder and the recorder; each node has its own process
         if kind == 'multi':
             from rclpy.executors import MultiThreadedExecutor
 
@@ -794,12 +820,62 @@ class GraphRunner:
         kind asked for: single, events or multi)."""
         return 'threads' if self.executor_kind in ('auto', 'threads') else 'shared'
 
+    @staticmethod
+    def _connect_node_processes(nodes: list[Any], ledger: '_DeliveryLedger') -> None:
+        """Wait for every node process to build its node, tell each how many subscribers its
+        outputs have (other node processes and this process's recorder), wait until they have
+        matched, and book the node processes' subscriptions for the feeder's discovery wait."""
+        from .node_process import NodeProcessError
+
+        handles = [n for n in nodes if hasattr(n, 'node_class')]
+        try:
+            for h in handles:
+                h.wait_created()
+            subscribers: dict[str, int] = defaultdict(int)
+            for h in handles:
+                for topic in h.subscription_topics:
+                    subscribers[topic] += 1
+            for topic in ledger.by_topic:
+                subscribers[topic] += ledger.subscribers(topic)
+            for h in handles:
+                h.expect(subscribers)
+            for h in handles:
+                h.wait_ready()
+        except NodeProcessError as exc:
+            raise RunError(f'cannot start {exc}') from exc
+        for h in handles:
+            for topic in h.subscription_topics:
+                ledger.external[topic] += 1
+
+    def _stop_node_processes(self, nodes: list[Any], executor: Any, recorder: _Recorder) -> None:
+        """Stop every node process at once (each takes what is still queued for it), record
+        what they publish meanwhile until the recorder is quiet, then collect their counts."""
+        handles = [n for n in nodes if hasattr(n, 'node_class')]
+        for h in handles:
+            h.request_stop()
+        deadline = time.monotonic() + self.DRAIN_MAX_S
+        last, quiet_since = recorder.count, time.monotonic()
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            if recorder.count != last:
+                last, quiet_since = recorder.count, time.monotonic()
+            elif time.monotonic() - quiet_since > self.DRAIN_QUIET_S and not any(h.process.is_alive() and
+                                                                                  not h.reported() for h in handles):
+                break
+        for h in handles:
+            h.stop()
+
     def _wait_for_discovery(self, executor: Any, nodes: list[Any], timeout_s: float = 15.0) -> None:
         """Spin until every publisher sees the subscriptions of its topic in this graph."""
         deadline = time.monotonic() + timeout_s
         subscribers = self._ledger.subscribers
-        pubs = [p for n in nodes for p in n.publishers if subscribers(p.topic_name)]
+        pubs = [p for n in nodes for p in getattr(n, 'publishers', ()) if subscribers(p.topic_name)]
+        handles = [n for n in nodes if hasattr(n, 'node_class')]
         while time.monotonic() < deadline:
+            for h in handles:
+                why = h.died()
+                if why is not None:
+                    raise RunError(f'{h.name} died while starting: {why}')
             if all(p.get_subscription_count() >= subscribers(p.topic_name) for p in pubs):
                 # Every reader matched; let the writers' side settle too.
                 executor.spin_once(timeout_sec=0.01)
@@ -1000,12 +1076,23 @@ class GraphRunner:
                 logger.error('the executor died: %s: %s', type(exc).__name__, exc)
                 finished.set()
 
+        handles = [n for n in nodes if hasattr(n, 'node_class')]
+
+        def check_processes() -> None:
+            for h in handles:
+                why = h.died()
+                if why is not None and h.name not in result.failed_nodes:
+                    result.failed_nodes[h.name] = why
+                    logger.error('%s died: %s', h.name, why)
+                    finished.set()
+
         try:
             while not finished.is_set():
                 if self._stop.is_set():
                     finished.set()
                     break
                 spin_main()
+                check_processes()
             # Drain: let the nodes empty their queues (until nothing moves for DRAIN_QUIET_S).
             if not result.failed_nodes and not self._stop.is_set():
                 drain_until = time.monotonic() + self.DRAIN_MAX_S

@@ -538,3 +538,45 @@ def test_header_stamp_is_read_from_cdr_bytes():
         msg.header.frame_id = 'camera_optical'
         assert header_stamp_ns(serialize_message(msg)) == 1_700_000_123_456_789_012
     assert header_stamp_ns(b'\x00\x01') is None
+
+
+def _process_graph(extra: str) -> dict:
+    from ar_tracking.ros.runner import GRAPH_NODES
+
+    graph = {name: GRAPH_NODES[name] for name in ('imu_magnetometer', 'hybrid_orientation_filter')}
+    graph[extra] = f'live_test_nodes:{"SlowNode" if extra == "slow" else "DyingNode"}'
+    return graph
+
+
+def test_realtime_nodes_in_processes_of_their_own(tmp_path):
+    """--executor processes: every node in its own process (as ros2 launch starts them). The
+    slow node's drops are counted from its process, the IMU path keeps every sample, the
+    outputs reach the recorder and the latency is measured across processes."""
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=3.0, rate_hz=20.0)
+    result = GraphRunner(bag, tmp_path / 'out.mcap', rate=1.0, graph=_process_graph('slow'),
+                         executor='processes').run()
+    assert result.failed_nodes == {} and not result.interrupted
+    inputs = result.live_inputs
+    assert inputs['imu_magnetometer'] == {'/imu/data_raw': (60, 60), '/imu/mag': (60, 60)}
+    assert inputs['hybrid_orientation_filter']['/imu/data'] == (60, 60)
+    published, processed = inputs['slow']['/imu/data_raw']
+    assert published == 60 and 0 < processed < 60
+    assert result.live_dropped['slow'] == 60 - processed
+    assert result.live_summary()['latency_n'] == 60
+    with BagReader(result.out_path) as out:
+        assert out.message_count(['/orientation/global']) == 60
+
+
+def test_a_node_process_that_dies_is_reported_by_name(tmp_path):
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=4.0, rate_hz=20.0)
+    result = GraphRunner(bag, tmp_path / 'out.mcap', rate=1.0, graph=_process_graph('dying'),
+                         executor='processes').run()
+    assert result.failed_nodes == {'dying': 'RuntimeError: sensor driver lost'}
+    with BagReader(result.out_path) as out:
+        assert out.message_count(['/ground_truth/orientation']) > 0
+
+
+def test_processes_executor_is_for_realtime_runs(tmp_path):
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)
+    with pytest.raises(RunError, match='processes is for realtime runs'):
+        GraphRunner(bag, tmp_path / 'out.mcap', executor='processes').run()

@@ -1,0 +1,221 @@
+"""One graph node in a process of its own: ``ar-tracking run --rate R --executor processes``.
+
+The deployment shape of a ROS graph (``ros2 launch`` starts every node as its own process):
+no node shares an interpreter, so a heavy one (SLAM) cannot hold the GIL while the IMU path
+waits, and on a machine with several cores the nodes run in parallel. The runner keeps the
+player (feeder) and the recorder in its own process and talks to each node process over a pipe:
+
+1. the child starts rclpy on the runner's domain, builds the node (parameters as in-process),
+   hands it the bag's static transforms, and reports its subscriptions and publishers;
+2. the runner answers with how many subscribers each of the child's output topics will have;
+   the child spins until its publishers have matched them (so that no first message is lost
+   to discovery) and reports ready;
+3. after the playback and the drain, the runner asks for the child's counts (callbacks per
+   input topic with their durations, messages published per topic) - the live report's
+   figures - and the child shuts down cleanly.
+
+:class:`NodeProcess` is the runner-side handle; it has the attributes the live report reads
+from in-process nodes (``callback_stats``, ``publish_counts``, ``get_name``), filled at the end.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+#: How long a child may take to import, build its node and match its subscribers, s.
+START_TIMEOUT_S = 60.0
+#: How long a child may take to report its counts and exit, s.
+STOP_TIMEOUT_S = 10.0
+
+
+class NodeProcessError(Exception):
+    """A node process did not start, died, or did not report."""
+
+
+@dataclass
+class _Durations:
+    """The counterpart of node_base.CallbackStats the live report reads."""
+
+    durations_ms: list[float] = field(default_factory=list)
+
+
+def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, transforms: list[Any],
+                conn: Any, stop: Any) -> None:
+    """Entry point of the child process (spawned: nothing of the parent's DDS state is inherited)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the runner, which stops us
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from .params import to_overrides
+    from .runner import load_node_class
+
+    context = rclpy.Context()
+    node = None
+    try:
+        rclpy.init(context=context, domain_id=domain_id)
+        cls = load_node_class(spec)
+        node = cls(context=context, parameter_overrides=to_overrides(params))
+        node.lockstep_hooks = None
+        if transforms and callable(getattr(node, 'on_static_transforms', None)):
+            node.on_static_transforms(transforms)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers]))
+        expected: dict[str, int] = conn.recv()
+        deadline = time.monotonic() + START_TIMEOUT_S
+        pubs = [p for p in node.publishers if expected.get(p.topic_name, 0) > 0]
+        while time.monotonic() < deadline and not stop.is_set():
+            if all(p.get_subscription_count() >= expected[p.topic_name] for p in pubs):
+                break
+            executor.spin_once(timeout_sec=0.02)
+        conn.send(('ready', None))
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+        # The runner stops us once its recorder is quiet; inputs still queued here are taken
+        # first (until nothing moves for 0.2 s), as the in-process drain would.
+        done = -1
+        while done != (done := sum(len(s.durations_ms) for s in node.callback_stats.values())):
+            for _ in range(4):
+                executor.spin_once(timeout_sec=0.05)
+        conn.send(('counts', {t: list(s.durations_ms) for t, s in node.callback_stats.items()},
+                   dict(node.publish_counts)))
+    except BaseException as exc:  # reported to the runner, which ends the run with the node's name
+        try:
+            conn.send(('error', f'{type(exc).__name__}: {exc}'))
+        except (OSError, ValueError):
+            pass
+        raise SystemExit(1) from None
+    finally:
+        if node is not None:
+            close = getattr(node, 'close', None)
+            if callable(close):
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+class NodeProcess:
+    """Runner-side handle of one node running in a child process (module docstring)."""
+
+    def __init__(self, name: str, spec: Any, params: dict[str, Any], domain_id: int,
+                 transforms: list[Any] | None = None) -> None:
+        from .runner import load_node_class
+
+        self.name = name
+        self.node_class = load_node_class(spec)
+        mp = multiprocessing.get_context('spawn')
+        self._stop = mp.Event()
+        self._conn, child_conn = mp.Pipe()
+        self.process = mp.Process(
+            target=_child_main, name=f'ar_tracking_{name}', daemon=True,
+            args=(name, spec, params, domain_id, list(transforms or []), child_conn, self._stop))
+        self.subscription_topics: list[str] = []
+        self.publisher_topics: list[str] = []
+        self.callback_stats: dict[str, _Durations] = {}
+        self.publish_counts: dict[str, int] = {}
+        self.failure: str | None = None
+        self._counted = False
+
+    def get_name(self) -> str:
+        return self.name
+
+    def start(self) -> None:
+        self.process.start()
+
+    def _receive(self, kind: str, timeout_s: float) -> tuple[Any, ...]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._conn.poll(0.05):
+                try:
+                    msg = self._conn.recv()
+                except EOFError:
+                    break
+                if msg[0] == 'error':
+                    self.failure = msg[1]
+                    raise NodeProcessError(f'{self.name}: {msg[1]}')
+                if msg[0] == kind:
+                    return tuple(msg[1:])
+            elif not self.process.is_alive():
+                break
+        code = self.process.exitcode
+        self.failure = self.failure or (f'exited with code {code}' if code is not None else f'no {kind} report')
+        raise NodeProcessError(f'{self.name}: {self.failure}')
+
+    def wait_created(self) -> None:
+        """Block until the child has built its node (its topics are then known)."""
+        self.subscription_topics, self.publisher_topics = self._receive('created', START_TIMEOUT_S)  # type: ignore[assignment]
+
+    def expect(self, subscribers: dict[str, int]) -> None:
+        """Tell the child how many subscribers each of its output topics will have."""
+        self._conn.send({t: subscribers.get(t, 0) for t in self.publisher_topics})
+
+    def wait_ready(self) -> None:
+        self._receive('ready', START_TIMEOUT_S)
+
+    def died(self) -> str | None:
+        """Why the child is gone while it should run (None while it runs)."""
+        if self.process.is_alive():
+            return None
+        if self._conn.poll():
+            try:
+                msg = self._conn.recv()
+            except EOFError:
+                msg = None
+            if msg and msg[0] == 'error':
+                self.failure = msg[1]
+        self.failure = self.failure or f'exited with code {self.process.exitcode}'
+        return self.failure
+
+    def reported(self) -> bool:
+        """Whether the child has sent its counts (or failed); takes them without waiting."""
+        while not self._counted and self.failure is None and self._conn.poll():
+            try:
+                msg = self._conn.recv()
+            except EOFError:
+                break
+            if msg[0] == 'counts':
+                self._take_counts(msg[1], msg[2])
+            elif msg[0] == 'error':
+                self.failure = msg[1]
+        return self._counted or self.failure is not None
+
+    def _take_counts(self, durations: dict[str, list[float]], published: dict[str, int]) -> None:
+        self.callback_stats = {t: _Durations(list(d)) for t, d in durations.items()}
+        self.publish_counts = dict(published)
+        self._counted = True
+
+    def request_stop(self) -> None:
+        """Tell the child to take what is queued, report and exit (returns at once)."""
+        self._stop.set()
+
+    def stop(self) -> None:
+        """Stop the child, collect its counts and let it exit (killed if it does not)."""
+        if self.process.pid is None:
+            return
+        self._stop.set()
+        if not self.reported() and self.process.is_alive():
+            try:
+                durations, published = self._receive('counts', STOP_TIMEOUT_S)
+            except NodeProcessError as exc:
+                logger.warning('%s', exc)
+            else:
+                self._take_counts(durations, published)
+        self.process.join(STOP_TIMEOUT_S)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join(2.0)
+
+    # The in-process node interface the runner's teardown calls.
+    def close(self) -> None:
+        self.stop()
+
+    def destroy_node(self) -> None:
+        pass

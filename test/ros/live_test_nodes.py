@@ -1,0 +1,38 @@
+"""Nodes for the realtime runner tests that run them in processes of their own (a spawned
+process imports them by name, so they live at module level)."""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from sensor_msgs.msg import Imu, MagneticField
+
+from ar_tracking.ros.node_base import TrackingNode
+
+
+class SlowNode(TrackingNode):
+    """Takes 100 ms per IMU sample."""
+
+    INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+    OUTPUTS: dict = {}
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('slow', **kwargs)
+        self.subscribe(Imu, 'imu/data_raw', lambda msg: time.sleep(0.1))
+
+
+class DyingNode(TrackingNode):
+    """Raises on its 10th field sample: the node's process dies mid-run."""
+
+    INPUTS = {'imu/mag': 'sensor_msgs/msg/MagneticField'}
+    OUTPUTS: dict = {}
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('dying', **kwargs)
+        self.seen = 0
+        self.create_subscription(MagneticField, 'imu/mag', self.on_mag, 10)
+
+    def on_mag(self, msg: MagneticField) -> None:
+        self.seen += 1
+        if self.seen == 10:
+            raise RuntimeError('sensor driver lost')
