@@ -212,7 +212,12 @@ def scan_unfinished_mcap(path: str | Path) -> RecoveredMcap:
 
 #: Topics written as latched (reliable, transient local, depth 1) unless a writer is told
 #: otherwise: a player that honours offered_qos_profiles (ros2 bag play, bag_replay) latches them again.
-LATCHED_TOPICS = frozenset({'/tf_static', '/ground_truth/annotations'})
+LATCHED_TOPICS = frozenset({
+    '/tf_static', '/ground_truth/annotations',
+    # the graph's latched products (nodes publish them reliable + transient local)
+    '/panorama/image', '/panorama/tiles', '/slam/map_points', '/slam/keyframes', '/slam/path',
+    '/annotations/markers',
+})
 
 
 def offered_qos(latched: bool) -> Any:
@@ -457,7 +462,7 @@ class BagWriter:
         latched_topics: Iterable[str] = LATCHED_TOPICS,
     ) -> None:
         self.path = Path(path)
-        self.latched_topics = set(latched_topics)
+        self.latched_topics = {normalize_topic(t) for t in latched_topics}
         if storage is None:
             storage = 'mcap' if self.path.suffix in ('.mcap', '') else 'sqlite3'
             if self.path.suffix == '.db3':
@@ -529,7 +534,7 @@ class BagWriter:
             msg_class(msgtype)  # unknown types fail here with a clear message
         except BagError as exc:
             raise BagError(f'{self.path}: {exc}') from exc
-        qos = offered_qos(self.latched_topics.__contains__(topic) if latched is None else latched)
+        qos = offered_qos(normalize_topic(topic) in self.latched_topics if latched is None else latched)
         if self.storage == 'mcap':
             import io
 

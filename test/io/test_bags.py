@@ -553,10 +553,11 @@ def test_topic_names_without_leading_slash_and_offered_qos(tmp_path, storage, na
     with BagWriter(path, storage=storage) as w:
         w.write('/tf_static', 1, msg_class('tf2_msgs/msg/TFMessage')(transforms=[]))
         w.write('camera/camera_info', 2, msg_class('std_msgs/msg/String')(data='x'))
-        w.add_topic('/panorama/image', 'std_msgs/msg/String', latched=True)
+        w.add_topic('/panorama/image', 'std_msgs/msg/String')  # a latched product by default
+        w.add_topic('/camera/other', 'std_msgs/msg/String', latched=True)
     with BagReader(w.path) as r:
-        assert set(r.topics) == {'/tf_static', '/camera/camera_info', '/panorama/image'}
+        assert set(r.topics) == {'/tf_static', '/camera/camera_info', '/panorama/image', '/camera/other'}
         for asked in ('camera/camera_info', '/camera/camera_info'):
             assert [m.topic for m in r.messages([asked])] == ['/camera/camera_info']
             assert r.message_count([asked]) == 1
-        assert r.latched_topics == {'/tf_static', '/panorama/image'}
+        assert r.latched_topics == {'/tf_static', '/panorama/image', '/camera/other'}
