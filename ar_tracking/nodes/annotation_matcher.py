@@ -30,6 +30,7 @@ from ..core.annotations.matching import MatchConfig, ReDetector
 from ..core.annotations.store import Annotation, Landmark, SqliteAnnotationStore, StoreError
 from ..core.panorama.cylinder import CylinderGeometry
 from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
+from ..io.stores import RetryBackoff, describe, open_store
 from ..ros.conversions import ConversionError, image_to_array, rotation_from_quaternion, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
@@ -49,12 +50,18 @@ class AnnotationMatcherNode(TrackingNode):
         'annotations/alignment': 'geometry_msgs/msg/TransformStamped',
     }
     REQUIRED_INPUTS = ['panorama/image', 'panorama/tiles', 'gps/fix']
-    REQUIRED_PARAMS = ['store_path']
+    REQUIRED_PARAMS = [('store_path', 'store_url')]
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('annotation_matcher', **kwargs)
         p = self.param
         self.store_path: str = p('store_path', '', 'Annotation store (SQLite file) to load annotations from', read_only=True)
+        self.store_url: str = p('store_url', '', 'Annotation store by URL, instead of store_path: sqlite:///path/notes.db or '
+                                'postgresql://user@host/db[?schema=NAME] (PostGIS, shared by many users; password in PGPASSWORD or ~/.pgpass)',
+                                read_only=True)
+        #: what on_fix opens; a store that cannot be reached is tried again after 1, 2, 4 ... 60 s (bag time)
+        self.store_ref: str = self.store_url or self.store_path
+        self.store_backoff = RetryBackoff(initial_s=1.0, max_s=60.0)
         self.radius_m = p('radius_m', 50.0, 'Annotations authored within this distance of the GPS fix are loaded (sec. 4.3), m', min_value=1.0, max_value=100000.0)
         self.poor_gps_m = p('poor_gps_sigma_m', 25.0, 'A fix whose horizontal 1-sigma exceeds this is poor: every annotation of the store is loaded, m', min_value=0.0, max_value=100000.0)
         self.reload_period_ns = int(1e9 * p('reload_period_s', 10.0, 'Least time between two store queries (new fix, nothing loaded yet), s', min_value=0.0, max_value=3600.0))
@@ -120,7 +127,7 @@ class AnnotationMatcherNode(TrackingNode):
         self.subscribe(TransformStamped, 'panorama/orientation', self.on_panorama_orientation, RELIABLE_QOS)
         if not self.store_path:
             self.get_logger().warning('annotation_matcher: no store_path set; nothing to match')
-        self.get_logger().info(f'annotation_matcher: store {self.store_path or "-"}, prior {"on" if prior else "off"}, '
+        self.get_logger().info(f'annotation_matcher: store {describe(self.store_ref) if self.store_ref else "-"}, prior {"on" if prior else "off"}, '
                                f'RANSAC {"on" if ransac else "off"}, budget {self.budget_ms} ms')
 
     # -- annotations -----------------------------------------------------------------------
@@ -134,7 +141,7 @@ class AnnotationMatcherNode(TrackingNode):
             self.warn_throttled(f'gps/fix: invalid position ({lat}, {lon}), ignored')
             return
         t = stamp_ns(msg.header)
-        if self.detector is not None or not self.store_path:
+        if self.detector is not None or not self.store_ref or not self.store_backoff.ready(t * 1e-9):
             return
         if self.last_query_ns is not None and 0 <= t - self.last_query_ns < self.reload_period_ns:
             return
@@ -143,16 +150,18 @@ class AnnotationMatcherNode(TrackingNode):
         poor = (msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN or not math.isfinite(cov)
                 or cov < 0 or math.sqrt(cov) > self.poor_gps_m)
         try:
-            with SqliteAnnotationStore(self.store_path, read_only=True) as store:
+            with open_store(self.store_ref, read_only=True) as store:
                 found = store.all() if poor else store.near(lat, lon, self.radius_m)
                 skipped = list(store.skipped)
                 landmarks: list[Landmark] = []
                 if found and self.use_landmarks:
                     landmarks = store.landmarks({a.panorama_id for a in found})
                     skipped += store.skipped
-        except StoreError as exc:
-            self.warn_throttled(f'annotation store: {exc}')
+        except StoreError as exc:  # down, wrong credentials, a query timed out: go on without, try again later
+            wait = self.store_backoff.failed(t * 1e-9)
+            self.get_logger().warning(f'annotation store: {exc}; no annotations for now, next try in {wait:g} s')
             return
+        self.store_backoff.succeeded()
         for reason in skipped:
             self.warn_throttled(f'annotation store: {reason}, skipped')
         if not found:
