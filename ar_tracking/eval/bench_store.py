@@ -143,7 +143,13 @@ def _spot(north_m: float, east_m: float) -> tuple[float, float]:
     return LAT0 + float(dlat), LON0 + float(dlon)
 
 
-def _writer(url: str, w: int, start_at: float, stop_at: float, queue: Any) -> None:
+def _start(barrier: Any, duration_s: float) -> float:
+    """Wait until every process is connected; the time this one stops."""
+    barrier.wait(300.0)
+    return time.time() + duration_s
+
+
+def _writer(url: str, w: int, barrier: Any, duration_s: float, queue: Any) -> None:
     from ..io.stores import open_store
 
     rng = np.random.default_rng(1000 + w)
@@ -152,9 +158,7 @@ def _writer(url: str, w: int, start_at: float, stop_at: float, queue: Any) -> No
     batches = 0
     try:
         with open_store(url) as store:
-            if time.time() > start_at:
-                errors.append(f'writer {w}: ready only after the start')
-            time.sleep(max(0.0, start_at - time.time()))
+            stop_at = _start(barrier, duration_s)
             seq = 0
             while time.time() < stop_at:
                 k = int(rng.integers(1, 5))
@@ -180,7 +184,7 @@ def _writer(url: str, w: int, start_at: float, stop_at: float, queue: Any) -> No
     queue.put(('writer', w, acknowledged, errors, batches, []))
 
 
-def _reader(url: str, r: int, start_at: float, stop_at: float, queue: Any) -> None:
+def _reader(url: str, r: int, barrier: Any, duration_s: float, queue: Any) -> None:
     from ..io.stores import open_store
 
     from ..core.annotations.store import distance_m
@@ -191,9 +195,7 @@ def _reader(url: str, r: int, start_at: float, stop_at: float, queue: Any) -> No
     lat0, lon0 = _spot(*BUSY_SPOTS_M[r % len(BUSY_SPOTS_M)])
     try:
         with open_store(url, read_only=True) as store:
-            if time.time() > start_at:
-                errors.append(f'reader {r}: ready only after the start')
-            time.sleep(max(0.0, start_at - time.time()))
+            stop_at = _start(barrier, duration_s)
             while time.time() < stop_at:
                 t0 = time.perf_counter()
                 try:
@@ -233,14 +235,13 @@ def bench_concurrent(pg_url: str, writers: int = 8, readers: int = 8, duration_s
     open_store(url, create=True).close()
     ctx = multiprocessing.get_context('spawn')
     queue = ctx.Queue()
-    start_at = time.time() + 8.0 + 0.5 * (writers + readers)  # every process imported and connected
-    stop_at = start_at + duration_s
-    procs = [ctx.Process(target=_writer, args=(url, w, start_at, stop_at, queue)) for w in range(writers)]
-    procs += [ctx.Process(target=_reader, args=(url, r, start_at, stop_at, queue)) for r in range(readers)]
+    barrier = ctx.Barrier(writers + readers)  # the clock starts when every process is connected
+    procs = [ctx.Process(target=_writer, args=(url, w, barrier, duration_s, queue)) for w in range(writers)]
+    procs += [ctx.Process(target=_reader, args=(url, r, barrier, duration_s, queue)) for r in range(readers)]
     for p in procs:
         p.start()
     results = []
-    deadline = stop_at + 120.0
+    deadline = time.time() + 300.0 + duration_s + 120.0
     while len(results) < len(procs) and time.time() < deadline:
         try:
             results.append(queue.get(timeout=5.0))
