@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -59,33 +60,68 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
 
 
 def cmd_annotate(args: argparse.Namespace) -> int:
-    """Store annotations from an authoring bag: patches of its panorama at given positions
-    (or at the simulator's ground-truth anchors), with the bag's GPS fix (Langlotz sec. 3.2)."""
-    from .annotate import annotate_bag
+    """Store annotations from an authoring bag: patches of its panorama at the given positions,
+    with the bag's GPS fix and the panorama's estimated orientation (Langlotz sec. 3.2, 5)."""
+    from .annotate import PositionError, annotate_bag, parse_position, read_positions
 
-    positions = None
-    if args.positions:
-        positions = []
-        for line in Path(args.positions).read_text().splitlines():
-            if line.strip() and not line.lstrip().startswith('#'):
-                text, u, v = line.rsplit(',', 2)
-                positions.append((text.strip(), float(u), float(v)))
+    rows: list = []
+    bad: list[str] = []
+    try:
+        if args.positions:
+            got, bad = read_positions(args.positions, args.form)
+            rows += got
+        for form in ('pixel', 'azel', 'bearing'):
+            for item in getattr(args, form) or []:
+                text, sep, numbers = item.rpartition('=')
+                try:
+                    if not sep:
+                        raise PositionError(f'expected TEXT=A,B, got {item!r}')
+                    rows.append(parse_position(text, numbers, form))
+                except PositionError as exc:
+                    bad.append(f'--{form} {item!r}: {exc}; skipped')
+    except PositionError as exc:
+        print(f'ar-tracking annotate: error: {exc}', file=sys.stderr)
+        return EXIT_FAILED
+    for line in bad:
+        print(line, file=sys.stderr)
+    positions: Any = rows
+    if args.simulated_user:
+        from .eval.annotation_metrics import simulated_user_positions
+
+        user = simulated_user_positions(args.bag)
+        positions = lambda first_ns: rows + user(first_ns)  # noqa: E731
+    elif not rows and not args.png:
+        print('ar-tracking annotate: error: no positions (--positions FILE, --pixel/--azel/--bearing '
+              'TEXT=A,B); run once with --png pano.png to pick them on the panorama', file=sys.stderr)
+        return EXIT_FAILED
     update, close = _progress_bar(not args.quiet and sys.stderr.isatty(), 'annotate')
     progress = (lambda f: update(int(f * 1000), 1000)) if update else None
     try:
         report = annotate_bag(args.bag, args.store, positions=positions, patch_px=args.patch_px,
                               author=args.author, panorama_id=args.panorama_id, edr=not args.no_edr,
-                              world_orientation=args.world_orientation, landmarks=args.landmarks,
-                              support_landmarks=args.support_landmarks, progress=progress)
+                              replace=args.replace, params_files=args.params_file, png=args.png,
+                              landmarks=args.landmarks, support_landmarks=args.support_landmarks,
+                              progress=progress)
     finally:
         close()
     for text, reason in report.skipped:
         print(f'skipped {text!r}: {reason}', file=sys.stderr)
+    if report.duplicates:
+        print(f'{report.duplicates} annotation(s) already stored for panorama {report.panorama_id} '
+              '(same position); not added again (--replace authors the panorama again)', file=sys.stderr)
     print(json.dumps({'panorama_id': report.panorama_id, 'stored': len(report.stored),
-                      'skipped': len(report.skipped), 'landmarks': report.landmarks,
-                      'latitude_deg': report.latitude_deg,
-                      'longitude_deg': report.longitude_deg}))
-    return 0 if report.stored else 1
+                      'skipped': len(report.skipped), 'duplicates': report.duplicates,
+                      'replaced': report.replaced, 'landmarks': report.landmarks,
+                      'orientation_source': report.orientation_source,
+                      'heading_sigma_deg': _finite_or_none(report.heading_sigma_deg),
+                      'ahrs_disagreement_deg': _finite_or_none(report.ahrs_disagreement_deg),
+                      'latitude_deg': report.latitude_deg, 'longitude_deg': report.longitude_deg,
+                      'png': report.png or None}))
+    return 0 if (report.stored or report.duplicates or (not rows and not args.simulated_user)) else 1
+
+
+def _finite_or_none(x: float) -> float | None:
+    return round(x, 4) if math.isfinite(x) else None
 
 
 LATENCY_LABEL = 'orientation/global (input stamp published -> received)'
@@ -324,19 +360,36 @@ def build_parser() -> argparse.ArgumentParser:
                         "camera-IMU time offset; 'kind' = the earlier, easier simulator, for the paper's Fig. 8 comparison")
     p.set_defaults(func=cmd_make_bag)
 
-    p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches at the anchors)')
+    p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')
     p.add_argument('bag', help='authoring-session bag')
     p.add_argument('--store', '-s', required=True, help='annotation store (SQLite file; created if missing)')
-    p.add_argument('--positions', help='text file of "text,u,v" map positions (default: /ground_truth/annotations)')
+    p.add_argument('--positions', help='file of "text,a,b" rows (a line "# form: pixel|azel|bearing" sets the '
+                                       'form of the rows after it; default --form); bad rows are skipped, one line each')
+    p.add_argument('--form', default='pixel', choices=['pixel', 'azel', 'bearing'],
+                   help='form of the --positions rows: map pixel u,v (default); azimuth,elevation in the panorama '
+                        'frame (deg); compass bearing,elevation in the world (deg, via the estimated orientation)')
+    p.add_argument('--pixel', action='append', metavar='TEXT=U,V', help='an annotation at map pixel (u, v) (repeatable)')
+    p.add_argument('--azel', action='append', metavar='TEXT=AZ,EL',
+                   help='an annotation at azimuth/elevation in the panorama frame, deg (repeatable)')
+    p.add_argument('--bearing', action='append', metavar='TEXT=B,E',
+                   help='an annotation at compass bearing (from true north, clockwise) / elevation, deg (repeatable)')
+    p.add_argument('--png', help='also write the authoring panorama with a degree grid here (to pick positions on)')
+    p.add_argument('--simulated-user', action='store_true',
+                   help='evaluation only (simulated bags): add an annotation where each /ground_truth/annotations '
+                        'anchor appears in the panorama, as a user clicking on it would (read by ar_tracking.eval; '
+                        'the stored orientation is still estimated)')
+    p.add_argument('--replace', action='store_true',
+                   help="delete this panorama's annotations and landmarks first (default: anchors already stored "
+                        'at the same position are skipped, so annotating a bag twice does not duplicate)')
+    p.add_argument('--params-file', action='append',
+                   help='device calibration (params file of imu_magnetometer / hybrid_orientation_filter; '
+                        'default <bag>.params.yaml next to the bag)')
     p.add_argument('--patch-px', type=int, default=16, choices=[8, 16, 24, 32],
                    help='side of the stored image patch of each annotation, map pixels (default 16)')
     p.add_argument('--author', default='', help='author name stored with each annotation')
     p.add_argument('--panorama-id', default=None,
                    help='id of this authoring panorama in the store (default: derived from the bag)')
     p.add_argument('--no-edr', action='store_true', help='8-bit map instead of the EDR map')
-    p.add_argument('--world-orientation', default='ground_truth', choices=['ground_truth', 'none'],
-                   help="how the panorama is placed in the world for the stored 3-D directions: the bag's "
-                        "ground_truth/orientation (default), or none (directions in the panorama frame)")
     p.add_argument('--landmarks', type=int, default=24, metavar='N',
                    help='also store up to N landmarks of the panorama (distinctive patches that help '
                         'align it when browsing; never shown); 0: none (default 24)')

@@ -13,7 +13,15 @@ runs stay reproducible. Publishes ``annotations/markers`` (MarkerArray, one TEXT
 placed annotation in the panorama frame, ns ``matched`` or ``inferred``) and
 ``annotations/alignment`` (TransformStamped panorama <- source panorama, child_frame_id = the
 source panorama id). With ``landmarks`` the source panoramas' landmarks (stored by
-``ar-tracking annotate``) are matched and aligned with the annotations but never published. The algorithm is :mod:`ar_tracking.core.annotations`; this node converts.
+``ar-tracking annotate``) are matched and aligned with the annotations but never published.
+
+No label is shown as placed before the alignment supports it (``min_support_matches`` matched
+annotations and landmarks, and a rotation within ``support_prior_sigmas`` of the sensor prior
+given both panoramas' heading covariances - the store's panorama record and
+``orientation/global``'s covariance - unless ``strong_support_matches`` outvote it): until then
+the labels go to the namespace ``approximate`` (grey, ``scale.x`` = the 3-sigma direction
+uncertainty in rad; ``show_approximate: false`` publishes nothing instead), and
+``annotations/alignment`` is not published. The algorithm is :mod:`ar_tracking.core.annotations`; this node converts.
 """
 from __future__ import annotations
 
@@ -27,7 +35,7 @@ from sensor_msgs.msg import Image, Imu, NavSatFix, NavSatStatus
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.annotations.matching import MatchConfig, ReDetector
-from ..core.annotations.store import Annotation, Landmark, SqliteAnnotationStore, StoreError
+from ..core.annotations.store import Annotation, Landmark, PanoramaInfo, SqliteAnnotationStore, StoreError
 from ..core.panorama.cylinder import CylinderGeometry
 from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
 from ..io.stores import RetryBackoff, describe, open_store
@@ -90,6 +98,10 @@ class AnnotationMatcherNode(TrackingNode):
         walsh_min = p('walsh_min', 0.5, 'Walsh pre-check threshold (sec. 3.2): positions below it get no NCC', min_value=-1.0, max_value=1.0)
         self.marker_distance_m = p('marker_distance_m', 10.0, 'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0)
         self.marker_height_m = p('marker_height_m', 0.5, 'Text height of the markers, m', min_value=0.01, max_value=100.0)
+        min_support = p('min_support_matches', 4, 'Labels are shown as placed only when at least this many annotations and landmarks matched the alignment', min_value=1, max_value=1000)
+        support_sigmas = p('support_prior_sigmas', 3.0, "...and the alignment is within this many standard deviations of the sensor prior (both panoramas' heading covariance), unless strong_support_matches matched", min_value=0.0, max_value=100.0)
+        strong_support = p('strong_support_matches', 10, 'This many matches support an alignment however far it is from the sensor prior', min_value=1, max_value=1000)
+        self.show_approximate: bool = p('show_approximate', True, "Before the alignment is supported, publish the labels in the 'approximate' namespace with their uncertainty (false: publish none)")
         self.frame_id: str = p('frame_id', 'panorama', 'frame_id of the outputs (the current panorama)')
         reset_s = p('reset_after_s', 1.0, 'A map stamp this much older than the previous one means a new panorama (bag loop): start over', min_value=0.0, max_value=3600.0)
 
@@ -100,10 +112,14 @@ class AnnotationMatcherNode(TrackingNode):
             placement_px=placement_px, guided_search=guided, placement_penalty=placement_penalty,
             consensus_score=consensus, guided_all=guided_all, prior_alignment=prior_alignment,
             gravity_alignment=gravity, gravity_v_px=gravity_v_px, parallax_model=parallax,
-            parallax_trim_sigmas=trim_sigmas, parallax_gate_sigmas=gate_sigmas)
+            parallax_trim_sigmas=trim_sigmas, parallax_gate_sigmas=gate_sigmas,
+            min_support_matches=min_support, support_prior_sigmas=support_sigmas,
+            strong_support_matches=strong_support)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []
+        self.panoramas: dict[str, PanoramaInfo] = {}
+        self.target_sigma = float('nan')
         self.detector: ReDetector | None = None
         self.gray: np.ndarray | None = None
         self.mapped: np.ndarray | None = None
@@ -116,6 +132,7 @@ class AnnotationMatcherNode(TrackingNode):
         self.pano_orientation: dict[int, np.ndarray] = {}
         self.guard = StampGuard(reset_s)
         self.published = 0
+        self._last_reason = ''
 
         self.pub_markers = self.advertise(MarkerArray, 'annotations/markers', LATCHED_QOS)
         self.pub_alignment = self.advertise(TransformStamped, 'annotations/alignment', RELIABLE_QOS)
@@ -126,7 +143,8 @@ class AnnotationMatcherNode(TrackingNode):
         self.subscribe(Imu, 'orientation/global', self.on_global, RELIABLE_QOS)
         self.subscribe(TransformStamped, 'panorama/orientation', self.on_panorama_orientation, RELIABLE_QOS)
         if not self.store_path:
-            self.get_logger().warning('annotation_matcher: no store_path set; nothing to match')
+            self.get_logger().warning('annotation_matcher: no store_path set; nothing to match (in a params '
+                                      'file: annotation_matcher: {ros__parameters: {store_path: notes.db}})')
         self.get_logger().info(f'annotation_matcher: store {describe(self.store_ref) if self.store_ref else "-"}, prior {"on" if prior else "off"}, '
                                f'RANSAC {"on" if ransac else "off"}, budget {self.budget_ms} ms')
 
@@ -157,6 +175,8 @@ class AnnotationMatcherNode(TrackingNode):
                 if found and self.use_landmarks:
                     landmarks = store.landmarks({a.panorama_id for a in found})
                     skipped += store.skipped
+                self.panoramas = store.panoramas({a.panorama_id for a in found}) if found else {}
+                skipped += store.skipped
         except StoreError as exc:  # down, wrong credentials, a query timed out: go on without, try again later
             wait = self.store_backoff.failed(t * 1e-9)
             self.get_logger().warning(f'annotation store: {exc}; no annotations for now, next try in {wait:g} s')
@@ -185,11 +205,14 @@ class AnnotationMatcherNode(TrackingNode):
         R_pano = {a.panorama_id: R for a, R in zip(self.annotations, R_src) if R is not None}
         R_src += [R_pano.get(lm.panorama_id) for lm in self.landmarks]  # their panorama's orientation
         records: list[Annotation | Landmark] = [*self.annotations, *self.landmarks]
+        sigma = [self.panoramas[r.panorama_id].heading_sigma_rad() if r.panorama_id in self.panoramas
+                 else float('nan') for r in records]
         self.detector = ReDetector([r.patch for r in records], np.array([r.direction for r in records]),
                                    [r.panorama_id for r in records], self.match_config, self.geometry, R_src,
-                                   landmark=[isinstance(r, Landmark) for r in records])
+                                   landmark=[isinstance(r, Landmark) for r in records],
+                                   source_heading_sigma_rad=sigma)
         if self.R_enu_pano is not None:
-            self.detector.set_orientation(self.R_enu_pano)
+            self.detector.set_orientation(self.R_enu_pano, self.target_sigma)
 
     # -- map -------------------------------------------------------------------------------
 
@@ -281,6 +304,8 @@ class AnnotationMatcherNode(TrackingNode):
     def on_global(self, msg: Imu) -> None:
         if msg.orientation_covariance[0] == -1.0:
             return
+        var = float(msg.orientation_covariance[8])  # heading (about ENU z), rad^2
+        self.target_sigma = math.sqrt(var) if math.isfinite(var) and var >= 0 else float('nan')
         t = stamp_ns(msg.header)
         R_pano_cam = self.pano_orientation.get(t)
         if R_pano_cam is None:
@@ -300,7 +325,7 @@ class AnnotationMatcherNode(TrackingNode):
         self.prior_sum += R_enu_pano
         self.R_enu_pano = nearest_rotation(self.prior_sum)
         if self.detector is not None:
-            self.detector.set_orientation(R_enu_pano)
+            self.detector.set_orientation(R_enu_pano, self.target_sigma)
         self._work(t)
 
     # -- work and outputs ------------------------------------------------------------------
@@ -323,12 +348,19 @@ class AnnotationMatcherNode(TrackingNode):
         clear.header.frame_id = self.frame_id
         clear.action = Marker.DELETEALL
         out.markers.append(clear)
+        approx = not alignment.supported
+        if approx and alignment.support_reason != self._last_reason:
+            self._last_reason = alignment.support_reason
+            self.get_logger().info(f'alignment not supported yet ({alignment.support_reason}): labels are approximate')
+        sigma = self._approximate_sigma(source)
         for pl in alignment.placements:
+            if approx and not self.show_approximate:
+                break
             a = self.annotations[pl.index]
             m = Marker()
             m.header.stamp = stamp
             m.header.frame_id = self.frame_id
-            m.ns = pl.status
+            m.ns = 'approximate' if approx else pl.status
             m.id = int(a.id if a.id is not None else pl.index)
             m.type = Marker.TEXT_VIEW_FACING
             m.action = Marker.ADD
@@ -337,7 +369,10 @@ class AnnotationMatcherNode(TrackingNode):
             m.pose.orientation.w = 1.0
             m.scale.z = self.marker_height_m
             m.color.a = 1.0
-            if pl.status == 'matched':
+            if approx:
+                m.color.r = m.color.g = m.color.b = 0.6
+                m.scale.x = 3.0 * sigma  # the 3-sigma direction uncertainty, rad
+            elif pl.status == 'matched':
                 m.color.g = 1.0
             else:
                 m.color.r, m.color.g = 1.0, 0.55
@@ -345,13 +380,20 @@ class AnnotationMatcherNode(TrackingNode):
             out.markers.append(m)
         self.pub_markers.publish(out)
         self.published += 1
-        if alignment.R_target_source is not None and source is not None:
+        if alignment.supported and alignment.R_target_source is not None and source is not None:
             tf = TransformStamped()
             tf.header.stamp = stamp
             tf.header.frame_id = self.frame_id
             tf.child_frame_id = source
             set_quaternion(tf.transform.rotation, alignment.R_target_source)
             self.pub_alignment.publish(tf)
+
+    def _approximate_sigma(self, source: str | None) -> float:
+        """1-sigma direction uncertainty of an approximate label, rad: both panoramas' heading
+        sigmas when known, else the compass error the prior window assumes."""
+        info = self.panoramas.get(source) if source is not None else None
+        s = math.hypot(info.heading_sigma_rad() if info is not None else float('nan'), self.target_sigma)
+        return s if math.isfinite(s) else self.match_config.prior_window_px / self.geometry.f
 
 
 def main(args: list[str] | None = None) -> int:

@@ -57,6 +57,11 @@ def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     for node, body in data.items():
         if not isinstance(body, dict) or not isinstance(body.get('ros__parameters', {}), dict):
             raise ParamsError(f'{path}: {node} has no ros__parameters mapping')
+        stray = [str(k) for k in body if k != 'ros__parameters']
+        if stray:
+            # The shorthand `node: {name: value}` is ignored by ROS 2 (and was here, silently).
+            raise ParamsError(f'{path}: {node}: {", ".join(stray)} must go under ros__parameters '
+                              f'({node}: {{ros__parameters: {{{stray[0]}: ...}}}})')
         out[str(node).lstrip('/')] = dict(body.get('ros__parameters') or {})
     return out
 

@@ -160,6 +160,15 @@ class MatchConfig:
     #: placement_px): fitted on tens of landmark matches the model predicts to a pixel or two,
     #: and a look-alike a facade repetition away no longer passes. 0: keep placement_px.
     parallax_gate_sigmas: float = 3.0
+    #: An alignment is *supported* (its labels may be shown as placed) with at least this many
+    #: matched annotations and landmarks, and, when both panoramas' orientations come with a
+    #: heading covariance, with its rotation within ``support_prior_sigmas`` combined standard
+    #: deviations (plus one inlier tolerance) of the prior rotation - or with at least
+    #: ``strong_support_matches`` matches, which outvote a prior that is off. Unsupported
+    #: placements are only approximate (see :attr:`Alignment.supported`).
+    min_support_matches: int = 4
+    support_prior_sigmas: float = 3.0
+    strong_support_matches: int = 10
     seed: int = 0
 
 
@@ -429,6 +438,14 @@ class Alignment:
     parallax_gate_px: float = float('nan')
     #: Placements of the landmarks (:mod:`.landmarks`; not in ``placements``).
     landmarks: list[Placement] = field(default_factory=list)
+    #: Matched annotations and landmarks behind the rotation, and whether that supports showing
+    #: the placements as placed (:attr:`MatchConfig.min_support_matches`); ``support_reason``
+    #: says why not (one line).
+    support: int = 0
+    supported: bool = False
+    support_reason: str = 'no alignment'
+    #: Angle between the alignment and the prior rotation, rad (NaN without a prior).
+    prior_correction_rad: float = float('nan')
 
 
 def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
@@ -803,7 +820,8 @@ class ReDetector:
                  groups: Sequence[str], config: MatchConfig | None = None,
                  geometry: CylinderGeometry | None = None,
                  R_enu_source: Sequence[Array | None] | None = None,
-                 landmark: Sequence[bool] | None = None) -> None:
+                 landmark: Sequence[bool] | None = None,
+                 source_heading_sigma_rad: Sequence[float] | None = None) -> None:
         self.config = cfg = config or MatchConfig()
         self.geometry = geo = geometry or CylinderGeometry()
         self.source_dirs = np.asarray(source_dirs, float).reshape(-1, 3)
@@ -811,6 +829,9 @@ class ReDetector:
         self.groups = list(groups)
         self.landmark = np.zeros(n, bool) if landmark is None else np.asarray(landmark, bool).reshape(n)
         self.R_enu_source = list(R_enu_source) if R_enu_source is not None else [None] * n
+        self.source_sigma = (np.full(n, np.nan) if source_heading_sigma_rad is None
+                             else np.asarray(source_heading_sigma_rad, float).reshape(n))
+        self.target_sigma = float('nan')
         # One TileMatcher per patch size.
         self.matchers: list[tuple[TileMatcher, list[int]]] = []
         for side in sorted({p.shape[0] for p in patches}):
@@ -837,9 +858,14 @@ class ReDetector:
         self.queue.extend(new)
         return len(new)
 
-    def set_orientation(self, R_enu_target: Array | None) -> None:
-        """The browsing panorama's absolute orientation (R_enu_panorama) for the prior."""
+    def set_orientation(self, R_enu_target: Array | None, heading_sigma_rad: float = float('nan')) -> None:
+        """The browsing panorama's absolute orientation (R_enu_panorama) for the prior, with the
+        1-sigma of its heading when known (for the support test)."""
         self.R_enu_target = None if R_enu_target is None else np.asarray(R_enu_target, float)
+        if math.isfinite(heading_sigma_rad) != math.isfinite(self.target_sigma) or (
+                math.isfinite(heading_sigma_rad) and abs(heading_sigma_rad - self.target_sigma) > 1e-9):
+            self._cache = None
+        self.target_sigma = float(heading_sigma_rad)
         if R_enu_target is None or not self.config.sensor_prior:
             self.expected_uv = None
         else:
@@ -985,6 +1011,29 @@ class ReDetector:
                 u, v = self.geometry.project(predicted[local])
                 self._guided(p, (float(u), float(v)), v_tol, cfg)
 
+    def _support(self, al: Alignment, ids: list[int]) -> None:
+        """Whether the alignment supports showing its placements (:attr:`MatchConfig.min_support_matches`)."""
+        cfg = self.config
+        al.support = sum(p.status == 'matched' for p in al.placements + al.landmarks)
+        al.supported = False
+        if al.R_target_source is None:
+            al.support_reason = 'no alignment'
+            return
+        if al.support < cfg.min_support_matches:
+            al.support_reason = f'{al.support} matches (fewer than {cfg.min_support_matches})'
+            return
+        R_prior = self._prior_rotation(ids)
+        if R_prior is not None:
+            al.prior_correction_rad = float(trace_angle(R_prior.T @ al.R_target_source))
+            sigma = math.hypot(float(self.source_sigma[ids[0]]), self.target_sigma)
+            limit = cfg.support_prior_sigmas * sigma + cfg.inlier_px / self.geometry.f
+            if math.isfinite(sigma) and al.prior_correction_rad > limit and al.support < cfg.strong_support_matches:
+                al.support_reason = (f'{math.degrees(al.prior_correction_rad):.1f} deg from the sensor prior '
+                                     f'(> {math.degrees(limit):.1f}) with {al.support} matches')
+                return
+        al.supported = True
+        al.support_reason = ''
+
     def _up(self) -> Array | None:
         """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
         return None if self.R_enu_target is None else self.R_enu_target[2].copy()
@@ -1022,6 +1071,7 @@ class ReDetector:
             self._finish(al, ids, cands)
             al.landmarks = [p for p in al.placements if self.landmark[p.index]]
             al.placements = [p for p in al.placements if not self.landmark[p.index]]
+            self._support(al, ids)
             best = (score, g, al)
         self._cache = (best[1], best[2])
         return self._cache

@@ -3,7 +3,8 @@
 An annotation placed in the panorama frame at unit direction d appears in the camera at
 ``K R_cam_pano d`` (R_cam_pano = R_pano_cam^T, the current orientation). Labels are drawn with a
 dot at the anchor and the text beside it: green for matched annotations, orange for those
-placed by the global alignment only (inferred). numpy / OpenCV only.
+placed by the global alignment only (inferred), grey with a hollow dot and "~" before the text
+for approximate ones (shown before the alignment is supported). numpy / OpenCV only.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from ..panorama.cylinder import project_to_image
 
 Array = NDArray[np.float64]
 
-COLOURS_RGB = {'matched': (40, 220, 60), 'inferred': (255, 150, 30)}
+COLOURS_RGB = {'matched': (40, 220, 60), 'inferred': (255, 150, 30), 'approximate': (170, 170, 170)}
 
 
 @dataclass(frozen=True)
@@ -50,10 +51,15 @@ def draw_labels(rgb: NDArray[np.uint8], placed: list[tuple[Label, float, float]]
     for lab, x, y in placed:
         colour = COLOURS_RGB.get(lab.status, (255, 255, 255))
         p = (int(round(x)), int(round(y)))
-        cv2.circle(out, p, 3, colour, -1, cv2.LINE_AA)
-        (tw, th), _ = cv2.getTextSize(lab.text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        text = lab.text
+        if lab.status == 'approximate':  # not yet aligned: marked, with a hollow dot
+            text = '~' + text
+            cv2.circle(out, p, 4, colour, 1, cv2.LINE_AA)
+        else:
+            cv2.circle(out, p, 3, colour, -1, cv2.LINE_AA)
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
         tx = min(max(p[0] + 5, 0), max(w - tw, 0))
         ty = min(max(p[1] - 5, th), h - 1)
         cv2.rectangle(out, (tx - 1, ty - th - 2), (tx + tw + 1, ty + 2), (0, 0, 0), -1)
-        cv2.putText(out, lab.text, (tx, ty), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
+        cv2.putText(out, text, (tx, ty), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
     return out
