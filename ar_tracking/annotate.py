@@ -57,6 +57,7 @@ from .core.panorama.cylinder import CylinderGeometry
 from .core.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from .core.world_alignment import WorldAlignmentConfig
 from .io.bags import BagError, BagReader
+from .io.stores import open_store
 
 logger = logging.getLogger(__name__)
 
@@ -227,7 +228,7 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
 
     bag = Path(bag)
     # Open the store first: a missing/locked/corrupt store fails before minutes of mapping.
-    store = SqliteAnnotationStore(store_path, create=create)
+    store = open_store(store_path, create=create)  # a path, sqlite:///path or postgresql:// (PostGIS)
     try:
         if params_files is None:
             side = _sidecar(bag)

@@ -362,7 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')
     p.add_argument('bag', help='authoring-session bag')
-    p.add_argument('--store', '-s', required=True, help='annotation store (SQLite file; created if missing)')
+    p.add_argument('--store', '-s', required=True, help='annotation store: an SQLite file (created if missing), sqlite:///path, or '
+                        'postgresql://user@host/db[?schema=NAME] (PostGIS, shared by many users)')
     p.add_argument('--positions', help='file of "text,a,b" rows (a line "# form: pixel|azel|bearing" sets the '
                                        'form of the rows after it; default --form); bad rows are skipped, one line each')
     p.add_argument('--form', default='pixel', choices=['pixel', 'azel', 'bearing'],
