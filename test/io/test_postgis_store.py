@@ -264,3 +264,17 @@ def test_retry_backoff() -> None:
     assert not b.ready(16.9) and b.ready(17.0)
     b.succeeded()
     assert b.ready(0.0) and b.failed(0.0) == 1.0
+
+
+def test_annotate_cli_with_a_server_that_is_down_is_one_line(tmp_path, capsys) -> None:
+    from pathlib import Path
+
+    from ar_tracking.cli import main
+
+    bag = Path(__file__).resolve().parents[2] / 'bags' / 'rotation_sweep_authoring.mcap'
+    positions = tmp_path / 'positions.txt'
+    positions.write_text('door,1000,250\n')
+    code = main(['annotate', str(bag), '--positions', str(positions),
+                 '--store', f'postgresql://author:pw@/notes?host={tmp_path}&connect_timeout=1'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and 'cannot connect' in err[0] and ':pw@' not in err[0]
