@@ -712,11 +712,11 @@ class SqliteAnnotationStore(AnnotationStore):
 
 
 def open_store(url: str | Path, *, create: bool = False, timeout_s: float = 5.0) -> AnnotationStore:
-    """A store from a path or URL: ``sqlite:///path``, a plain path (SQLite), or
-    ``postgresql://`` (not implemented here: a StoreError says so)."""
+    """A store from a path or URL: ``sqlite:///path`` or a plain path (SQLite). PostgreSQL/PostGIS
+    stores live outside the core (psycopg): :func:`ar_tracking.io.stores.open_store` opens both."""
     text = str(url)
     if text.startswith(('postgresql://', 'postgres://')):
-        raise StoreError('PostgreSQL/PostGIS stores are not implemented yet; use an SQLite file')
+        raise StoreError('PostgreSQL/PostGIS stores open with ar_tracking.io.stores.open_store (the core opens SQLite only)')
     if text.startswith('sqlite:///'):
         text = text[len('sqlite:///'):]
     return SqliteAnnotationStore(text, create=create, timeout_s=timeout_s)
