@@ -13,9 +13,10 @@ infinities become null, numpy scalars plain numbers.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 #: Areas in the order they are shown; the names are DESIGN sec. 8's.
 AREAS = ('orientation', 'panorama', 'annotations', 'slam', 'vi')
@@ -306,6 +307,7 @@ def unscored_areas(metrics: dict[str, Any], bag: str | Path | None = None,
         if area not in shown:
             out.append((area, _why(area, have, values)))
             continue
+        assert isinstance(values, dict)  # shown: a dict with figures
         key = _KEY_FIGURE.get(area)
         if area == 'orientation':
             if not any(isinstance(v, dict) and v.get('n') for v in values.values()):

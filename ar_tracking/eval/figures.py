@@ -21,8 +21,9 @@ from __future__ import annotations
 import io
 import logging
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -99,8 +100,14 @@ def panorama_tracking_png(bag_path: str | Path, target_deg: float | None = 0.25)
     """Tracking error of ``panorama/orientation`` relative to the first frame over time (the
     measure ``panorama.tracking_rmse_deg``), the lost camera frames marked, and the camera's
     angular speed from the truth; None without the estimate or the truth."""
-    from .panorama_metrics import (CAMERA_INFO_TOPIC, PANORAMA_TOPIC, TRUTH_TOPIC, _R, _rates_deg_s,
-                                   tracking_errors)
+    from .panorama_metrics import (
+        _R,
+        CAMERA_INFO_TOPIC,
+        PANORAMA_TOPIC,
+        TRUTH_TOPIC,
+        _rates_deg_s,
+        tracking_errors,
+    )
 
     est: list[tuple[int, Any]] = []
     truth: list[tuple[int, Any]] = []

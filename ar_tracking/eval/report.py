@@ -28,7 +28,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ar_tracking.core.rotations import camera_heading_pitch_roll_deg
-from ar_tracking.eval.console import AREA_TITLES, AREAS, area_rows, display_name, unscored_areas
+from ar_tracking.eval.console import (
+    AREA_TITLES,
+    AREAS,
+    area_rows,
+    display_name,
+    unscored_areas,
+)
 from ar_tracking.eval.metrics import (
     BagOrientations,
     EvaluationError,
@@ -288,7 +294,8 @@ def _table_rows(metrics: dict) -> list[str]:
 
 def _bag_info(bag: Path, metrics: dict) -> tuple[str, str, str]:
     """(path, duration text, topic count text) from the metrics, or read from the bag."""
-    info = metrics.get('bag') if isinstance(metrics.get('bag'), dict) else {}
+    bag_entry = metrics.get('bag')
+    info: dict[str, Any] = bag_entry if isinstance(bag_entry, dict) else {}
     duration, topics = info.get('duration_s'), info.get('topics')
     if duration is None or topics is None:
         from ..io.bags import BagError, BagReader

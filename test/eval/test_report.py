@@ -252,8 +252,8 @@ def test_console_says_which_areas_are_not_scored_and_why() -> None:
 def test_evaluate_json_is_strict(bag: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
     import json
 
-    import ar_tracking.eval.evaluate as evaluate
     from ar_tracking.cli import main
+    from ar_tracking.eval import evaluate
 
     real = evaluate.evaluate_all
 
@@ -319,7 +319,7 @@ def test_convert_euroc_points_at_a_ground_truth_file(tmp_path: Path) -> None:
 
 
 def test_a_failing_area_is_named_and_does_not_hide_the_others(bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import ar_tracking.eval.evaluate as evaluate
+    from ar_tracking.eval import evaluate
     from ar_tracking.eval.console import format_console
 
     real = evaluate._load
