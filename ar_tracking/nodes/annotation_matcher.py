@@ -18,7 +18,8 @@ source panorama id). With ``landmarks`` the source panoramas' landmarks (stored 
 No label is shown as placed before the alignment supports it (``min_support_matches`` matched
 annotations and landmarks, and a rotation within ``support_prior_sigmas`` of the sensor prior
 given both panoramas' heading covariances - the store's panorama record and
-``orientation/global``'s covariance - unless ``strong_support_matches`` outvote it): until then
+``orientation/global``'s covariance - unless ``strong_support_matches`` outvote it; an inferred
+label also needs ``local_support_matches`` matches within ``local_support_deg`` of it): until then
 the labels go to the namespace ``approximate`` (grey, ``scale.x`` = the 3-sigma direction
 uncertainty in rad; ``show_approximate: false`` publishes nothing instead), and
 ``annotations/alignment`` is not published. The algorithm is :mod:`ar_tracking.core.annotations`; this node converts.
@@ -98,6 +99,8 @@ class AnnotationMatcherNode(TrackingNode):
         walsh_min = p('walsh_min', 0.5, 'Walsh pre-check threshold (sec. 3.2): positions below it get no NCC', min_value=-1.0, max_value=1.0)
         self.marker_distance_m = p('marker_distance_m', 10.0, 'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0)
         self.marker_height_m = p('marker_height_m', 0.5, 'Text height of the markers, m', min_value=0.01, max_value=100.0)
+        local_n = p('local_support_matches', 2, 'An inferred label (no match of its own) is shown as placed only with this many matches within local_support_deg of it', min_value=0, max_value=1000)
+        local_deg = p('local_support_deg', 30.0, 'Azimuth range of the local support of an inferred label, degrees', min_value=0.0, max_value=180.0)
         min_support = p('min_support_matches', 4, 'Labels are shown as placed only when at least this many annotations and landmarks matched the alignment', min_value=1, max_value=1000)
         support_sigmas = p('support_prior_sigmas', 3.0, "...and the alignment is within this many standard deviations of the sensor prior (both panoramas' heading covariance), unless strong_support_matches matched", min_value=0.0, max_value=100.0)
         strong_support = p('strong_support_matches', 10, 'This many matches support an alignment however far it is from the sensor prior', min_value=1, max_value=1000)
@@ -114,7 +117,8 @@ class AnnotationMatcherNode(TrackingNode):
             gravity_alignment=gravity, gravity_v_px=gravity_v_px, parallax_model=parallax,
             parallax_trim_sigmas=trim_sigmas, parallax_gate_sigmas=gate_sigmas,
             min_support_matches=min_support, support_prior_sigmas=support_sigmas,
-            strong_support_matches=strong_support)
+            strong_support_matches=strong_support, local_support_matches=local_n,
+            local_support_px=math.radians(local_deg) * CylinderGeometry().f)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []
@@ -354,13 +358,14 @@ class AnnotationMatcherNode(TrackingNode):
             self.get_logger().info(f'alignment not supported yet ({alignment.support_reason}): labels are approximate')
         sigma = self._approximate_sigma(source)
         for pl in alignment.placements:
-            if approx and not self.show_approximate:
-                break
+            shaky = approx or not pl.supported
+            if shaky and not self.show_approximate:
+                continue
             a = self.annotations[pl.index]
             m = Marker()
             m.header.stamp = stamp
             m.header.frame_id = self.frame_id
-            m.ns = 'approximate' if approx else pl.status
+            m.ns = 'approximate' if shaky else pl.status
             m.id = int(a.id if a.id is not None else pl.index)
             m.type = Marker.TEXT_VIEW_FACING
             m.action = Marker.ADD
@@ -369,7 +374,7 @@ class AnnotationMatcherNode(TrackingNode):
             m.pose.orientation.w = 1.0
             m.scale.z = self.marker_height_m
             m.color.a = 1.0
-            if approx:
+            if shaky:
                 m.color.r = m.color.g = m.color.b = 0.6
                 m.scale.x = 3.0 * sigma  # the 3-sigma direction uncertainty, rad
             elif pl.status == 'matched':

@@ -169,6 +169,13 @@ class MatchConfig:
     min_support_matches: int = 4
     support_prior_sigmas: float = 3.0
     strong_support_matches: int = 10
+    #: An inferred placement (no match of its own) is supported only with at least
+    #: ``local_support_matches`` matched annotations/landmarks within ``local_support_px`` columns
+    #: of it: early on, with the matches all in the first finished tiles, the heading and the
+    #: parallax fitted there are extrapolated to the far side of the panorama (1-3 deg off on the
+    #: sample bag for the first seconds).
+    local_support_matches: int = 2
+    local_support_px: float = 171.0
     seed: int = 0
 
 
@@ -419,6 +426,9 @@ class Placement:
     direction: Array
     status: str  # 'matched' | 'inferred'
     score: float
+    #: Shown as placed (:meth:`ReDetector.result` sets it: the alignment is supported and, for an
+    #: inferred placement, pinned by matches near it); else only approximate.
+    supported: bool = False
 
 
 @dataclass
@@ -1033,6 +1043,11 @@ class ReDetector:
                 return
         al.supported = True
         al.support_reason = ''
+        matched = [p for p in al.placements + al.landmarks if p.status == 'matched']
+        mu = np.array([p.u for p in matched])
+        for p in al.placements:
+            near = int(np.sum(self.geometry.column_distance(mu, p.u) <= cfg.local_support_px)) if len(mu) else 0
+            p.supported = p.status == 'matched' or near >= cfg.local_support_matches
 
     def _up(self) -> Array | None:
         """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
