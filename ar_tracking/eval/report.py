@@ -62,8 +62,9 @@ DISTURBANCE_COLOUR = 'tab:gray'
 def write_report(bag: str | Path, out: str | Path, metrics: dict | None = None) -> Path:
     """Write the evaluation report of ``bag`` to ``out`` and return the path written.
 
-    ``out`` ending in ``.png`` gives the figure alone; ending in ``.html`` (or ``.htm``) a page
-    with the metrics table and the figure embedded. ``metrics`` (the dict of
+    ``out`` ending in ``.png`` gives the figures alone, one under the other (orientation first,
+    then every other area's); ending in ``.html`` (or ``.htm``) a page with a section per area
+    (:func:`render_html`). ``metrics`` (the dict of
     :func:`~ar_tracking.eval.metrics.evaluate_bag`) is computed when not given.
     """
     out = Path(out)
@@ -81,28 +82,44 @@ def write_report(bag: str | Path, out: str | Path, metrics: dict | None = None) 
         if metrics is None:
             metrics = evaluate_orientations(data)
         png: bytes | None = render_figure_png(data, metrics) if _scored_estimates(data) else None
-        if kind != '.png':
-            figures = area_figures(bag)
     else:
         if metrics is None:
             from .evaluate import evaluate_all
 
             metrics = evaluate_all(bag)
-        figures = area_figures(bag)
         png = None
-    if kind == '.png' and png is None:
-        first = [fig for figs in figures.values() for fig in figs]
-        if not first:
-            raise EvaluationError(f'{bag}: nothing to draw (no orientation ground truth and no other figure)')
-        png = first[0][1]
+    figures = area_figures(bag)
     out.parent.mkdir(parents=True, exist_ok=True)
     if kind == '.png':
-        assert png is not None
-        out.write_bytes(png)
+        # every area's plots under the orientation figure, in one image
+        pngs = ([png] if png is not None else []) + [fig for figs in figures.values() for _, fig in figs]
+        if not pngs:
+            raise EvaluationError(f'{bag}: nothing to draw (no orientation ground truth and no other figure)')
+        out.write_bytes(stack_pngs(pngs))
     else:
         out.write_text(render_html(Path(bag), metrics, png, figures), encoding='utf-8')
     logger.debug('report written to %s', out)
     return out
+
+
+def stack_pngs(pngs: list[bytes], width: int = int(FIGSIZE_IN[0] * DPI)) -> bytes:
+    """PNG images one under the other, each scaled to ``width`` pixels (OpenCV)."""
+    import cv2
+
+    if len(pngs) == 1:
+        return pngs[0]
+    rows = []
+    for data in pngs:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            continue
+        h, w = img.shape[:2]
+        height = max(1, round(h * width / w))
+        rows.append(cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA if w > width else cv2.INTER_LINEAR))
+    ok, buf = cv2.imencode('.png', cv2.vconcat(rows))
+    if not ok:
+        raise EvaluationError('the report figures could not be encoded as one PNG')
+    return buf.tobytes()
 
 
 def _scored_estimates(data: BagOrientations) -> bool:
