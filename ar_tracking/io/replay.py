@@ -21,6 +21,9 @@ class ReplayOptions:
     loop: bool = False
     topics: list[str] = field(default_factory=list)  # empty: every topic
     remap: dict[str, str] = field(default_factory=dict)  # bag topic -> published topic
+    #: Latched topics (e.g. /tf_static): with a start offset, their messages logged before the
+    #: start are played first, as a late joiner of the recording would have received them.
+    latched: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if self.rate < 0:
@@ -70,6 +73,10 @@ def schedule(bag: BagReader, options: ReplayOptions) -> Iterator[ScheduledMessag
     span_s = max(0.0, (bag.end_ns - start_ns) * 1e-9)
     loop_index = 0
     offset_s = 0.0
+    latched = [t for t in (normalize_topic(t) for t in options.latched) if t in wanted]
+    if latched and start_ns > bag.start_ns:
+        for msg in bag.messages(latched, stop_ns=start_ns):
+            yield ScheduledMessage(0.0, options.remap.get(msg.topic, msg.topic), msg, loop_index)
     while True:
         count = 0
         for msg in bag.messages(wanted, start_ns=start_ns):

@@ -82,6 +82,7 @@ class BagReplayNode(TrackingNode):
                 name = name[1:]  # relative, so that the node's namespace applies
             self.publishers_by_topic[topic] = self.advertise(cls, name, LATCHED_QOS if latched else RELIABLE_QOS)
         options.topics = list(self.publishers_by_topic)
+        options.latched = [t for t in options.topics if t in LATCHED_TOPICS or t in latched_in_bag]
         self.clock_pub = self.advertise(Clock, clock_topic, RELIABLE_QOS) if self.publish_clock else None
         self._clock_msg = Clock()  # not _clock: rclpy.Node keeps its clock there
         self.player = BagPlayer(bag_path, options, self._publish, self._done)

@@ -76,6 +76,16 @@ def test_start_offset_skips_the_beginning(bag):
     assert [s.due_s for s in items] == pytest.approx([t - 0.42 for t in expected], abs=1e-9)
 
 
+def test_start_offset_plays_latched_messages_from_before_it_first(bag):
+    """/b stands for /tf_static: with an offset of 0.42 s, its messages at 0.05 and 0.3 s are
+    played at once, first (a late joiner of a latched topic gets them), then the rest as usual."""
+    items = list(schedule(bag, ReplayOptions(start_offset_s=0.42, latched=['b'])))
+    assert [(s.topic, s.due_s) for s in items[:2]] == [('/b', 0.0), ('/b', 0.0)]
+    assert [s.message.log_time_ns for s in items[:2]] == [T0 + 50 * MS, T0 + 300 * MS]
+    rest = [t for t in ALL_OFFSETS_S if t >= 0.42]
+    assert [s.message.log_time_ns for s in items[2:]] == [T0 + round(t * 1000) * MS for t in rest]
+
+
 def test_start_offset_beyond_the_end_yields_nothing(bag):
     assert list(schedule(bag, ReplayOptions(start_offset_s=5.0, loop=True))) == []
 
