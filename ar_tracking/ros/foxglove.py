@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import struct
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -91,6 +92,8 @@ class FoxgloveBridge:
         self._lock = threading.Lock()
         self._transforms = FrameTransformChannel(TRANSFORMS_TOPIC, context=self._context)
         self.published = 0
+        #: time spent in publish() (the caller's thread), s: what the live view adds to the graph's path
+        self.busy_s = 0.0
         logger.info('Foxglove live view on ws://%s:%d', host, self.port)
 
     @property
@@ -125,6 +128,13 @@ class FoxgloveBridge:
 
     def publish(self, topic: str, msgtype: str, raw: bytes) -> None:
         """Serve one message (raw CDR) on its topic, and its frame on /foxglove/transforms."""
+        start = time.perf_counter()
+        try:
+            self._publish(topic, msgtype, raw)
+        finally:
+            self.busy_s += time.perf_counter() - start
+
+    def _publish(self, topic: str, msgtype: str, raw: bytes) -> None:
         topic = '/' + topic.lstrip('/')
         channel = self.advertise(topic, msgtype)
         stamp = _stamp_ns(raw) if topic in self._stamped else None
