@@ -1,4 +1,4 @@
-"""The evaluation report: a PNG figure, or one self-contained HTML page."""
+"""The evaluation report (a PNG of every area's plots, or one self-contained HTML page) and the console tables of `evaluate`."""
 from __future__ import annotations
 
 import base64
