@@ -338,3 +338,13 @@ def test_a_failing_area_is_named_and_does_not_hide_the_others(bag: Path, monkeyp
     text = format_console(metrics, bag)
     assert 'slam         evaluation failed: RuntimeError: boom' in text
     assert text.startswith('orientation (')
+
+
+def test_an_all_null_area_is_not_a_section(bag: Path) -> None:
+    from ar_tracking.eval.report import render_html
+
+    metrics = evaluate_bag(bag)
+    metrics['slam'] = {'ate_rmse_m': None, 'tracked_ratio': None, 'keyframes': None}
+    page = render_html(bag, metrics, None, {})
+    assert '<h2>slam' not in page
+    assert '<li><b>slam</b>: no /slam/ topics in the bag' in page
