@@ -46,7 +46,7 @@ Field vectors are used in units of their median norm, so any magnetometer unit w
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -308,6 +308,12 @@ class WorldAlignment:
         sums['K'][k] += K
         sums['KtK'][k] += 0.5 * (K.T @ K)
         sums['Kta'][k] += K.T @ a_lp
+
+    def set_declination(self, declination_rad: float) -> None:
+        """Change the magnetic declination (true north = magnetic north turned by it); the
+        samples so far stay, the next estimate uses it."""
+        self.config = replace(self.config, declination_rad=float(declination_rad))
+        self._dirty = True
 
     @property
     def ready(self) -> bool:

@@ -116,7 +116,8 @@ class HybridOrientationFilterNode(TrackingNode):
             cauchy_scale=p('cauchy_scale', a.cauchy_scale, 'Cauchy scale of the window weights, in robust sigmas', min_value=0.5, max_value=100.0),
             tilt_floor_rad=p('tilt_floor_rad', a.tilt_floor_rad, 'Floor of the reported tilt 1-sigma, rad', min_value=0.0, max_value=1.0),
             heading_floor_rad=p('heading_floor_rad', a.heading_floor_rad, 'Floor of the reported heading 1-sigma, rad', min_value=0.0, max_value=1.0),
-            declination_rad=p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north (as imu_magnetometer)', min_value=-3.1416, max_value=3.1416),
+            declination_rad=p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north (as imu_magnetometer)', min_value=-3.1416, max_value=3.1416,
+                              live=lambda v: self.align.set_declination(v)),
         )
         backup = GyroBackupParams(
             gyro_noise_rad_s=p('gyro_noise_rad_s', g.gyro_noise_rad_s, 'Gyro rate noise, 1-sigma per sample, rad/s', min_value=0.0, max_value=10.0),

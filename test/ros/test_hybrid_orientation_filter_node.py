@@ -333,3 +333,27 @@ def test_tf_follows_orientation_global_and_frames_switch_live(ros_context):
         assert not frozen.successful and 'read-only' in frozen.reason
     finally:
         h.close()
+
+
+def test_declination_changes_live(ros_context):
+    """declination_rad set at run time turns the panorama's place in the world (and with it
+    every published heading) about up by the change, at once."""
+    from ar_tracking.core.rotations import so3_log
+
+    h = Harness(ros_context)
+    try:
+        rng = np.random.default_rng(7)
+        h.play(0.0, 3.0, rng)
+        assert spin_until(h.ex, lambda: len(h.frames) > 0, 5.0)
+        before = rotation_from_quaternion(h.frames[-1].transform.rotation)  # R_enu_pano
+        count = len(h.frames)
+        assert h.node.set_parameters([Parameter('declination_rad', value=0.1)])[0].successful
+        h.play(3.0, 3.1, rng)
+        assert spin_until(h.ex, lambda: len(h.frames) > count, 5.0)
+        after = rotation_from_quaternion(h.frames[-1].transform.rotation)
+        turn = so3_log(after @ before.T)  # in ENU: about up by the declination (+ 0.1 s of data)
+        # magnetic north 0.1 rad east of true north: headings grow by 0.1, a turn of -0.1 about up
+        assert turn[2] == pytest.approx(-0.1, abs=0.01)
+        assert abs(turn[0]) < 0.01 and abs(turn[1]) < 0.01
+    finally:
+        h.close()
