@@ -455,3 +455,55 @@ def test_parallax_model_judges_each_match_by_the_others():
     assert al.parallax is not None
     p0 = next(p for p in al.placements if p.index == 0)
     assert p0.status == 'matched' and p0.u == pytest.approx(uv[0, 0]) and p0.score == pytest.approx(0.8)
+
+
+# -- support: when labels may be shown as placed ------------------------------------------------
+
+def _run(det: ReDetector, case, tiles=None):
+    det.add_finished_tiles(tiles_of(case.mapped) if tiles is None else tiles)
+    det.step(case.target, case.mapped)
+    return det.result()[1]
+
+
+def test_alignment_with_enough_matches_is_supported_and_with_too_few_is_not():
+    case = make_case(seed=7)
+    al = _run(ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(sensor_prior=False)), case)
+    assert al.supported and al.support == 6 and all(p.supported for p in al.placements)
+    few = _run(ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(sensor_prior=False, min_support_matches=7)), case)
+    assert not few.supported and 'fewer than 7' in few.support_reason
+    assert few.R_target_source is not None  # placed, but only approximately
+
+
+def test_alignment_far_from_the_prior_needs_strong_support():
+    """The prior is 6 deg off while both headings claim 0.5 deg: the matches that move it back
+    support the alignment only when they are many; without covariances there is no test."""
+    case = make_case(seed=7)
+    R_src = M_ENU_PANO
+    R_tgt = rotated_by(R_src @ case.R_target_source.T, 6.0)  # heading off by 6 deg
+
+    def run(sigma: float, strong: int):
+        det = ReDetector(case.patches, case.dirs, ['p'] * 6, MatchConfig(strong_support_matches=strong), GEO,
+                         [R_src] * 6, source_heading_sigma_rad=[math.radians(0.5)] * 6)
+        det.set_orientation(R_tgt, sigma)
+        return _run(det, case)
+
+    doubtful = run(math.radians(0.5), 10)
+    assert doubtful.R_target_source is not None and math.degrees(doubtful.prior_correction_rad) > 5.0
+    assert not doubtful.supported and 'from the sensor prior' in doubtful.support_reason
+    assert run(math.radians(0.5), 6).supported  # six matches outvote it
+    assert run(math.nan, 10).supported  # the browsing heading's covariance unknown: no prior test
+    assert run(math.radians(3.0), 10).supported  # within 3 sigma of an honest, wide prior
+
+
+def test_inferred_label_far_from_every_match_is_not_supported():
+    case = make_case(seed=3, n=10)  # an anchor at u = 690, its neighbours at 368 and 1004
+    tiles = tiles_of(case.mapped)
+    tiles[:, 8:14] = 0  # columns 512-895 of the browsing map not finished
+    al = _run(ReDetector(case.patches, case.dirs, ['p'] * 10, MatchConfig(sensor_prior=False, guided_search=False)),
+              case, tiles)
+    assert al.supported
+    matched_u = np.array([p.u for p in al.placements if p.status == 'matched'])
+    far = [p for p in al.placements if p.status == 'inferred'
+           and np.min(GEO.column_distance(matched_u, p.u)) > MatchConfig().local_support_px]
+    assert far and not any(p.supported for p in far)
+    assert all(p.supported for p in al.placements if p.status == 'matched')

@@ -14,25 +14,27 @@ LABELS = ['door', 'sign', 'window']
 POS = [np.array([10.0, 20.0, 1.0]), np.array([-15.0, 5.0, 3.0]), np.array([0.0, -30.0, 2.0])]
 
 
-def write(path, placements_per_array):
+def write(path, placements_per_array, log_delay_ns: int = 0, ns: str = 'matched', rate_rad_s: float = 1.0):
+    """Truth, panorama orientations and marker arrays (one every 0.2 s); every message is logged
+    ``log_delay_ns`` after its header stamp (a recorder that stamps on arrival)."""
     m = _Msgs()
     R_enu_pano = rot_z(0.3) @ rot_y(0.1)
     with BagWriter(path) as bag:
         bag.write('/ground_truth/annotations', T0, m.markers(T0, LABELS, POS))
         for k in range(100):
             t = T0 + k * 10_000_000
-            R_pano_cam = rot_y(0.01 * k)
+            R_pano_cam = rot_y(rate_rad_s * 0.01 * k)
             bag.write('/ground_truth/orientation', t, truth_msg(t, R_enu_pano @ R_pano_cam))
             if k % 3 == 0:
-                bag.write('/panorama/orientation', t, truth_msg(t, R_pano_cam))
+                bag.write('/panorama/orientation', t + log_delay_ns, truth_msg(t, R_pano_cam))
         for j, placements in enumerate(placements_per_array):
             t = T0 + (j + 1) * 200_000_000
             labels = list(placements)
             dirs = [R_enu_pano.T @ placements[name] * 10.0 for name in labels]
             arr = m.markers(t, labels, dirs)
             for mk in arr.markers:
-                mk.ns = 'matched'
-            bag.write('/annotations/markers', t, arr)
+                mk.ns = ns
+            bag.write('/annotations/markers', t + log_delay_ns, arr)
     return path
 
 
@@ -56,3 +58,30 @@ def test_no_markers_means_no_area(tmp_path):
     with BagWriter(path) as bag:
         bag.write('/ground_truth/orientation', T0, truth_msg(T0, np.eye(3)))
     assert evaluate_annotations(path) is None
+
+
+def test_pairing_is_by_header_stamp_not_log_time(tmp_path):
+    """Logged 33 ms after capture while turning at 1 rad/s: correct labels stay correct (log-time
+    pairing put them ~1.9 deg off) and the time to the first correct one is the stamps'."""
+    final = {'door': unit(POS[0]), 'sign': unit(POS[1])}
+    m = evaluate_annotations(write(tmp_path / 'd.mcap', [final], log_delay_ns=33_000_000))
+    assert m['redetection_rate'] == round(2 / 3, 4) and m['wrong_rate'] == 0.0
+    assert max(m['errors_deg'].values()) < 0.01
+    assert m['time_to_first_s'] == 0.2
+
+
+def test_wrong_label_time_share_weighs_labels_by_the_time_shown(tmp_path):
+    off = rot_z(np.radians(2.0))
+    arrays = [{'door': unit(off @ POS[0]), 'sign': unit(POS[1])},  # 0.2-0.4 s: 1 of 2 wrong
+              {'door': unit(POS[0]), 'sign': unit(POS[1])}]  # 0.4-0.99 s (last panorama frame): right
+    m = evaluate_annotations(write(tmp_path / 'w.mcap', arrays))
+    shown = 2 * 0.2 + 2 * 0.59
+    assert abs(m['label_time_s'] - shown) < 1e-6
+    assert m['wrong_label_time_share'] == round(0.2 / shown, 4)
+    assert m['redetection_rate'] == round(2 / 3, 4)
+
+
+def test_approximate_labels_are_not_placements(tmp_path):
+    m = evaluate_annotations(write(tmp_path / 'a.mcap', [{'door': unit(POS[0])}], ns='approximate'))
+    assert m['placed'] == 0 and m['approximate'] == 1 and m['redetection_rate'] == 0.0
+    assert m['wrong_label_time_share'] is None and m['time_to_first_s'] is None

@@ -231,3 +231,42 @@ def test_sensor_prior_is_the_mean_of_the_orientation_samples(ros_context):
         assert spin_until(h.ex, lambda: len(h.node.callback_stats['orientation/panorama_in_world'].durations_ms) > k)
     err = np.degrees((Rotation.from_matrix(h.node.R_enu_pano) * base.inv()).magnitude())
     assert err < 0.01  # a single sample is 0.5-1.5 deg off
+
+
+def test_unsupported_alignment_publishes_approximate_labels_and_no_alignment(ros_context, tmp_path):
+    """With fewer matches than min_support_matches the labels are marked approximate (grey, with
+    their uncertainty), or not published at all with show_approximate false."""
+    case = make_case(seed=11)
+    store = make_store(tmp_path / 'a.db', case)
+    for show in (True, False):
+        h = Harness(ros_context, {'store_path': str(store), 'budget_ms': 1000.0, 'min_support_matches': 7,
+                                  'show_approximate': show})
+        h.fix(T0)
+        h.map(T0 + 1, case.target, case.mapped)
+        assert spin_until(h.ex, lambda: h.node.detector.tiles_done == int((tiles_of(case.mapped) > 0).sum())
+                          and h.markers, 10.0)
+        spin_until(h.ex, lambda: False, 0.2)
+        shown = [m for m in h.markers[-1].markers if m.action == 0]
+        if show:
+            assert len(shown) == 6 and {m.ns for m in shown} == {'approximate'}
+            assert all(m.scale.x > 0 and m.color.g == m.color.r for m in shown)
+        else:
+            assert shown == []
+        assert not h.alignments
+        h.ex.remove_node(h.node)
+        h.node.destroy_node()
+        h.src.destroy_node()
+
+
+def test_params_shorthand_without_ros_parameters_is_rejected_loudly(tmp_path):
+    """README once showed `annotation_matcher: {store_path: ...}`, which ROS 2 ignores: it is an
+    error that says where the parameter goes."""
+    from ar_tracking.ros.params import ParamsError, load_params_file
+
+    bad = tmp_path / 'p.yaml'
+    bad.write_text(yaml.safe_dump({'annotation_matcher': {'store_path': 'notes.db'}}))
+    with pytest.raises(ParamsError, match='store_path must go under ros__parameters'):
+        load_params_file(bad)
+    good = tmp_path / 'g.yaml'
+    good.write_text(yaml.safe_dump({'annotation_matcher': {'ros__parameters': {'store_path': 'notes.db'}}}))
+    assert load_params_file(good) == {'annotation_matcher': {'store_path': 'notes.db'}}
