@@ -533,20 +533,30 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 _ROS_COMMANDS = ('run', 'demo', 'replay')
 
 
-def _quiet_everything(command: str) -> None:
+def _quiet_everything(command: str) -> Callable[[], None]:
     """-q: Python warnings off, and the nodes' rcutils loggers at ERROR (the default level of
-    every logger, set before the nodes exist, so that their info/warn lines are not printed)."""
+    every logger, set before the nodes exist, so that their info/warn lines are not printed).
+    Returns what undoes it (main() called in-process, e.g. by a test, leaves no trace)."""
     import warnings
 
+    filters = list(warnings.filters)
+    undo: list[Callable[[], None]] = [lambda: warnings.filters.__setitem__(slice(None), filters)]
     warnings.simplefilter('ignore')
-    if command not in _ROS_COMMANDS:
-        return
-    try:
-        import rclpy.logging
+    if command in _ROS_COMMANDS:
+        try:
+            import rclpy.logging
 
-        rclpy.logging.set_logger_level('', rclpy.logging.LoggingSeverity.ERROR)
-    except Exception as exc:  # no rclpy: nothing to quiet
-        logger.debug('node logs not quieted: %s', exc)
+            previous = rclpy.logging.get_logger_effective_level('')
+            rclpy.logging.set_logger_level('', rclpy.logging.LoggingSeverity.ERROR)
+            undo.append(lambda: rclpy.logging.set_logger_level('', previous))
+        except Exception as exc:  # no rclpy: nothing to quiet
+            logger.debug('node logs not quieted: %s', exc)
+
+    def restore() -> None:
+        for step in reversed(undo):
+            step()
+
+    return restore
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -558,8 +568,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         format='%(levelname)s %(name)s: %(message)s',
         stream=sys.stderr,
     )
-    if quiet:
-        _quiet_everything(args.command)
+    restore = _quiet_everything(args.command) if quiet else None
     try:
         return int(args.func(args) or 0)
     except _user_errors() as exc:
@@ -573,6 +582,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    finally:
+        if restore is not None:
+            restore()
 
 
 if __name__ == '__main__':

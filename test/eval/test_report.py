@@ -348,3 +348,20 @@ def test_an_all_null_area_is_not_a_section(bag: Path) -> None:
     page = render_html(bag, metrics, None, {})
     assert '<h2>slam' not in page
     assert '<li><b>slam</b>: no /slam/ topics in the bag' in page
+
+
+def test_quiet_leaves_no_trace_in_process() -> None:
+    """-q sets the nodes' default log level to ERROR for the command only (main() called
+    in-process, as tests do, must not silence the nodes of later tests)."""
+    import warnings
+
+    rclpy_logging = pytest.importorskip('rclpy.logging')
+    from ar_tracking.cli import _quiet_everything
+
+    before = rclpy_logging.get_logger_effective_level('')
+    filters = list(warnings.filters)
+    restore = _quiet_everything('run')
+    assert rclpy_logging.get_logger_effective_level('') == rclpy_logging.LoggingSeverity.ERROR
+    restore()
+    assert rclpy_logging.get_logger_effective_level('') == before
+    assert warnings.filters == filters
