@@ -66,6 +66,55 @@ def _stamp_ns(raw: bytes) -> int | None:
     return sec * 1_000_000_000 + nsec
 
 
+def _cdr_string(data: memoryview, pos: int, order: str) -> tuple[str, int]:
+    """A CDR string at ``pos`` (4-aligned length with its NUL, then the bytes); the text and the
+    position after it."""
+    pos += -pos % 4
+    (n,) = struct.unpack_from(order + 'I', data, pos)
+    if n == 0 or pos + 4 + n > len(data):
+        raise ValueError('truncated string')
+    return bytes(data[pos + 4:pos + 3 + n]).decode('utf-8', 'replace').lstrip('/'), pos + 4 + n
+
+
+#: Message types whose frame is read straight from the CDR bytes, and the doubles between the
+#: header (and child_frame_id) and the quaternion: Imu starts with it, the poses with a position.
+_FRAME_LAYOUTS = {
+    'sensor_msgs/msg/Imu': (False, False),
+    'geometry_msgs/msg/TransformStamped': (True, True),
+    'geometry_msgs/msg/PoseStamped': (False, True),
+    'geometry_msgs/msg/PoseWithCovarianceStamped': (False, True),
+}
+
+
+def frame_pose(msgtype: str, raw: bytes) -> tuple[int, int, str, str, tuple[float, float, float],
+                                                   tuple[float, float, float, float]] | None:
+    """(stamp sec, nanosec, header.frame_id, child_frame_id, translation, rotation xyzw) of an Imu,
+    TransformStamped, PoseStamped or PoseWithCovarianceStamped, read from its CDR bytes without
+    deserialising the message (a few microseconds instead of ~15 for a generic decoder); None for
+    other types or a truncated message."""
+    layout = _FRAME_LAYOUTS.get(msgtype)
+    if layout is None or len(raw) < 16:
+        return None
+    has_child, has_translation = layout
+    order = '<' if raw[1] == 1 else '>'
+    data = memoryview(raw)[4:]  # CDR alignment counts from the end of the encapsulation header
+    try:
+        sec, nanosec = struct.unpack_from(order + 'iI', data, 0)
+        frame_id, pos = _cdr_string(data, 8, order)
+        child = ''
+        if has_child:
+            child, pos = _cdr_string(data, pos, order)
+        pos += -pos % 8
+        t = (0.0, 0.0, 0.0)
+        if has_translation:
+            t = struct.unpack_from(order + '3d', data, pos)
+            pos += 24
+        q = struct.unpack_from(order + '4d', data, pos)
+    except (struct.error, ValueError):
+        return None
+    return sec, nanosec, frame_id, child, t, q
+
+
 class FoxgloveBridge:
     """A Foxglove WebSocket server fed with raw CDR messages (see the module docstring).
 
@@ -152,34 +201,26 @@ class FoxgloveBridge:
                 self._transforms.log(frame, log_time=stamp)
 
     def _frame(self, topic: str, msgtype: str, raw: bytes) -> Any:
-        """The FrameTransform a message stands for (None for other types)."""
+        """The FrameTransform a message stands for (None for other types or a message too short)."""
         from foxglove.messages import FrameTransform, Quaternion, Timestamp, Vector3
 
-        from ..io.bags import TYPESTORE
-
-        msg = TYPESTORE.deserialize_cdr(bytes(raw), msgtype)
-        h = msg.header
+        pose = frame_pose(msgtype, raw)
+        if pose is None:
+            return None
+        sec, nanosec, frame_id, child_frame_id, t, q = pose
         if msgtype == 'sensor_msgs/msg/Imu' and topic in ORIENTATION_TOPICS:
-            parent, child = self.world_frame, h.frame_id.lstrip('/') or ('camera_optical' if 'global' in topic else 'imu')
-            q, t = msg.orientation, None
+            parent, child = self.world_frame, frame_id or ('camera_optical' if 'global' in topic else 'imu')
         elif msgtype == 'geometry_msgs/msg/TransformStamped':
-            parent, child = h.frame_id.lstrip('/'), msg.child_frame_id.lstrip('/')
-            q, t = msg.transform.rotation, msg.transform.translation
-        elif msgtype == 'geometry_msgs/msg/PoseStamped' and topic in POSE_CHILD_FRAMES:
-            parent, child = h.frame_id.lstrip('/'), POSE_CHILD_FRAMES[topic]
-            q, t = msg.pose.orientation, msg.pose.position
-        elif msgtype == 'geometry_msgs/msg/PoseWithCovarianceStamped' and topic in POSE_CHILD_FRAMES:
-            parent, child = h.frame_id.lstrip('/'), POSE_CHILD_FRAMES[topic]
-            q, t = msg.pose.pose.orientation, msg.pose.pose.position
+            parent, child = frame_id, child_frame_id
+        elif topic in POSE_CHILD_FRAMES:
+            parent, child = frame_id, POSE_CHILD_FRAMES[topic]
         else:
             return None
-        if not parent or not child or not (q.x or q.y or q.z or q.w):
+        if not parent or not child or not any(q):
             return None
-        return FrameTransform(timestamp=Timestamp(sec=int(h.stamp.sec), nsec=int(h.stamp.nanosec)),
-                              parent_frame_id=parent, child_frame_id=child,
-                              translation=Vector3(x=float(t.x), y=float(t.y), z=float(t.z)) if t is not None
-                              else Vector3(x=0.0, y=0.0, z=0.0),
-                              rotation=Quaternion(x=float(q.x), y=float(q.y), z=float(q.z), w=float(q.w)))
+        return FrameTransform(timestamp=Timestamp(sec=sec, nsec=nanosec), parent_frame_id=parent,
+                              child_frame_id=child, translation=Vector3(x=t[0], y=t[1], z=t[2]),
+                              rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
 
     def tap(self, topic: str, msgtype: str) -> Callable[[bytes], None]:
         """A callback that serves every raw message of one topic."""

@@ -130,3 +130,38 @@ def test_cli_foxglove_port_in_use_is_one_line(tmp_path, capsys) -> None:
         code = main(['run', str(SAMPLE_BAG), '-o', str(tmp_path / 'o.mcap'), '--foxglove', str(taken.port)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1 and len(err) == 1 and 'cannot start the Foxglove server' in err[0]
+
+
+@pytest.mark.parametrize('frame', ['', 'a', 'ab', 'abc', 'abcd', 'slam_map', '/enu'])
+def test_frame_pose_reads_what_the_decoder_reads(frame: str) -> None:
+    """The CDR shortcut of the frame transforms against rosbags' decoder, for frame ids of every
+    length modulo the alignment."""
+    from ar_tracking.ros.foxglove import frame_pose
+
+    P = T['geometry_msgs/msg/Point'](x=1.5, y=-2.0, z=3.25)
+    q = quat(0.1, 0.2, 0.3, 0.9)
+    msgs = {
+        'geometry_msgs/msg/TransformStamped': T['geometry_msgs/msg/TransformStamped'](
+            header=header(4, frame), child_frame_id=frame + 'x',
+            transform=T['geometry_msgs/msg/Transform'](translation=vec(1.5, -2.0, 3.25), rotation=q)),
+        'geometry_msgs/msg/PoseStamped': T['geometry_msgs/msg/PoseStamped'](
+            header=header(4, frame), pose=T['geometry_msgs/msg/Pose'](position=P, orientation=q)),
+        'geometry_msgs/msg/PoseWithCovarianceStamped': T['geometry_msgs/msg/PoseWithCovarianceStamped'](
+            header=header(4, frame), pose=T['geometry_msgs/msg/PoseWithCovariance'](
+                pose=T['geometry_msgs/msg/Pose'](position=P, orientation=q), covariance=np.arange(36.0))),
+    }
+    for msgtype, msg in msgs.items():
+        raw = cdr(msg, msgtype)
+        sec, nanosec, frame_id, child, t, rot = frame_pose(msgtype, raw)
+        assert (sec, nanosec, frame_id) == (4, 500, frame.lstrip('/'))
+        assert child == ((frame + 'x').lstrip('/') if 'Transform' in msgtype else '')
+        assert t == (1.5, -2.0, 3.25) and rot == (0.1, 0.2, 0.3, 0.9)
+        assert frame_pose(msgtype, raw[:len(raw) - 8]) is None or 'Covariance' in msgtype  # cut into q
+    z = np.zeros(9)
+    raw = cdr(T['sensor_msgs/msg/Imu'](header=header(2, frame), orientation=q, orientation_covariance=z,
+                                       angular_velocity=vec(), angular_velocity_covariance=z,
+                                       linear_acceleration=vec(), linear_acceleration_covariance=z),
+              'sensor_msgs/msg/Imu')
+    assert frame_pose('sensor_msgs/msg/Imu', raw)[2:] == (frame.lstrip('/'), '', (0.0, 0.0, 0.0), (0.1, 0.2, 0.3, 0.9))
+    assert frame_pose('sensor_msgs/msg/Imu', raw[:30]) is None
+    assert frame_pose('sensor_msgs/msg/Image', raw) is None
