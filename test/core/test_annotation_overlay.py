@@ -29,3 +29,17 @@ def test_draw_uses_status_colours_and_leaves_input_untouched():
     assert tuple(out[120, 160]) == COLOURS_RGB['matched']
     x = int(round(159.5 + 300 * 0.3))
     assert tuple(out[120, x]) == COLOURS_RGB['inferred']
+
+
+def test_approximate_labels_are_drawn_grey_and_hollow():
+    from ar_tracking.core.annotations.overlay import COLOURS_RGB, Label, draw_labels
+
+    img = np.zeros((120, 160, 3), np.uint8)
+    placed = draw_labels(img, [(Label('Door', np.array([0.0, 0.0, 1.0]), 'approximate'), 80.0, 60.0)])
+    solid = draw_labels(img, [(Label('Door', np.array([0.0, 0.0, 1.0]), 'matched'), 80.0, 60.0)])
+    grey = np.all(placed == COLOURS_RGB['approximate'], axis=2)
+    assert grey.any() and not np.all(placed[60, 80] == COLOURS_RGB['approximate'])  # hollow centre
+    assert np.all(solid[60, 80] == COLOURS_RGB['matched'])
+    drawn = placed.sum(axis=2) > 0
+    assert drawn.sum() > 50  # '~Door' and the ring
+    assert np.all(placed[drawn][:, 0] == placed[drawn][:, 1])  # all of it grey
