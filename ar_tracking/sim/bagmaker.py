@@ -109,8 +109,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     rosbag2 directory. ``progress`` is called now and then with the fraction done (0..1).
     ``lighting`` (rotation_sweep only): the session whose sun and sky light the spot, default
     ``session``; e.g. a browsing walk under the authoring sun (the 'same lighting' column of
-    Langlotz 2011 Fig. 7). ``profile`` (rotation_sweep only): 'hard' (default, a realistic
-    phone) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
+    Langlotz 2011 Fig. 7). ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
+    phone or camera) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
     :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
     _check_args(scenario, seed, duration_s, session, storage, image_format)
@@ -129,10 +129,10 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
 
         try:
             with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
-                robot_arcs.write_robot_arcs_bag(bag, seed, duration_s, image_format, progress)
+                robot_arcs.write_robot_arcs_bag(bag, seed, duration_s, image_format, progress, profile=profile)
         except BagError as exc:
             raise SimError(str(exc)) from exc
-        robot_arcs.write_sidecars(sidecar, bag_path, seed)
+        robot_arcs.write_sidecars(sidecar, bag_path, seed, profile=profile)
         return bag_path
     if scenario == 'handheld_desk':  # Klein & Murray 2009: a hand-held phone over a desk (session is ignored)
         from . import handheld_desk

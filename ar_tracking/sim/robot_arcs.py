@@ -320,8 +320,15 @@ def marker_map_doc(markers: list[MarkerSpec]) -> dict[str, Any]:
 
 def write_robot_arcs_bag(bag: Any, seed: int, duration_s: float, image_format: str,
                          progress: Callable[[float], None] | None = None,
-                         speeds: tuple[float, ...] = ARC_SPEEDS_M_S) -> None:
-    """Write all messages of the scenario into an open BagWriter, in log-time order."""
+                         speeds: tuple[float, ...] = ARC_SPEEDS_M_S, profile: str = 'hard') -> None:
+    """Write all messages of the scenario into an open BagWriter, in log-time order.
+    ``profile`` 'hard' (default): the real-camera effects of :mod:`.robot_arcs_real`; 'kind':
+    this module's ideal pinhole camera (its bags byte for byte)."""
+    if profile == 'hard':
+        from . import robot_arcs_real
+
+        robot_arcs_real.write_bag(bag, seed, duration_s, image_format, progress, speeds)
+        return
     from ..io.bags import msg_class
     from .bagmaker import START_NS, _Msgs
 
@@ -396,10 +403,19 @@ def sidecar_params(seed: int) -> dict[str, Any]:
     }
 
 
-def write_sidecars(params_path: Path, bag_path: Path, seed: int) -> None:
+def write_sidecars(params_path: Path, bag_path: Path, seed: int, profile: str = 'hard') -> None:
     """<stem>.params.yaml (both nodes' parameters) and <stem>.markers.yaml (the marker map)."""
-    head = (f'# Parameters for {bag_path.name} (scenario robot_arcs, seed {seed}): the marker map\n'
-            '# inline for marker_tracker, the IMU -> camera rotation and IMU noise for visual_inertial_filter.\n')
-    params_path.write_text(head + yaml.safe_dump(sidecar_params(seed), sort_keys=False, default_flow_style=None))
+    if profile == 'hard':
+        from .robot_arcs_real import sidecar_params as hard_params
+
+        head = (f'# Parameters for {bag_path.name} (scenario robot_arcs, profile hard, seed {seed}): the marker\n'
+                '# map inline for marker_tracker, the IMU noise for visual_inertial_filter. The IMU mount\n'
+                '# (rotation and lever arm) is only on the bag\'s /tf_static, as in a recorded bag.\n')
+        params = hard_params(seed)
+    else:
+        head = (f'# Parameters for {bag_path.name} (scenario robot_arcs, seed {seed}): the marker map\n'
+                '# inline for marker_tracker, the IMU -> camera rotation and IMU noise for visual_inertial_filter.\n')
+        params = sidecar_params(seed)
+    params_path.write_text(head + yaml.safe_dump(params, sort_keys=False, default_flow_style=None))
     map_path = params_path.with_name(params_path.name.replace('.params.yaml', '.markers.yaml'))
     map_path.write_text(yaml.safe_dump(marker_map_doc(wall_markers()[0]), sort_keys=False, default_flow_style=None))

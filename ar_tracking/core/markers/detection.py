@@ -2,6 +2,15 @@
 corner refinement: the seed's edge model (:mod:`.edge_refinement`, Caarls 2009 sec. 2.4),
 OpenCV's CORNER_REFINE_SUBPIX, or none - selectable, so that they can be compared.
 
+Real images: the edge model is fitted on the image mapped back to light
+(:mod:`.photometry`: a display gamma given as ``response_gamma``, or estimated from the
+markers' own edges when it is 0). The refinement measures each side's blur; a blurred marker
+(motion blur of a quick pan, defocus) is refined again with a derivative filter as wide as its
+edges, which keeps the log-parabola on a Gaussian-like peak, and every corner carries a 1-sigma
+(:attr:`MarkerObservation.corner_sigma_px`) that grows with the blur of its two sides, with
+their line-fit residuals and with missing edge points (a side partly occluded or cut by the
+image border), so that the pose covariance says when the corners are poor.
+
 The candidate search of the paper (Canny contours, Haralick-Shapiro corners) is replaced by a
 maintained detector; what the paper contributes - the corner locations - is computed here.
 Markers whose quad is too oblique ("seen edge-on": an interior angle outside
@@ -18,8 +27,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import MarkerError
-from .edge_refinement import refine_quad
+from .edge_refinement import RefinedQuad, refine_quad
 from .lens_model import LensModel
+from .photometry import GammaEstimator, estimate_gamma, linearize
 
 Array = NDArray[np.float64]
 REFINEMENTS = ('caarls', 'subpix', 'none')
@@ -34,6 +44,10 @@ class MarkerObservation:
     corners_px: Array       # (4, 2) refined, in the (distorted) image
     corners_norm: Array     # (4, 2) normalised undistorted coordinates
     detector_px: Array      # (4, 2) as the ArUco detector gave them
+    #: (4,) 1-sigma of each corner, px (None: unknown, the pose uses its configured floor)
+    corner_sigma_px: Array | None = None
+    #: largest edge blur (eq. 1 sigma) of the four sides, px
+    blur_px: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -71,7 +85,14 @@ class MarkerDetector:
 
     def __init__(self, dictionary: str = 'DICT_APRILTAG_36h11', refinement: str = 'caarls',
                  min_corner_angle_deg: float = 25.0, min_side_px: float = 12.0,
-                 edge_sigma_px: float = 1.0) -> None:
+                 edge_sigma_px: float = 1.0, response_gamma: float = 0.0,
+                 corner_sigma_px: float = 0.06, blur_sigma_gain: float = 0.25,
+                 wide_blur_px: float = 1.5, print_contrast: float = 0.0) -> None:
+        """``response_gamma``: the camera's display gamma (1: linear images; 0: estimated from
+        the markers: from their black and white levels when ``print_contrast``, the printed
+        white/black reflectance ratio, is given, else from the symmetry of their edges). ``corner_sigma_px``: corner 1-sigma of a sharp, fully seen marker;
+        ``blur_sigma_gain``: corner sigma added per px of edge blur beyond 1 px; ``wide_blur_px``: edges
+        blurred more than this are refined again with a filter as wide as they are."""
         if not hasattr(cv2.aruco, dictionary) or not dictionary.startswith('DICT_'):
             raise MarkerError(f'unknown marker dictionary {dictionary!r}')
         if refinement not in REFINEMENTS:
@@ -83,6 +104,49 @@ class MarkerDetector:
         self.min_corner_angle_deg = min_corner_angle_deg
         self.min_side_px = min_side_px
         self.edge_sigma_px = edge_sigma_px
+        if not (response_gamma == 0.0 or 0.2 <= response_gamma <= 5.0):
+            raise MarkerError(f'response_gamma {response_gamma} is not a display gamma (0 = estimate, or 0.2-5)')
+        self.response_gamma = float(response_gamma)
+        self.print_contrast = float(print_contrast)
+        self.gamma_estimator = GammaEstimator()
+        self.corner_sigma_px = float(corner_sigma_px)
+        self.blur_sigma_gain = float(blur_sigma_gain)
+        self.wide_blur_px = float(wide_blur_px)
+
+    @property
+    def gamma(self) -> float:
+        """The response gamma in use (the parameter, or the estimate so far; 1 before any)."""
+        if self.response_gamma > 0:
+            return self.response_gamma
+        return self.gamma_estimator.gamma or 1.0
+
+    def _refine(self, lin: NDArray, gray: NDArray, q: Array, lens: LensModel) -> RefinedQuad | None:
+        """Edge-model corners on the linear image; again with a wider filter when blurred."""
+        refined = refine_quad(lin, q, lens, sigma=self.edge_sigma_px)
+        if refined is None:
+            return None
+        blur = float(np.max(refined.side_blur_px))
+        if blur > self.wide_blur_px:
+            sigma = float(min(max(self.edge_sigma_px, 0.8 * blur), 6.0))
+            wide = refine_quad(lin, refined.corners_px, lens, sigma=sigma,
+                               search_px=int(math.ceil(sigma)) + 1, max_shift_px=3.0 + blur)
+            if wide is not None:
+                refined = wide
+        return refined
+
+    def corner_sigmas(self, refined: RefinedQuad) -> Array:
+        """1-sigma of each corner, px: the floor, the blur and line residuals of its two sides,
+        inflated when a side gave edge points along only part of its length."""
+        b = np.asarray(refined.side_blur_px, float)
+        b = np.where(np.isfinite(b), b, 10.0)
+        rms = np.asarray(refined.side_rms_px, float)
+        cover = np.clip(np.asarray(refined.side_coverage, float), 0.05, 1.0)
+        # A blur up to ~1 px (focus, pixel area) costs nothing the floor does not cover.
+        side_var = (self.blur_sigma_gain * np.maximum(b - 1.0, 0.0)) ** 2 + rms ** 2
+        side_scale = np.where(cover < 0.8, 1.0 / cover, 1.0)
+        prev = np.roll(np.arange(4), 1)  # corner i is where side i-1 meets side i
+        var = self.corner_sigma_px ** 2 + 0.5 * (side_var + side_var[prev])
+        return np.sqrt(var) * np.maximum(side_scale, side_scale[prev])
 
     def detect(self, gray: NDArray[np.uint8], lens: LensModel,
                known_ids: set[int] | None = None) -> tuple[list[MarkerObservation], list[MarkerRejection]]:
@@ -92,6 +156,7 @@ class MarkerDetector:
         rejected: list[MarkerRejection] = []
         if ids is None:
             return accepted, rejected
+        candidates = []
         for quad, mid in zip(corners, ids.ravel()):
             q = quad.reshape(4, 2).astype(np.float64)
             mid = int(mid)
@@ -102,13 +167,27 @@ class MarkerDetector:
             if problem is not None:
                 rejected.append(MarkerRejection(mid, q, problem))
                 continue
-            if self.refinement == 'caarls':
-                refined = refine_quad(gray, q, lens, sigma=self.edge_sigma_px)
-                if refined is None:
-                    rejected.append(MarkerRejection(mid, q, 'edges not found on all four sides'))
-                    continue
-                accepted.append(MarkerObservation(mid, refined.corners_px, refined.corners_norm, q))
-            else:
+            candidates.append((mid, q))
+        if self.refinement != 'caarls':
+            for mid, q in candidates:
                 accepted.append(MarkerObservation(mid, q, lens.undistort(q), q))
+            accepted.sort(key=lambda o: o.id)
+            return accepted, rejected
+        gamma = self.gamma
+        lin = linearize(gray, gamma)
+        refined_all = [(mid, q, self._refine(lin, gray, q, lens)) for mid, q in candidates]
+        if self.response_gamma == 0.0 and not self.gamma_estimator.settled:
+            for mid, q, refined in refined_all:
+                if refined is not None and float(np.max(refined.side_blur_px)) < self.wide_blur_px:
+                    self.gamma_estimator.add(estimate_gamma(gray, refined.corners_norm, lens, self.print_contrast))
+            if abs(self.gamma - gamma) > 0.01 * gamma:  # the estimate moved: refine this frame again
+                lin = linearize(gray, self.gamma)
+                refined_all = [(mid, q, self._refine(lin, gray, q, lens)) for mid, q in candidates]
+        for mid, q, refined in refined_all:
+            if refined is None:
+                rejected.append(MarkerRejection(mid, q, 'edges not found on all four sides'))
+                continue
+            accepted.append(MarkerObservation(mid, refined.corners_px, refined.corners_norm, q,
+                                              self.corner_sigmas(refined), float(np.max(refined.side_blur_px))))
         accepted.sort(key=lambda o: o.id)
         return accepted, rejected

@@ -3,9 +3,13 @@
 pose estimation will use all available detected points in a more precise estimation").
 
 The pose is solved with OpenCV (SQPnP for several markers, IPPE_SQUARE for one, then
-Levenberg-Marquardt refinement) on the *undistorted* refined corners, and its covariance is the
-Gauss-Newton one, sigma^2 (J^T J)^-1, with sigma the larger of the configured corner noise and
-the observed reprojection RMS, propagated to the camera pose in the map frame.
+Levenberg-Marquardt refinement) on the *undistorted* refined corners, then a few Gauss-Newton
+steps weighted by each corner's own 1-sigma (:attr:`MarkerObservation.corner_sigma_px`: larger
+for blurred, poorly fitted or partly occluded sides) where the detector gives one. Its
+covariance is the weighted Gauss-Newton one, (J^T W J)^-1 with W = diag(1 / sigma_i^2), each
+sigma_i at least the configured corner noise, scaled up by the reprojection residuals when they
+are larger than the sigmas say (chi^2 per degree of freedom > 1), propagated to the camera pose
+in the map frame. Few corners, blur and occlusion therefore all show in the covariance.
 
 Marker frame (OpenCV's): x right, y up, z out of the marker towards the viewer; the corners are
 (-s/2, s/2), (s/2, s/2), (s/2, -s/2), (-s/2, -s/2) - the ArUco corner order.
@@ -123,7 +127,7 @@ def estimate_camera_pose(observations: Sequence[MarkerObservation], marker_map: 
                          focal_px: float, corner_sigma_px: float = 0.1) -> CameraPoseEstimate | None:
     """Camera pose in the map frame from every corner of every mapped marker; None when no
     mapped marker is visible or the solution is not finite."""
-    obj, img, ids = [], [], []
+    obj, img, ids, sig = [], [], [], []
     for o in observations:
         m = marker_map.markers.get(o.id)
         if m is None:
@@ -131,10 +135,14 @@ def estimate_camera_pose(observations: Sequence[MarkerObservation], marker_map: 
         obj.append(m.corners_map())
         img.append(o.corners_norm * focal_px)
         ids.append(o.id)
+        s_i = getattr(o, 'corner_sigma_px', None)
+        s_i = np.full(4, corner_sigma_px) if s_i is None else np.maximum(np.asarray(s_i, float).reshape(4), corner_sigma_px)
+        sig.append(np.where(np.isfinite(s_i), s_i, 1e3))
     if not obj:
         return None
     X = np.concatenate(obj).astype(np.float64)
     x = np.concatenate(img).astype(np.float64)
+    w = 1.0 / np.repeat(np.concatenate(sig), 2) ** 2   # one weight per image coordinate
     K = np.array([[focal_px, 0, 0], [0, focal_px, 0], [0, 0, 1.0]])
     if len(ids) == 1:
         m = marker_map.markers[ids[0]]
@@ -155,16 +163,32 @@ def estimate_camera_pose(observations: Sequence[MarkerObservation], marker_map: 
             return None
     rvec, tvec = cv2.solvePnPRefineLM(X, x, K, None, rvec.copy(), tvec.copy(),
                                       (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-12))
+    rvec, tvec = rvec.reshape(3, 1).astype(np.float64), tvec.reshape(3, 1).astype(np.float64)
+    for _ in range(3):  # weighted Gauss-Newton: the corners count by their own sigma
+        proj, J = cv2.projectPoints(X, rvec, tvec, K, None)
+        res = (proj.reshape(-1, 2) - x).ravel()
+        J6 = J[:, :6]
+        H = J6.T @ (J6 * w[:, None])
+        try:
+            step = -np.linalg.solve(H, J6.T @ (w * res))
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(step)):
+            return None
+        rvec, tvec = rvec + step[:3, None], tvec + step[3:, None]
+        if np.abs(step).max() < 1e-12:
+            break
     proj, J = cv2.projectPoints(X, rvec, tvec, K, None)
-    res = proj.reshape(-1, 2) - x
+    res2 = proj.reshape(-1, 2) - x
+    res = res2.ravel()
     n_obs = res.size
-    rms = float(np.sqrt(np.sum(res ** 2) / max(n_obs - 6, 1)))
-    sigma = max(corner_sigma_px, rms)
     J6 = J[:, :6]
+    chi2_dof = float(np.sum(w * res ** 2) / max(n_obs - 6, 1))
     try:
-        cov_rt = sigma ** 2 * np.linalg.inv(J6.T @ J6)
+        cov_rt = max(1.0, chi2_dof) * np.linalg.inv(J6.T @ (J6 * w[:, None]))
     except np.linalg.LinAlgError:
         return None
+    res = res2
     R_map_cam, p_map_cam = _camera_from_rt(rvec, tvec)
     # Propagate to (p, dtheta) of the camera in the map frame by a numeric Jacobian.
     F = np.zeros((6, 6))
