@@ -9,11 +9,22 @@ reason in ``text``).
 
 The marker map comes from ``marker_map_file`` (a YAML file) or ``marker_map`` (the same document
 inline, as the simulator's sidecar gives it). The lens model is OpenCV's from camera_info, or the
-seed's eq. 2 (``lens_model: caarls_eq2`` with ``eq2_k``). The latest camera_info is used for
-every image (intrinsics are constant for a camera; an image whose size differs is dropped).
+seed's eq. 2 (``lens_model: caarls_eq2`` with ``eq2_k``). Images are paired with camera_info
+by stamp: an image whose camera_info has not arrived yet waits (up to ``info_wait_s`` of
+stamps, a few frames) instead of being dropped - drivers often publish camera_info just after
+the image; without a camera_info of its own stamp an image uses the latest one (intrinsics
+are constant for a camera; an image whose size differs is dropped).
+
+Real images (:mod:`ar_tracking.core.markers.detection`): the edge model runs on the image
+mapped back to light with the camera's display gamma (``response_gamma``; 0 estimates it from
+the markers - from their black and white levels with ``marker_print_contrast``, the printed
+white/black reflectance ratio, or from the symmetry of their edges without it); each corner
+carries a sigma that grows with blur, poor line fits and occlusion, and the pose covariance
+follows, so that the visual-inertial filter can weigh or reject a pose.
 """
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -58,7 +69,13 @@ class MarkerTrackerNode(TrackingNode):
         self.eq2_k = np.asarray(p('eq2_k', [0.0, 0.0, 0.0], 'k1, k2, k3 of the eq. 2 lens model on the normalised image plane', validate=lambda v: None if len(v) == 3 else 'needs 3 values'), float)
         map_file = p('marker_map_file', '', 'YAML marker map: frame_id, markers [{id, size_m, position, orientation_xyzw}]', read_only=True)
         map_text = p('marker_map', '', 'The marker map inline (same YAML document as marker_map_file); used when marker_map_file is empty', read_only=True)
-        self.corner_sigma_px = p('corner_sigma_px', 0.1, 'Corner noise 1-sigma assumed for the pose covariance (floor; the reprojection RMS is used when larger), px', min_value=1e-4, max_value=10.0)
+        self.corner_sigma_px = p('corner_sigma_px', 0.06, 'Corner noise 1-sigma of a sharp, fully seen marker (the floor of every corner sigma), px', min_value=1e-4, max_value=10.0)
+        gamma = p('response_gamma', 0.0, "Camera's display gamma, undone before the edge fit (1: linear images; 0: estimated from the markers)", min_value=0.0, max_value=5.0, read_only=True,
+                  validate=lambda v: None if v == 0.0 or v >= 0.2 else 'use 0 (estimate) or a gamma of 0.2-5')
+        contrast = p('marker_print_contrast', 0.0, 'White/black reflectance ratio of the printed markers, for the gamma estimate from their levels (0: unknown, estimate from edge symmetry)', min_value=0.0, max_value=1000.0, read_only=True,
+                     validate=lambda v: None if v == 0.0 or v > 1.0 else 'use 0 (unknown) or a ratio above 1')
+        blur_gain = p('blur_sigma_gain', 0.25, 'Corner sigma added per px of edge blur beyond 1 px', min_value=0.0, max_value=10.0, read_only=True)
+        self.info_wait_ns = int(1e9 * p('info_wait_s', 0.2, 'How long (in image stamps) an image waits for the camera_info of its stamp before the latest one is used, s', min_value=0.0, max_value=5.0))
         min_angle = p('min_corner_angle_deg', 25.0, 'A quad with an interior angle below this (or above 180 minus this) is seen edge-on: rejected', min_value=0.0, max_value=89.99, read_only=True)
         min_side = p('min_side_px', 12.0, 'Markers with a side shorter than this are rejected, px', min_value=4.0, max_value=1000.0, read_only=True)
         self.max_position_sigma_m = p('max_position_sigma_m', 0.5, 'Poses whose position 1-sigma exceeds this are not published, m', min_value=1e-4, max_value=100.0)
@@ -76,7 +93,9 @@ class MarkerTrackerNode(TrackingNode):
                 self.marker_map = MarkerMap.from_text(map_text, 'marker_map parameter')
             else:
                 self.marker_map = MarkerMap('enu', {})
-            self.detector = MarkerDetector(dictionary, refinement, min_angle, min_side)
+            self.detector = MarkerDetector(dictionary, refinement, min_angle, min_side, response_gamma=gamma,
+                                           corner_sigma_px=self.corner_sigma_px, blur_sigma_gain=blur_gain,
+                                           print_contrast=contrast)
         except MarkerError as exc:
             raise ValueError(str(exc)) from exc
         if not self.marker_map.markers:
@@ -87,6 +106,10 @@ class MarkerTrackerNode(TrackingNode):
         self._lens_key: tuple | None = None
         self.guard = StampGuard(reset_s)
         self.poses_published = 0
+        #: camera_info stamps seen recently (to pair images with their own) and images waiting
+        self._info_stamps: deque[int] = deque(maxlen=64)
+        self._waiting: deque[tuple[int, np.ndarray, Any]] = deque()
+        self._info_per_frame = False
 
         self.pub_pose = self.advertise(PoseWithCovarianceStamped, 'markers/pose', RELIABLE_QOS)
         self.pub_det = self.advertise(MarkerArray, 'markers/detections', RELIABLE_QOS)
@@ -98,6 +121,20 @@ class MarkerTrackerNode(TrackingNode):
     # -- callbacks -------------------------------------------------------------------------
 
     def on_info(self, msg: CameraInfo) -> None:
+        self._take_info(msg)
+        t = stamp_ns(msg.header)
+        self._info_stamps.append(t)
+        if any(w[0] == t for w in self._waiting):
+            self._info_per_frame = True  # this camera stamps camera_info like its images
+        self._release(lambda w: w[0] <= t)
+
+    def _release(self, ready: Any) -> None:
+        """Process the waiting images, oldest first, while ``ready(entry)`` holds."""
+        while self._waiting and ready(self._waiting[0]):
+            _, gray, header = self._waiting.popleft()
+            self._detect(gray, header)
+
+    def _take_info(self, msg: CameraInfo) -> None:
         K = np.asarray(msg.k, dtype=float).reshape(3, 3)
         D = np.asarray(msg.d, dtype=float)
         key = (tuple(K.ravel()), tuple(D), int(msg.width), int(msg.height))
@@ -140,8 +177,21 @@ class MarkerTrackerNode(TrackingNode):
         elif verdict is not StampVerdict.OK:
             self.warn_throttled(f'camera: {verdict.value}; image dropped')
             return
+        t = stamp_ns(header)
+        if verdict is StampVerdict.RESET:
+            self._waiting.clear()
+        # Images older than the wait are released with the latest camera_info.
+        self._release(lambda w: t - w[0] >= self.info_wait_ns)
+        if t in self._info_stamps or (self.lens is not None and not self._info_per_frame):
+            self._release(lambda w: True)
+            self._detect(gray, header)
+            return
+        # Wait for the camera_info of this stamp (drivers often publish it just after the image).
+        self._waiting.append((t, gray, header))
+
+    def _detect(self, gray: np.ndarray, header: Any) -> None:
         if self.lens is None or self.image_size is None:
-            self.warn_throttled('no camera_info received yet; image dropped')
+            self.warn_throttled('no camera_info received for this image (waited info_wait_s); image dropped')
             return
         if (gray.shape[1], gray.shape[0]) != self.image_size:
             self.warn_throttled(f'image is {gray.shape[1]}x{gray.shape[0]} but camera_info says {self.image_size[0]}x{self.image_size[1]}; dropped')

@@ -362,6 +362,9 @@ def sidecar_params(seed: int) -> dict[str, Any]:
     """marker_tracker and visual_inertial_filter parameters: the marker map and the IMU noise;
     the mount is deliberately absent (it is on /tf_static only)."""
     params = ra.sidecar_params(seed)
+    # The printed marker's white/black reflectance (the renderer's WHITE / BLACK), as a site
+    # documents its markers: marker_tracker estimates the camera's gamma from it.
+    params['marker_tracker']['ros__parameters']['marker_print_contrast'] = float(ra.WHITE / ra.BLACK)
     vi = params['visual_inertial_filter']['ros__parameters']
     vi.pop('imu_to_camera_xyzw', None)
     vi['gyro_bias_walk_rad_s'] = float(GYRO_BIAS_WALK_RAD_S)

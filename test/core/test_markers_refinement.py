@@ -6,8 +6,9 @@ import pytest
 
 from ar_tracking.core.markers import MarkerError
 from ar_tracking.core.markers.detection import MarkerDetector, quad_shape_problem
-from ar_tracking.core.markers.edge_refinement import log_parabola_offset
+from ar_tracking.core.markers.edge_refinement import RefinedQuad, log_parabola_offset
 from ar_tracking.core.markers.lens_model import LensModel, eq2_distort, eq2_undistort
+from ar_tracking.core.markers.photometry import gamma_from_levels, linearize
 from ar_tracking.core.markers.pose import MapMarker, MarkerMap, estimate_camera_pose
 from ar_tracking.eval.vi_metrics import marker_corner_accuracy
 from ar_tracking.sim import robot_arcs as ra
@@ -44,6 +45,37 @@ def test_seed_refinement_beats_opencv_subpix_and_bias_is_small():
     assert res['corner_rmse_px']['caarls'] <= res['corner_rmse_px']['opencv_subpix']
     assert res['corner_bias_px']['caarls'] < 0.02
     assert res['corner_rmse_px']['caarls'] < res['corner_rmse_px']['none']
+
+
+def test_gamma_images_corners_unbiased_once_the_response_is_undone():
+    """A display gamma of 2.2 puts edge-model corners ~0.4 px inward; undoing the response
+    (estimated from the marker's levels) brings the mean outward offset within 0.05 px."""
+    res = marker_corner_accuracy(seed=2, n_poses=6, n_noisy=1, display_gamma=2.2)
+    assert res['n_corners'] >= 16
+    assert abs(res['corner_outward_px']['caarls']) < 0.05
+    assert abs(res['corner_outward_px']['caarls_given_gamma']) < 0.05
+    assert res['corner_outward_px']['opencv_subpix'] < -0.2   # OpenCV's sub-pixel corners go inward
+    assert res['corner_rmse_px']['caarls'] < res['corner_rmse_px']['opencv_subpix']
+
+
+def test_gamma_from_levels_and_linearize():
+    assert gamma_from_levels(255 * (25 / 255) ** (1 / 2.2), 255 * (225 / 255) ** (1 / 2.2), 9.0) == pytest.approx(2.2, rel=1e-6)
+    assert gamma_from_levels(100.0, 90.0, 9.0) is None          # white darker than black
+    lin = linearize(np.array([[0, 128, 255]], np.uint8), 2.2)
+    assert lin[0, 0] == 0 and lin[0, 2] == pytest.approx(255) and lin[0, 1] == pytest.approx(255 * (128 / 255) ** 2.2, rel=1e-5)
+    with pytest.raises(MarkerError):
+        MarkerDetector(response_gamma=-1.0)
+
+
+def test_blur_and_occlusion_raise_the_corner_sigmas():
+    det = MarkerDetector(corner_sigma_px=0.05, blur_sigma_gain=0.25)
+    sharp = RefinedQuad(np.zeros((4, 2)), np.zeros((4, 2)), 100, 0.05, np.ones(4), np.ones(4), np.full(4, 0.05))
+    blurred = RefinedQuad(np.zeros((4, 2)), np.zeros((4, 2)), 100, 0.05, np.array([6.0, 1.0, 1.0, 1.0]), np.ones(4), np.full(4, 0.05))
+    occluded = RefinedQuad(np.zeros((4, 2)), np.zeros((4, 2)), 100, 0.05, np.ones(4), np.array([1.0, 1.0, 0.4, 1.0]), np.full(4, 0.05))
+    s0, sb, so = det.corner_sigmas(sharp), det.corner_sigmas(blurred), det.corner_sigmas(occluded)
+    assert np.all(s0 < 0.1)
+    assert sb[0] > 5 * s0[0] and sb[1] > 5 * s0[1] and sb[2] == pytest.approx(s0[2])   # side 0 joins corners 0 and 1
+    assert so[2] > 2 * s0[2] and so[3] > 2 * s0[3] and so[0] == pytest.approx(s0[0])
 
 
 def test_edge_on_and_tiny_quads_are_rejected():

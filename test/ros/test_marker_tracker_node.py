@@ -50,8 +50,9 @@ class Harness:
         assert spin_until(self.ex, lambda: self.pub_img.get_subscription_count() > 0 and self.pub_info.get_subscription_count() > 0
                           and self.node.pub_pose.get_subscription_count() > 0 and self.node.pub_det.get_subscription_count() > 0)
 
-    def info(self, width=640, height=480):
+    def info(self, width=640, height=480, stamp_ns=0):
         m = CameraInfo()
+        m.header.stamp = to_stamp(stamp_ns)
         m.header.frame_id = 'camera_optical'
         m.width, m.height = width, height
         m.k = [float(x) for x in ra.Camera().K.ravel()]
@@ -83,14 +84,14 @@ def test_pose_from_markers_and_bad_input(ros_context):
     h = Harness(ros_context)
     try:
         img, tr = _frame(2.0)
-        h.image(img, T0)                         # no camera_info yet: dropped
+        h.image(img, T0)                         # no camera_info yet: waits for one
         assert not h.poses
-        h.info()
-        h.image(img[:240, :320].copy(), T0 + 1)  # size differs from camera_info: dropped
-        assert not h.poses
+        h.info()                                 # unstamped camera_info: the latest is used
+        h.image(img[:240, :320].copy(), T0 + 1)  # releases the waiting image; this one's size differs: dropped
+        assert spin_until(h.ex, lambda: len(h.poses) == 1, 3.0) and stamp_ns(h.poses[0].header) == T0
         h.image(img, T0 + 2)
-        assert spin_until(h.ex, lambda: len(h.poses) == 1, 3.0)
-        msg = h.poses[0]
+        assert spin_until(h.ex, lambda: len(h.poses) == 2, 3.0)
+        msg = h.poses[1]
         assert stamp_ns(msg.header) == T0 + 2 and msg.header.frame_id == 'enu'
         p = np.array([msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z])
         assert np.linalg.norm(p - tr.position[0]) < 0.01
@@ -102,14 +103,37 @@ def test_pose_from_markers_and_bad_input(ros_context):
         assert accepted == [0, 1, 2, 3]
         assert rejected == [(17, 'ID not in the marker map')]   # unknown ID
         h.image(img, T0 + 1)                     # stamp going back: dropped
-        assert len(h.poses) == 1
+        assert len(h.poses) == 2
         bad = Image()
         bad.header.stamp = to_stamp(T0 + 5)
         bad.encoding, bad.width, bad.height, bad.step = 'mono8', 640, 480, 640
         bad.data = bytes(10)                      # truncated
         h.pub_img.publish(bad)
         spin_until(h.ex, lambda: False, 0.1)
-        assert len(h.poses) == 1 and h.node.callback_stats['camera/image_raw'].failures == 0
+        assert len(h.poses) == 2 and h.node.callback_stats['camera/image_raw'].failures == 0
+    finally:
+        h.close()
+
+
+def test_image_waits_for_the_camera_info_of_its_stamp(ros_context):
+    """A driver that publishes camera_info just after each image: no image is lost, each is
+    processed when its camera_info comes; one whose camera_info never comes goes after info_wait_s."""
+    h = Harness(ros_context, {'info_wait_s': 0.1})
+    try:
+        img, _ = _frame(2.0)
+        for k in range(3):
+            t = T0 + k * 50_000_000
+            h.image(img, t)
+            assert len(h.poses) == k                  # waiting for its camera_info
+            h.info(stamp_ns=t)
+            assert spin_until(h.ex, lambda: len(h.poses) == k + 1, 3.0)
+            assert stamp_ns(h.poses[-1].header) == t
+        h.image(img, T0 + 150_000_000)                # its camera_info is lost
+        h.image(img, T0 + 200_000_000)
+        assert len(h.poses) == 3
+        h.image(img, T0 + 260_000_000)                # 110 ms later: the lost one goes with the latest
+        assert spin_until(h.ex, lambda: len(h.poses) == 4, 3.0)
+        assert stamp_ns(h.poses[-1].header) == T0 + 150_000_000
     finally:
         h.close()
 
