@@ -48,8 +48,7 @@ import yaml
 
 from .core.annotations.landmarks import LandmarkConfig, select_landmarks
 from .core.annotations.patches import cut_patch
-from .core.annotations.store import (Annotation, AddReport, Landmark, PanoramaInfo, SqliteAnnotationStore,
-                                     validate_annotation)
+from .core.annotations.store import (Annotation, AddReport, Landmark, PanoramaInfo, validate_annotation)
 from .core.annotations.world_orientation import DEFAULT_R_IMU_CAM, PanoramaWorld, PanoramaWorldEstimator
 from .core.imu_orientation import ImuCalibration
 from .core.panorama import MapConfig, MapperConfig, PanoramaMapper
@@ -327,7 +326,7 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
                 continue
             u, v = geo.project(d)
             patch, d, reason = cut_patch(gray, mapper.map.mapped, float(u), float(v), patch_px, geo)
-            if patch is None:
+            if patch is None or d is None:
                 report.skipped.append((p.text, reason))
                 logger.warning('annotation %r skipped: %s', p.text, reason)
                 continue

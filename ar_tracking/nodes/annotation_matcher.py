@@ -36,7 +36,7 @@ from sensor_msgs.msg import Image, Imu, NavSatFix, NavSatStatus
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.annotations.matching import MatchConfig, ReDetector
-from ..core.annotations.store import Annotation, Landmark, PanoramaInfo, SqliteAnnotationStore, StoreError
+from ..core.annotations.store import Annotation, Landmark, PanoramaInfo, StoreError
 from ..core.panorama.cylinder import CylinderGeometry
 from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
 from ..io.stores import RetryBackoff, describe, open_store
