@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +81,7 @@ class ViData:
     imu_t: NDArray[np.int64]
     imu: Array          # (N, 6) gyro, accel
     R_imu_cam: Array
+    t_imu_cam: Array = field(default_factory=lambda: np.zeros(3))   # camera origin in the IMU frame
 
 
 def load_vi(path: str | Path) -> ViData | None:
@@ -89,11 +90,13 @@ def load_vi(path: str | Path) -> ViData | None:
         topics = bag.topics
         if TOPIC_ODOM not in topics or TOPIC_TRUTH not in topics:
             return None
-        R_imu_cam = np.eye(3)
+        R_imu_cam, t_imu_cam = np.eye(3), np.zeros(3)
         for m in bag.messages(['/tf_static']):
             for tf in bag.deserialize(m).transforms:
-                if tf.header.frame_id == 'imu' and tf.child_frame_id == 'camera_optical':
+                if tf.header.frame_id.lstrip('/') == 'imu' and tf.child_frame_id.lstrip('/') == 'camera_optical':
                     R_imu_cam = Rotation.from_quat(_quat(tf.transform.rotation)).as_matrix()
+                    tr = tf.transform.translation
+                    t_imu_cam = np.array([tr.x, tr.y, tr.z], float)
         cols: dict[str, tuple[list, list, list, list, list]] = {t: ([], [], [], [], []) for t in (TOPIC_TRUTH, TOPIC_ODOM, TOPIC_POSE)}
         imu_t, imu = [], []
         for m in bag.messages([TOPIC_TRUTH, TOPIC_ODOM, TOPIC_POSE, TOPIC_IMU]):
@@ -120,7 +123,8 @@ def load_vi(path: str | Path) -> ViData | None:
     if len(truth) < 2 or len(odom) == 0:
         return None
     order = np.argsort(np.asarray(imu_t, np.int64), kind='stable')
-    return ViData(truth, odom, cam, np.asarray(imu_t, np.int64)[order], np.asarray(imu, float).reshape(-1, 6)[order], R_imu_cam)
+    return ViData(truth, odom, cam, np.asarray(imu_t, np.int64)[order], np.asarray(imu, float).reshape(-1, 6)[order],
+                  R_imu_cam, t_imu_cam)
 
 
 def truth_at(truth: PoseSeries, t_ns: NDArray[np.int64]) -> tuple[Array, Array, NDArray[np.bool_]]:
@@ -173,7 +177,7 @@ def hold_camera(cam: PoseSeries, t_ns: NDArray[np.int64], extrapolate: bool = Fa
 
 def run_offline(data: ViData, rollback: bool, config: FusionConfig | None = None) -> PoseSeries:
     """The filter core on the bag's IMU and poses in arrival order (IMU stamp = arrival)."""
-    cfg = config or FusionConfig(R_imu_cam=data.R_imu_cam)
+    cfg = config or FusionConfig(R_imu_cam=data.R_imu_cam, t_imu_cam=data.t_imu_cam)
     if cfg.rollback != rollback:
         from dataclasses import replace
 
@@ -257,13 +261,19 @@ def evaluate_vi(bag_path: str | Path, offline: bool = True) -> dict[str, Any] | 
 # --- marker corners -----------------------------------------------------------------------
 
 def marker_corner_accuracy(seed: int = 0, n_poses: int = 24, n_noisy: int = 2,
-                           noise: float = 2.0, blur_sigma_px: float = 0.6) -> dict[str, Any]:
+                           noise: float = 2.0, blur_sigma_px: float = 0.6,
+                           display_gamma: float = 1.0) -> dict[str, Any]:
     """Corner RMSE and bias of the refinements on rendered markers with known corners.
 
     A 30 cm AprilTag at 1.5-3.5 m, tilted up to ~35 deg and turned in-plane at random, is
     rendered (robot_arcs' renderer: exact corners, 8x supersampling, Gaussian blur, noise) in a
-    640x480 ideal pinhole camera. Returns {'corner_rmse_px': {method: ..}, 'corner_bias_px':
-    {method: ..}, 'n_corners': ..}.
+    640x480 ideal pinhole camera, in light; ``display_gamma`` > 1 encodes the frame as a camera
+    does (I = 255 (L / 255)^(1 / gamma)) after blur and noise. Methods: ``caarls`` (the edge
+    model with the gamma estimated from the marker's black/white levels and its print contrast),
+    ``caarls_edge_symmetry`` (the gamma from the symmetry of its edges, no print contrast),
+    ``caarls_given_gamma`` (the gamma given), ``opencv_subpix``, ``none``. Returns {'corner_rmse_px': {method: ..},
+    'corner_bias_px': {method: ..} (RMS on noise-free images), 'corner_outward_px': {method: ..}
+    (mean offset of the corners away from the marker centre on the noisy images), 'n_corners'}.
     """
     import cv2
 
@@ -276,10 +286,14 @@ def marker_corner_accuracy(seed: int = 0, n_poses: int = 24, n_noisy: int = 2,
     rng = rng_stream(seed, 'corner-accuracy')
     cam = ra.Camera()
     lens = LensModel(cam.K)
-    methods = {'caarls': MarkerDetector(refinement='caarls'), 'opencv_subpix': MarkerDetector(refinement='subpix'),
+    methods = {'caarls': MarkerDetector(refinement='caarls', print_contrast=ra.WHITE / ra.BLACK),
+               'caarls_edge_symmetry': MarkerDetector(refinement='caarls'),
+               'caarls_given_gamma': MarkerDetector(refinement='caarls', response_gamma=display_gamma),
+               'opencv_subpix': MarkerDetector(refinement='subpix'),
                'none': MarkerDetector(refinement='none')}
     noisy: dict[str, list[Array]] = {k: [] for k in methods}
     clean: dict[str, list[Array]] = {k: [] for k in methods}
+    outward: dict[str, list[float]] = {k: [] for k in methods}
     for _ in range(n_poses):
         R_m = ra.R_ENU_WALL_MARKER @ rot_y(rng.uniform(-0.6, 0.6)) @ rot_x(rng.uniform(-0.6, 0.6)) @ rot_z(rng.uniform(-math.pi, math.pi))
         mk = ra.MarkerSpec(5, 0.30, np.array([rng.uniform(-0.6, 0.6), 3.2, 1.0 + rng.uniform(-0.4, 0.4)]), R_m)
@@ -289,18 +303,25 @@ def marker_corner_accuracy(seed: int = 0, n_poses: int = 24, n_noisy: int = 2,
                 img, truth = ra.render_frame(cam, ra.R0_ENU_CAM, p_cam, [mk], rng, blur_sigma_px, level)
                 if mk.id not in truth:
                     continue
+                if display_gamma != 1.0:
+                    img = np.rint(255.0 * np.power(img / 255.0, 1.0 / display_gamma)).astype(np.uint8)
                 results = {k: d.detect(img, lens)[0] for k, d in methods.items()}
                 if not all(len(r) == 1 and r[0].id == mk.id for r in results.values()):
                     continue
+                g = truth[mk.id]
+                out_dir = (g - g.mean(0)) / np.linalg.norm(g - g.mean(0), axis=1, keepdims=True)
                 for k, r in results.items():
-                    store[k].append(r[0].corners_px - truth[mk.id])
+                    store[k].append(r[0].corners_px - g)
+                    if level > 0:
+                        outward[k].append(float(np.mean(np.sum((r[0].corners_px - g) * out_dir, axis=1))))
     del cv2
-    out: dict[str, Any] = {'corner_rmse_px': {}, 'corner_bias_px': {}, 'corner_mean_error_px': {}}
+    out: dict[str, Any] = {'corner_rmse_px': {}, 'corner_bias_px': {}, 'corner_mean_error_px': {}, 'corner_outward_px': {}}
     for k in methods:
         e = np.concatenate(noisy[k]) if noisy[k] else np.zeros((0, 2))
         c = np.concatenate(clean[k]) if clean[k] else np.zeros((0, 2))
         out['corner_rmse_px'][k] = round(float(np.sqrt(np.mean(np.sum(e ** 2, 1)))), DECIMALS) if len(e) else None
         out['corner_bias_px'][k] = round(float(np.sqrt(np.mean(np.sum(c ** 2, 1)))), DECIMALS) if len(c) else None
         out['corner_mean_error_px'][k] = round(float(np.linalg.norm(e.mean(0))), DECIMALS) if len(e) else None
+        out['corner_outward_px'][k] = round(float(np.mean(outward[k])), DECIMALS) if outward[k] else None
     out['n_corners'] = int(sum(len(x) for x in noisy['caarls']))
     return out

@@ -8,12 +8,18 @@ every IMU sample; twist in the camera frame, as REP-105 asks) and ``vi/predicted
 (PoseStamped extrapolated ``render_latency_s`` ahead of the newest IMU stamp: the pose at display
 time, Fig. 6), stamped with that display time.
 
-The IMU -> camera rotation is a parameter (``imu_to_camera_xyzw``: the /tf_static imu ->
-camera_optical rotation, R_imu_cam); there is no tf2 here. ``imu/mag`` is not used (the camera
-is the absolute orientation reference; see the issue notes).
+The IMU mount - the rotation R_imu_cam and the lever arm (camera origin in the IMU frame) -
+comes from ``/tf_static`` (the transform whose child, or parent, is ``child_frame_id``, the
+camera frame): on a ROS install by a subscription, on the pip-only path (no tf2_msgs) from the
+graph runner, which hands the bag's static transforms to :meth:`on_static_transforms` before
+the first message. The parameters ``imu_to_camera_xyzw`` and ``camera_in_imu_m`` are the
+fallback; a warning says when they were set and /tf_static disagrees (then /tf_static wins). A
+mount arriving after the filter started re-initialises it (the state was built with the old one).
+``imu/mag`` is not used (the camera is the absolute orientation reference; see the issue notes).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -21,7 +27,7 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
-from ..core.rotations import quat_xyzw_to_matrix
+from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..core.vio.eskf import FilterNoise, InitialUncertainty
 from ..core.vio.rollback import FusionConfig, PoseMeasurement, RollbackFusion, Verdict
 from ..ros.conversions import (
@@ -34,8 +40,13 @@ from ..ros.conversions import (
     to_stamp,
     vector3,
 )
-from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
+
+
+#: /tf_static and the parameters disagree enough for a warning (rotation rad, lever arm m).
+_MOUNT_WARN_RAD = np.radians(1.0)
+_MOUNT_WARN_M = 0.005
 
 
 def _unit_quat(v: Any) -> str | None:
@@ -93,6 +104,8 @@ class VisualInertialFilterNode(TrackingNode):
         self.world_frame_id = p('world_frame_id', 'enu', 'frame_id of the outputs (the marker-map frame of markers/pose)')
         self.child_frame_id = p('child_frame_id', 'camera_optical', 'child_frame_id of vi/odometry')
         reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
+        self.mount_from_params = bool(np.any(np.asarray(q_ic, float) != [0.0, 0.0, 0.0, 1.0]) or np.any(np.asarray(t_ic, float) != 0.0))
+        self.mount_source = 'parameters' if self.mount_from_params else 'default (identity, no lever arm)'
         self.core = RollbackFusion(self.config)
         self.imu_guard = StampGuard(reset_s)
         self.gyro_var = noise.gyro_noise_rad_s ** 2
@@ -101,7 +114,68 @@ class VisualInertialFilterNode(TrackingNode):
         self.pub_pred = self.advertise(PoseStamped, 'vi/predicted_pose', RELIABLE_QOS)
         self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
         self.subscribe(PoseWithCovarianceStamped, 'markers/pose', self.on_pose, RELIABLE_QOS)
+        self._subscribe_tf_static()
         self.get_logger().info(f'visual_inertial_filter: roll-back {"on" if self.config.rollback else "off"}, buffer {self.config.buffer_s:g} s')
+
+    # -- the IMU mount --------------------------------------------------------------------
+
+    def _subscribe_tf_static(self) -> None:
+        """/tf_static on a ROS install (on the pip-only path the runner calls
+        :meth:`on_static_transforms` with the bag's)."""
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            return
+
+        def on_tf(msg: Any) -> None:
+            from types import SimpleNamespace
+
+            items = []
+            for tf in msg.transforms:
+                q, t = tf.transform.rotation, tf.transform.translation
+                items.append(SimpleNamespace(parent=tf.header.frame_id, child=tf.child_frame_id,
+                                             rotation=quat_xyzw_to_matrix(np.array([q.x, q.y, q.z, q.w])),
+                                             translation=np.array([t.x, t.y, t.z])))
+            self.on_static_transforms(items)
+
+        self.create_subscription(TFMessage, '/tf_static', on_tf, LATCHED_QOS)
+
+    def on_static_transforms(self, transforms: list[Any]) -> None:
+        """Static transforms (``parent``, ``child``, ``rotation`` rotating child vectors into the
+        parent, ``translation`` the child's origin in the parent): the IMU mount from the one
+        that names the camera frame (``child_frame_id``)."""
+        cam = self.child_frame_id.lstrip('/')
+        for tf in transforms:
+            parent, child = str(tf.parent).lstrip('/'), str(tf.child).lstrip('/')
+            R = np.asarray(tf.rotation, dtype=float)
+            t = np.asarray(getattr(tf, 'translation', np.zeros(3)), dtype=float).reshape(3)
+            if child == cam and parent != cam:
+                R_imu_cam, t_imu_cam = R, t
+            elif parent == cam and child != cam:
+                R_imu_cam, t_imu_cam = R.T, -R.T @ t
+            else:
+                continue
+            if not (np.all(np.isfinite(R_imu_cam)) and np.all(np.isfinite(t_imu_cam))):
+                self.warn_throttled(f'/tf_static {parent} -> {child} is not finite; ignored')
+                return
+            d_rot = float(np.linalg.norm(so3_log(self.config.R_imu_cam.T @ R_imu_cam)))
+            d_pos = float(np.linalg.norm(self.config.t_imu_cam - t_imu_cam))
+            source = f'/tf_static {parent} -> {child}'
+            if self.mount_from_params and (d_rot > _MOUNT_WARN_RAD or d_pos > _MOUNT_WARN_M):
+                self.get_logger().warning(
+                    f'{source} differs from imu_to_camera_xyzw / camera_in_imu_m by {np.degrees(d_rot):.1f} deg '
+                    f'and {100 * d_pos:.1f} cm: using /tf_static')
+            else:
+                self.get_logger().info(f'IMU mount from {source}')
+            if d_rot > 1e-9 or d_pos > 1e-9:
+                self.config = replace(self.config, R_imu_cam=R_imu_cam, t_imu_cam=t_imu_cam)
+                started = self.core.state is not None
+                self.core.config = self.config
+                if started:
+                    self.get_logger().warning('IMU mount changed after the filter started: re-initialising')
+                    self.core.reset()
+            self.mount_source = source
+            return
 
     def on_imu(self, msg: Imu) -> None:
         gyro, accel = vector3(msg.angular_velocity), vector3(msg.linear_acceleration)

@@ -282,8 +282,10 @@ def true_corners(cam: RealCamera, R: Array, p: Array, markers: list[ra.MarkerSpe
 
 def write_bag(bag: Any, seed: int, duration_s: float, image_format: str,
               progress: Callable[[float], None] | None = None,
-              speeds: tuple[float, ...] = ra.ARC_SPEEDS_M_S) -> None:
-    """Write all messages of the hard profile into an open BagWriter, in log-time order."""
+              speeds: tuple[float, ...] = ra.ARC_SPEEDS_M_S, mount_on_tf_static: bool = True) -> None:
+    """Write all messages of the hard profile into an open BagWriter, in log-time order.
+    ``mount_on_tf_static`` False leaves /tf_static out (the same bag otherwise: for comparing
+    the mount from /tf_static with the mount from parameters, :func:`mount_params`)."""
     from ..io.bags import msg_class
     from .bagmaker import START_NS, _Msgs
 
@@ -303,8 +305,9 @@ def write_bag(bag: Any, seed: int, duration_s: float, image_format: str,
     pixel_rng = rng_stream(seed, 'robot-arcs-hard-pixels')
     gv, av = err.gyro_noise_rad_s ** 2, err.accel_noise_m_s2 ** 2
 
-    bag.write('/tf_static', START_NS, msg_class('tf2_msgs/msg/TFMessage')(transforms=[
-        m.transform_stamped(START_NS, ra.FRAME_IMU, ra.FRAME_CAMERA, T_IMU_CAM, matrix_to_quat_xyzw(R_IMU_CAM))]))
+    if mount_on_tf_static:
+        bag.write('/tf_static', START_NS, msg_class('tf2_msgs/msg/TFMessage')(transforms=[
+            m.transform_stamped(START_NS, ra.FRAME_IMU, ra.FRAME_CAMERA, T_IMU_CAM, matrix_to_quat_xyzw(R_IMU_CAM))]))
     events = sorted([(int(s), 0, k) for k, s in enumerate(imu_ns)]
                     + [(int(s) + ra.PROCESSING_DELAY_NS, 1, k) for k, s in enumerate(cam_ns)])
     K = cam.K
@@ -370,3 +373,9 @@ def sidecar_params(seed: int) -> dict[str, Any]:
     vi['gyro_bias_walk_rad_s'] = float(GYRO_BIAS_WALK_RAD_S)
     vi['accel_bias_walk_m_s2'] = float(ACCEL_BIAS_WALK_M_S2)
     return params
+
+
+def mount_params() -> dict[str, Any]:
+    """The IMU mount as visual_inertial_filter parameters (what /tf_static carries)."""
+    return {'imu_to_camera_xyzw': [float(x) for x in matrix_to_quat_xyzw(R_IMU_CAM)],
+            'camera_in_imu_m': [float(x) for x in T_IMU_CAM]}

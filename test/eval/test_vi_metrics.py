@@ -1,9 +1,11 @@
-"""End to end on a short robot_arcs bag: both nodes in the lockstep runner, then evaluate_vi."""
+"""End to end on short robot_arcs bags: both nodes in the lockstep runner, then evaluate_vi; the
+hard profile's IMU mount from /tf_static against the same mount from parameters."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
+import yaml
 
 pytest.importorskip('rclpy')
 
@@ -11,6 +13,8 @@ from ar_tracking.eval.vi_metrics import evaluate_vi  # noqa: E402
 from ar_tracking.nodes.marker_tracker import MarkerTrackerNode  # noqa: E402
 from ar_tracking.nodes.visual_inertial_filter import VisualInertialFilterNode  # noqa: E402
 from ar_tracking.ros.runner import GraphRunner  # noqa: E402
+from ar_tracking.io.bags import BagWriter  # noqa: E402
+from ar_tracking.sim import robot_arcs_real as rr  # noqa: E402
 from ar_tracking.sim.bagmaker import make_bag  # noqa: E402
 
 GRAPH = {'marker_tracker': MarkerTrackerNode, 'visual_inertial_filter': VisualInertialFilterNode}
@@ -19,7 +23,7 @@ GRAPH = {'marker_tracker': MarkerTrackerNode, 'visual_inertial_filter': VisualIn
 @pytest.fixture(scope='module')
 def runs(tmp_path_factory) -> tuple[Path, Path, Path]:
     d = tmp_path_factory.mktemp('vi')
-    bag = make_bag('robot_arcs', d / 'arcs.mcap', seed=5, duration_s=9.0)
+    bag = make_bag('robot_arcs', d / 'arcs.mcap', seed=5, duration_s=9.0, profile='kind')
     outs = []
     for name in ('a', 'b'):
         out = d / f'{name}.out.mcap'
@@ -48,3 +52,35 @@ def test_filter_beats_the_held_camera_and_rollback_beats_on_arrival(runs):
 def test_no_odometry_gives_none(runs):
     bag, _, _ = runs
     assert evaluate_vi(bag) is None
+
+
+@pytest.fixture(scope='module')
+def mount_runs(tmp_path_factory) -> tuple[dict, dict]:
+    """The same hard bag twice: the mount only on /tf_static (the sidecar has no mount), and
+    without /tf_static with the mount in the parameters."""
+    d = tmp_path_factory.mktemp('vi_mount')
+    seed, duration = 7, 5.0
+    tf_bag = make_bag('robot_arcs', d / 'tf.mcap', seed=seed, duration_s=duration)
+    side = yaml.safe_load((d / 'tf.params.yaml').read_text())
+    assert 'imu_to_camera_xyzw' not in side['visual_inertial_filter']['ros__parameters']
+    par_bag = d / 'par.mcap'
+    with BagWriter(par_bag) as bag:
+        rr.write_bag(bag, seed, duration, 'raw', mount_on_tf_static=False)
+    side['visual_inertial_filter']['ros__parameters'].update(rr.mount_params())
+    (d / 'par.params.yaml').write_text(yaml.safe_dump(side))
+    out = {}
+    for name, bag, params in (('tf', tf_bag, d / 'tf.params.yaml'), ('par', par_bag, d / 'par.params.yaml')):
+        res = GraphRunner(bag, d / f'{name}.out.mcap', params_files=[params], graph=GRAPH).run()
+        assert res.lost_deliveries == 0
+        out[name] = evaluate_vi(d / f'{name}.out.mcap')
+    return out['tf'], out['par']
+
+
+def test_mount_from_tf_static_equals_mount_from_parameters(mount_runs):
+    tf, par = mount_runs
+    assert tf is not None and par is not None and tf['n'] > 300
+    for key in ('position_rmse_cm', 'orientation_rmse_deg'):
+        assert tf[key] == pytest.approx(par[key], rel=0.10), key
+    # and the figures are those of a working filter (a mount ignored gives ~1 m, ~9 deg)
+    assert tf['position_rmse_cm'] < 1.5 and tf['orientation_rmse_deg'] < 0.2
+    assert tf['position_rmse_cm'] < tf['camera_only']['position_rmse_cm']

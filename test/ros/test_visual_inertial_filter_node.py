@@ -135,3 +135,31 @@ def test_config_file_matches_declared_defaults(ros_context):
 def test_rejects_a_bad_extrinsic(ros_context):
     with pytest.raises(ValueError):
         VisualInertialFilterNode(context=ros_context, parameter_overrides=[Parameter('imu_to_camera_xyzw', value=[1.0, 1.0, 0.0, 0.0])])
+
+
+def test_mount_from_tf_static_overrides_the_parameters(ros_context):
+    from types import SimpleNamespace
+
+    from ar_tracking.core.rotations import rot_z
+
+    node = VisualInertialFilterNode(context=ros_context)   # no mount parameters: identity
+    try:
+        R = rot_z(0.5) @ np.diag([1.0, -1.0, -1.0])
+        t = np.array([0.03, -0.05, 0.02])
+        node.on_static_transforms([SimpleNamespace(parent='base', child='elsewhere', rotation=np.eye(3), translation=np.zeros(3)),
+                                   SimpleNamespace(parent='imu', child='camera_optical', rotation=R, translation=t)])
+        assert np.allclose(node.core.config.R_imu_cam, R) and np.allclose(node.core.config.t_imu_cam, t)
+        assert node.mount_source == '/tf_static imu -> camera_optical'
+        # the inverse direction (camera -> imu) gives the same mount
+        node.on_static_transforms([SimpleNamespace(parent='camera_optical', child='imu', rotation=R.T, translation=-R.T @ t)])
+        assert np.allclose(node.core.config.R_imu_cam, R) and np.allclose(node.core.config.t_imu_cam, t)
+    finally:
+        node.destroy_node()
+    # Parameters that disagree: /tf_static wins (and the node says so).
+    node = VisualInertialFilterNode(context=ros_context, parameter_overrides=[Parameter('imu_to_camera_xyzw', value=[1.0, 0.0, 0.0, 0.0])])
+    try:
+        assert node.mount_from_params
+        node.on_static_transforms([SimpleNamespace(parent='imu', child='camera_optical', rotation=R, translation=t)])
+        assert np.allclose(node.core.config.R_imu_cam, R)
+    finally:
+        node.destroy_node()

@@ -95,7 +95,7 @@ class FusionConfig:
     #: Camera origin in the IMU frame, m.
     t_imu_cam: Array = field(default_factory=lambda: np.zeros(3))
     #: Used when a pose carries no covariance, and as a floor for the ones it carries.
-    position_sigma_m: float = 0.01
+    position_sigma_m: float = 0.002
     orientation_sigma_rad: float = 0.005
     #: Squared Mahalanobis distance above which a pose is an outlier (0 disables the gate).
     gate_chi2: float = CHI2_3DOF_999
