@@ -355,9 +355,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--image-format', default='raw', choices=['raw', 'compressed'],
                    help='camera images as sensor_msgs/Image (raw, default) or CompressedImage JPEG (compressed)')
     p.add_argument('--profile', default='hard', choices=['hard', 'kind'],
-                   help="rotation_sweep sensor realism: 'hard' (default) = realistic phone: hand acceleration, "
+                   help="sensor realism: 'hard' (default) = rotation_sweep: a realistic phone (hand acceleration, "
                         'field turns that keep |B| and dip, residual iron after a rough calibration, gyro bias drift, '
-                        "camera-IMU time offset; 'kind' = the earlier, easier simulator, for the paper's Fig. 8 comparison")
+                        'camera-IMU time offset); robot_arcs: a real camera (lens distortion in camera_info, display '
+                        'gamma, defocus, 155 deg/s pans with motion blur, an occluder, IMU bias walks, the IMU mount '
+                        "with a lever arm only on /tf_static); 'kind' = the earlier, easier simulators")
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')

@@ -1,8 +1,11 @@
-"""Speed of the marker + IMU cores on this machine (``ar-tracking bench``, area ``vi`` and
-``markers``): IMU updates per second of the roll-back filter core (15 Hz camera poses arriving
-80 ms late, so every pose rolls back ~8 samples and replays them: "roll-backs included"), the
-time to detect and refine the markers of one 640x480 frame, and the corner accuracy figures of
-:func:`ar_tracking.eval.vi_metrics.marker_corner_accuracy`.
+"""Speed and accuracy of the marker + IMU chain on this machine (``ar-tracking bench``, areas
+``vi`` and ``markers``): IMU updates per second of the roll-back filter core (15 Hz camera poses
+arriving 80 ms late, so every pose rolls back ~8 samples and replays them: "roll-backs
+included"), the time to detect and refine the markers of one 640x480 frame, the corner accuracy
+figures of :func:`ar_tracking.eval.vi_metrics.marker_corner_accuracy` (linear and gamma 2.2
+images), and ``vi.seeds`` / ``markers.seeds``: the issue's targets on fresh hard-profile
+robot_arcs bags (:func:`bench_seeds`: the graph run on each, scored by evaluate, with the
+spread over the seeds).
 """
 from __future__ import annotations
 
@@ -66,12 +69,95 @@ def bench_detect(frames: int = 20, seed: int = 0) -> dict[str, Any]:
     return {'detect_ms_640x480': out['caarls'], 'detect_ms_640x480_by_refinement': out}
 
 
+#: Fresh seeds of the accuracy bench (not used by any test) and their length, s.
+BENCH_SEEDS: tuple[int, ...] = (301, 302)
+BENCH_DURATION_S = 20.0
+
+
+def _pick(d: dict[str, Any], path: str) -> Any:
+    for k in path.split('.'):
+        if not isinstance(d, dict) or k not in d:
+            return None
+        d = d[k]
+    return d
+
+
+#: (bench key, evaluate path) of the issue's targets, per seed.
+TARGET_KEYS: tuple[tuple[str, str], ...] = (
+    ('vi.position_rmse_cm', 'vi.position_rmse_cm'),
+    ('vi.orientation_rmse_deg', 'vi.orientation_rmse_deg'),
+    ('vi.position_max_cm', 'vi.position_max_cm'),
+    ('vi.fast_rotation_max_cm', 'vi.fast_rotation.filter.position_max_cm'),
+    ('vi.coverage', 'vi.coverage'),
+    ('vi.no_rollback_position_rmse_cm', 'vi.no_rollback.position_rmse_cm'),
+    ('markers.pose_position_rmse_cm', 'markers.pose.position_rmse_cm'),
+    ('markers.pose_orientation_rmse_deg', 'markers.pose.orientation_rmse_deg'),
+    ('markers.pose_coverage', 'markers.pose.coverage'),
+    ('markers.pose_nees_position_median', 'markers.pose.nees_position_median'),
+    ('markers.pose_fast_rotation_rmse_cm', 'markers.pose.fast_rotation.position_rmse_cm'),
+    ('markers.corner_bias_px', 'markers.corner_bias_px'),
+    ('markers.corner_rmse_px', 'markers.corner_rmse_px'),
+)
+
+
+def bench_seeds(workdir: Path, seeds: tuple[int, ...] = BENCH_SEEDS,
+                duration_s: float = BENCH_DURATION_S) -> dict[str, Any]:
+    """The issue's targets on fresh hard-profile robot_arcs bags, one per seed: the marker +
+    IMU graph run on each (mount only on /tf_static, as the bag has it), scored by evaluate;
+    and OpenCV's pipeline (marker_tracker with ``corner_refinement: subpix``, no gamma handling)
+    on the same images for the camera-only comparison. Returns {'by_seed': {seed: {key:
+    value}}, 'spread': {key: {min, median, max}}, 'command': how to redo one seed by hand}."""
+    import yaml
+
+    from ..ros.runner import GraphRunner
+    from ..sim.bagmaker import make_bag
+    from .vi_metrics import evaluate_markers, evaluate_vi
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    by_seed: dict[str, dict[str, Any]] = {}
+    for seed in seeds:
+        bag = workdir / f'robot_arcs_hard_seed{seed}.mcap'
+        params = bag.with_name(bag.stem + '.params.yaml')
+        if not bag.exists():
+            make_bag('robot_arcs', bag, seed=seed, duration_s=duration_s, overwrite=True)
+        out = workdir / f'seed{seed}.out.mcap'
+        GraphRunner(bag, out, params_files=[params], named_graph='markers').run()
+        metrics = {'vi': evaluate_vi(out) or {}, 'markers': evaluate_markers(out) or {}}
+        row = {key: _pick(metrics, path) for key, path in TARGET_KEYS}
+        side = yaml.safe_load(params.read_text())
+        side['marker_tracker']['ros__parameters']['corner_refinement'] = 'subpix'
+        cv_params = workdir / f'seed{seed}.opencv.params.yaml'
+        cv_params.write_text(yaml.safe_dump(side))
+        cv_out = workdir / f'seed{seed}.opencv.out.mcap'
+        GraphRunner(bag, cv_out, params_files=[cv_params], nodes=['marker_tracker']).run()
+        cv = evaluate_markers(cv_out) or {}
+        row['markers.opencv_subpix_pose_position_rmse_cm'] = _pick(cv, 'pose.position_rmse_cm')
+        row['markers.opencv_subpix_corner_bias_px'] = _pick(cv, 'corner_bias_px')
+        by_seed[str(seed)] = row
+    spread: dict[str, Any] = {}
+    for key in next(iter(by_seed.values())):
+        vals = [r[key] for r in by_seed.values() if r.get(key) is not None]
+        if vals:
+            spread[key] = {'min': min(vals), 'median': float(np.median(vals)), 'max': max(vals)}
+    return {'by_seed': by_seed, 'spread': spread, 'duration_s': duration_s,
+            'command': (f'ar-tracking make-bag robot_arcs --seed {seeds[0]} --duration {duration_s:g} -o x.mcap && '
+                        'ar-tracking run x.mcap -o x.out.mcap --graph markers && ar-tracking evaluate x.out.mcap --json')}
+
+
 def bench_markers_vi(workdir: Path) -> dict[str, Any]:
-    """{'vi': {...}, 'markers': {...}} for ``ar-tracking bench`` (workdir is unused: nothing is
-    written; kept for the common bench signature)."""
+    """{'vi': {...}, 'markers': {...}} for ``ar-tracking bench``: speed, the corner accuracy
+    on rendered markers (linear and gamma 2.2), and the targets on fresh seeds (written under
+    workdir)."""
     from .vi_metrics import marker_corner_accuracy
 
     vi = bench_imu_updates()
     markers = bench_detect()
     markers.update(marker_corner_accuracy(seed=0, n_poses=24, n_noisy=2))
+    markers['gamma_2_2'] = marker_corner_accuracy(seed=0, n_poses=24, n_noisy=2, display_gamma=2.2)
+    seeds = bench_seeds(workdir / 'seeds')
+    vi['seeds'] = {'spread': {k[3:]: v for k, v in seeds['spread'].items() if k.startswith('vi.')},
+                   'by_seed': {s: {k[3:]: v for k, v in r.items() if k.startswith('vi.')} for s, r in seeds['by_seed'].items()},
+                   'duration_s': seeds['duration_s'], 'command': seeds['command']}
+    markers['seeds'] = {'spread': {k[8:]: v for k, v in seeds['spread'].items() if k.startswith('markers.')},
+                        'by_seed': {s: {k[8:]: v for k, v in r.items() if k.startswith('markers.')} for s, r in seeds['by_seed'].items()}}
     return {'vi': vi, 'markers': markers}

@@ -20,6 +20,7 @@ logger = logging.getLogger(__name__)
 AREA_EVALUATORS: dict[str, str] = {
     'panorama': 'ar_tracking.eval.evaluate:evaluate_panorama_area',
     'vi': 'ar_tracking.eval.vi_metrics:evaluate_vi',
+    'markers': 'ar_tracking.eval.vi_metrics:evaluate_markers',
     'annotations': 'ar_tracking.eval.annotation_metrics:evaluate_annotations',
     'slam': 'ar_tracking.eval.slam_metrics:evaluate_slam',
 }

@@ -16,7 +16,13 @@
   with roll-back, so the two differ in nothing else. The offline runs use the core's default
   noise and the IMU -> camera rotation of /tf_static; the node's own output (``vi.*``) uses
   whatever parameters it ran with;
-* ``vi.by_speed_cm_s.<v>.*``: the same at the robot_arcs cruise speeds (truth speed within 3 %).
+* ``vi.by_speed_cm_s.<v>.*``: the same at the robot_arcs cruise speeds (truth speed within 3 %);
+  ``vi.fast_rotation.*`` while the truth turns faster than FAST_RATE_RAD_S (quick pans);
+  ``vi.coverage``: share of the truth time (after the warm-up) with a fused estimate.
+
+:func:`evaluate_markers` scores ``markers/pose`` alone (camera only, at capture stamps, with its
+coverage and covariance consistency) and the corners of ``markers/detections`` against the
+simulator's ``/ground_truth/marker_corners`` (area ``markers``).
 
 :func:`marker_corner_accuracy` renders markers with exactly known corners and compares the
 seed's refinement with OpenCV's CORNER_REFINE_SUBPIX and with no refinement:
@@ -225,6 +231,7 @@ def evaluate_vi(bag_path: str | Path, offline: bool = True) -> dict[str, Any] | 
     out: dict[str, Any] = {}
     pe, oe, t_f = _errors(data.truth, odom.t_ns, odom.p, odom.R)
     out.update(_summary(pe, oe))
+    out['coverage'] = coverage(data.truth, odom.t_ns, t0)
     series = {'filter': (pe, oe, t_f)}
     if len(data.camera):
         cam = _after_warmup(data.camera, t0)
@@ -255,6 +262,148 @@ def evaluate_vi(bag_path: str | Path, offline: bool = True) -> dict[str, Any] | 
             by_speed[str(int(round(v * 100)))] = entry
     if by_speed:
         out['by_speed_cm_s'] = by_speed
+    fast: dict[str, Any] = {}
+    for key, (perr, oerr, ts) in series.items():
+        sel = _rate_at(data.truth, ts) > FAST_RATE_RAD_S
+        if sel.sum() >= 5:
+            fast[key] = _summary(perr[sel], oerr[sel])
+    if fast:
+        out['fast_rotation'] = fast
+    return out
+
+
+#: Truth angular rate above which a stamp counts as a quick pan (rad/s, ~57 deg/s).
+FAST_RATE_RAD_S = 1.0
+
+
+def _rate_at(truth: PoseSeries, t_ns: NDArray[np.int64]) -> Array:
+    """Truth angular rate (rad/s) at stamps, from consecutive truth orientations."""
+    if len(truth) < 2:
+        return np.zeros(len(t_ns))
+    dt = np.diff(truth.t_ns) * 1e-9
+    rel = Rotation.from_matrix(truth.R[1:] @ np.swapaxes(truth.R[:-1], 1, 2)).magnitude()
+    rate = rel / np.maximum(dt, 1e-9)
+    mid = (truth.t_ns[1:] + truth.t_ns[:-1]) // 2
+    return np.interp(t_ns * 1e-9, mid * 1e-9, rate)
+
+
+def coverage(truth: PoseSeries, t_ns: NDArray[np.int64], start_ns: int, gap_s: float = 0.2) -> float | None:
+    """Share of the truth time after ``start_ns`` that has an estimate no older than ``gap_s``."""
+    span = truth.t_ns[(truth.t_ns >= start_ns)]
+    if len(span) == 0:
+        return None
+    t = np.sort(np.asarray(t_ns, np.int64))
+    j = np.searchsorted(t, span, side='right') - 1
+    ok = (j >= 0) & ((span - t[np.maximum(j, 0)]) <= int(gap_s * 1e9))
+    return round(float(ok.mean()), DECIMALS)
+
+
+# --- markers/pose (camera only) and the corners against the truth ----------------------------
+
+TOPIC_DETECTIONS = '/markers/detections'
+TOPIC_TRUTH_CORNERS = '/ground_truth/marker_corners'
+TOPIC_CAMERA_INFO = '/camera/camera_info'
+
+
+def evaluate_markers(bag_path: str | Path) -> dict[str, Any] | None:
+    """The ``markers`` measures of a runner output bag; None without /markers/pose or truth.
+
+    * ``markers.pose.*``: every markers/pose against the truth at its capture stamp (camera
+      only, no IMU): ``position_rmse_cm``, ``position_max_cm``, ``orientation_rmse_deg``, ``n``;
+      ``coverage`` = poses / camera frames (camera_info stamps, or the truth-corner frames);
+      ``nees_position_median`` (the position error weighed by the pose's own covariance: 3 when
+      the covariance is honest, much more when it claims too much); ``fast_rotation.*`` the
+      same over the frames taken while the camera turned faster than FAST_RATE_RAD_S (pans);
+    * ``markers.corner_bias_px`` (mean offset of the detected corners away from their marker's
+      centre: negative = inward) and ``markers.corner_rmse_px``, against
+      /ground_truth/marker_corners (simulator bags; markers the truth marks as partly occluded
+      are left out and counted in ``corners_occluded_detected``), matched by stamp and ID
+      with the accepted /markers/detections.
+    """
+    with BagReader(bag_path) as bag:
+        topics = bag.topics
+        if TOPIC_POSE not in topics or TOPIC_TRUTH not in topics:
+            return None
+        cols: dict[str, list] = {TOPIC_TRUTH: [[], [], []], TOPIC_POSE: [[], [], [], []]}
+        frames: set[int] = set()
+        truth_frames: set[int] = set()
+        det: dict[tuple[int, int], Array] = {}
+        gt: dict[tuple[int, int], tuple[Array, bool]] = {}
+        wanted = [TOPIC_TRUTH, TOPIC_POSE, TOPIC_DETECTIONS, TOPIC_TRUTH_CORNERS, TOPIC_CAMERA_INFO]
+        for m in bag.messages([t for t in wanted if t in topics]):
+            msg = bag.deserialize(m)
+            if m.topic == TOPIC_CAMERA_INFO:
+                frames.add(stamp_to_ns(msg.header.stamp))
+                continue
+            if m.topic in (TOPIC_DETECTIONS, TOPIC_TRUTH_CORNERS):
+                for mk in msg.markers:
+                    pts = np.array([[p.x, p.y] for p in mk.points[:4]], float)
+                    if len(pts) != 4:
+                        continue
+                    key = (stamp_to_ns(mk.header.stamp), int(mk.id))
+                    if m.topic == TOPIC_DETECTIONS and mk.ns == 'accepted':
+                        det[key] = pts
+                    elif m.topic == TOPIC_TRUTH_CORNERS:
+                        gt[key] = (pts, mk.ns == 'occluded')
+                        truth_frames.add(key[0])
+                continue
+            pose = msg.pose.pose if m.topic == TOPIC_POSE else msg.pose
+            q = _quat(pose.orientation)
+            if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1) > 1e-3:
+                continue
+            c = cols[m.topic]
+            c[0].append(stamp_to_ns(msg.header.stamp))
+            c[1].append([pose.position.x, pose.position.y, pose.position.z])
+            c[2].append(q)
+            if m.topic == TOPIC_POSE:
+                c[3].append(np.asarray(msg.pose.covariance, float))
+    truth = _series(*cols[TOPIC_TRUTH])
+    cam = _series(*cols[TOPIC_POSE][:3], None, cols[TOPIC_POSE][3])
+    if len(truth) < 2:
+        return None
+    out: dict[str, Any] = {}
+    pose: dict[str, Any] = {}
+    if len(cam):
+        pe, oe, t_in = _errors(truth, cam.t_ns, cam.p, cam.R)
+        pose.update(_summary(pe, oe))
+        n_frames = len(frames) or len(truth_frames)
+        pose['coverage'] = round(len(cam) / n_frames, DECIMALS) if n_frames else None
+        pt, _, inside = truth_at(truth, cam.t_ns)
+        nees = []
+        assert cam.cov is not None
+        for e, c in zip(cam.p[inside] - pt, cam.cov[inside]):
+            P = c[:3, :3]
+            if c[0, 0] > 0 and np.all(np.isfinite(P)):
+                try:
+                    nees.append(float(e @ np.linalg.solve(P, e)))
+                except np.linalg.LinAlgError:
+                    continue
+        pose['nees_position_median'] = round(float(np.median(nees)), DECIMALS) if nees else None
+        sel = _rate_at(truth, t_in) > FAST_RATE_RAD_S
+        if sel.sum():
+            pose['fast_rotation'] = _summary(pe[sel], oe[sel])
+    else:
+        pose.update(_summary(np.zeros(0), np.zeros(0)))
+        pose['coverage'] = 0.0
+    out['pose'] = pose
+    if gt:
+        offsets, errs, occluded = [], [], 0
+        for key, pts in det.items():
+            if key not in gt:
+                continue
+            g, occ = gt[key]
+            if occ:
+                occluded += 1
+                continue
+            out_dir = (g - g.mean(0)) / np.linalg.norm(g - g.mean(0), axis=1, keepdims=True)
+            offsets.append(float(np.mean(np.sum((pts - g) * out_dir, axis=1))))
+            errs.append(pts - g)
+        if errs:
+            e = np.concatenate(errs)
+            out['corner_bias_px'] = round(float(np.mean(offsets)), DECIMALS)
+            out['corner_rmse_px'] = round(float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))), DECIMALS)
+            out['corners_markers'] = len(offsets)
+            out['corners_occluded_detected'] = occluded
     return out
 
 
