@@ -189,6 +189,19 @@ def run_offline(data: ViData, rollback: bool, config: FusionConfig | None = None
 
         cfg = replace(cfg, rollback=rollback)
     fusion = RollbackFusion(cfg)
+    if not rollback:  # applied on arrival, the filter re-initialises often: that is the point, not news
+        quiet = logging.getLogger('ar_tracking.core.vio.rollback')
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)
+        try:
+            return _run_events(data, fusion)
+        finally:
+            quiet.setLevel(level)
+    return _run_events(data, fusion)
+
+
+def _run_events(data: ViData, fusion: RollbackFusion) -> PoseSeries:
+    """Feed the bag's IMU samples and camera poses (in arrival order) to a fusion core."""
     cam = data.camera
     assert cam.log_ns is not None and cam.cov is not None
     events = sorted([(int(t), 0, i) for i, t in enumerate(data.imu_t)]

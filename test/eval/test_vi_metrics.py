@@ -9,7 +9,8 @@ import yaml
 
 pytest.importorskip('rclpy')
 
-from ar_tracking.eval.vi_metrics import evaluate_vi  # noqa: E402
+from ar_tracking.eval.evaluate import evaluate_all  # noqa: E402
+from ar_tracking.eval.vi_metrics import evaluate_markers, evaluate_vi  # noqa: E402
 from ar_tracking.nodes.marker_tracker import MarkerTrackerNode  # noqa: E402
 from ar_tracking.nodes.visual_inertial_filter import VisualInertialFilterNode  # noqa: E402
 from ar_tracking.ros.runner import GraphRunner  # noqa: E402
@@ -55,7 +56,7 @@ def test_no_odometry_gives_none(runs):
 
 
 @pytest.fixture(scope='module')
-def mount_runs(tmp_path_factory) -> tuple[dict, dict]:
+def mount_runs(tmp_path_factory) -> tuple[dict, dict, Path]:
     """The same hard bag twice: the mount only on /tf_static (the sidecar has no mount), and
     without /tf_static with the mount in the parameters."""
     d = tmp_path_factory.mktemp('vi_mount')
@@ -73,14 +74,29 @@ def mount_runs(tmp_path_factory) -> tuple[dict, dict]:
         res = GraphRunner(bag, d / f'{name}.out.mcap', params_files=[params], graph=GRAPH).run()
         assert res.lost_deliveries == 0
         out[name] = evaluate_vi(d / f'{name}.out.mcap')
-    return out['tf'], out['par']
+    return out['tf'], out['par'], d / 'tf.out.mcap'
 
 
 def test_mount_from_tf_static_equals_mount_from_parameters(mount_runs):
-    tf, par = mount_runs
+    tf, par, _ = mount_runs
     assert tf is not None and par is not None and tf['n'] > 300
     for key in ('position_rmse_cm', 'orientation_rmse_deg'):
         assert tf[key] == pytest.approx(par[key], rel=0.10), key
     # and the figures are those of a working filter (a mount ignored gives ~1 m, ~9 deg)
     assert tf['position_rmse_cm'] < 1.5 and tf['orientation_rmse_deg'] < 0.2
     assert tf['position_rmse_cm'] < tf['camera_only']['position_rmse_cm']
+
+
+def test_evaluate_scores_markers_camera_only_and_the_corners(mount_runs):
+    tf, _, out = mount_runs
+    m = evaluate_markers(out)
+    assert m is not None
+    pose = m['pose']
+    # Camera only at capture stamps; the first image is not lost (its camera_info comes just after it).
+    assert pose['n'] >= 0.85 * 5.0 * 20 and 0.85 <= pose['coverage'] <= 1.0
+    assert pose['position_rmse_cm'] < 1.5 and pose['orientation_rmse_deg'] < 0.3
+    assert pose['position_rmse_cm'] > tf['position_rmse_cm']            # the IMU helps
+    assert 0.05 < pose['nees_position_median'] < 6.0                    # an honest covariance
+    assert abs(m['corner_bias_px']) < 0.05 and m['corner_rmse_px'] < 0.2   # gamma undone
+    assert m['corners_markers'] > 100
+    assert 'markers' in evaluate_all(out, reference=False)
