@@ -360,18 +360,19 @@ def evaluate_markers(bag_path: str | Path) -> dict[str, Any] | None:
                         gt[key] = (pts, mk.ns == 'occluded')
                         truth_frames.add(key[0])
                 continue
-            pose = msg.pose.pose if m.topic == TOPIC_POSE else msg.pose
-            q = _quat(pose.orientation)
+            pm = msg.pose.pose if m.topic == TOPIC_POSE else msg.pose
+            q = _quat(pm.orientation)
             if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1) > 1e-3:
                 continue
             c = cols[m.topic]
             c[0].append(stamp_to_ns(msg.header.stamp))
-            c[1].append([pose.position.x, pose.position.y, pose.position.z])
+            c[1].append([pm.position.x, pm.position.y, pm.position.z])
             c[2].append(q)
             if m.topic == TOPIC_POSE:
                 c[3].append(np.asarray(msg.pose.covariance, float))
-    truth = _series(*cols[TOPIC_TRUTH])
-    cam = _series(*cols[TOPIC_POSE][:3], None, cols[TOPIC_POSE][3])
+    tc, pc = cols[TOPIC_TRUTH], cols[TOPIC_POSE]
+    truth = _series(tc[0], tc[1], tc[2])
+    cam = _series(pc[0], pc[1], pc[2], None, pc[3])
     if len(truth) < 2:
         return None
     out: dict[str, Any] = {}

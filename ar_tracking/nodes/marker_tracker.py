@@ -36,7 +36,13 @@ from ..core.markers import MarkerError
 from ..core.markers.detection import REFINEMENTS, MarkerDetector
 from ..core.markers.lens_model import LENS_KINDS, LensModel
 from ..core.markers.pose import MarkerMap, estimate_camera_pose
-from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns
+from ..ros.conversions import (
+    ConversionError,
+    compressed_to_gray_u8,
+    image_to_gray_u8,
+    set_quaternion,
+    stamp_ns,
+)
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, transform_stamped

@@ -40,9 +40,14 @@ from ..ros.conversions import (
     to_stamp,
     vector3,
 )
-from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.node_base import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    TrackingNode,
+    run_node,
+)
 from ..ros.stamp_guard import StampGuard, StampVerdict
-
 
 #: /tf_static and the parameters disagree enough for a warning (rotation rad, lever arm m).
 _MOUNT_WARN_RAD = np.radians(1.0)

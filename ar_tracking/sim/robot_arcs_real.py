@@ -34,8 +34,9 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -183,7 +184,7 @@ def _canvas(width: int, height: int) -> tuple[Array, list[tuple[NDArray[np.float
     f = K[0, 0] * CANVAS_SCALE
     lo = allnorm.min(0) * f - 4
     hi = allnorm.max(0) * f + 4
-    size = (int(math.ceil(hi[0] - lo[0])), int(math.ceil(hi[1] - lo[1])))
+    size = (math.ceil(hi[0] - lo[0]), math.ceil(hi[1] - lo[1]))
     Kc = np.array([[f, 0, -lo[0]], [0, f, -lo[1]], [0, 0, 1.0]])
     maps = [((n[:, 0] * f - lo[0]).reshape(height, width).astype(np.float32),
              (n[:, 1] * f - lo[1]).reshape(height, width).astype(np.float32)) for n in norms]
@@ -227,7 +228,7 @@ def render_real_frame(cam: RealCamera, sched: ra.ArcSchedule, t_s: float, marker
     Kc, maps, size, vig = _canvas(cam.width, cam.height)
     mid = truth_at(sched, np.array([t_s]))
     blur = blur_length_px(mid, 0, cam.K[0, 0])
-    n_sub = int(np.clip(math.ceil(blur / 1.2) + 1, 1, 24)) if blur > 0.3 else 1
+    n_sub = min(max(math.ceil(blur / 1.2) + 1, 1), 24) if blur > 0.3 else 1
     ts = t_s + (np.arange(n_sub) + 0.5) / n_sub * EXPOSURE_S - EXPOSURE_S / 2 if n_sub > 1 else np.array([t_s])
     tr = truth_at(sched, ts)
     acc = np.zeros((cam.height, cam.width), np.float32)
@@ -293,9 +294,9 @@ def write_bag(bag: Any, seed: int, duration_s: float, image_format: str,
     cam = RealCamera()
     sched = ra.ArcSchedule.make(duration_s, speeds)
     mapped, unknown = ra.wall_markers()
-    dur_ns = int(round(duration_s * 1e9))
+    dur_ns = round(duration_s * 1e9)
     imu_ns = np.arange(0, dur_ns, 1_000_000_000 // ra.IMU_RATE_HZ, dtype=np.int64)
-    n_cam = int(math.ceil(dur_ns * CAMERA_RATE_HZ / 1e9))
+    n_cam = math.ceil(dur_ns * CAMERA_RATE_HZ / 1e9)
     cam_ns = (np.arange(n_cam, dtype=np.int64) * 1_000_000_000) // CAMERA_RATE_HZ + 5_000_000
     truth = truth_at(sched, imu_ns * 1e-9)
     err = ra.make_imu_errors(seed)
@@ -332,7 +333,7 @@ def write_bag(bag: Any, seed: int, duration_s: float, image_format: str,
                 header=m.header(stamp, ra.FRAME_CAMERA), height=cam.height, width=cam.width,
                 encoding='mono8', is_bigendian=0, step=cam.width, data=img.reshape(-1)))
         else:
-            ok, buf = cv2.imencode('.png', img)
+            _, buf = cv2.imencode('.png', img)
             bag.write('/camera/image_raw/compressed', log, msg_class('sensor_msgs/msg/CompressedImage')(
                 header=m.header(stamp, ra.FRAME_CAMERA), format='png', data=buf.reshape(-1)))
         info = msg_class('sensor_msgs/msg/CameraInfo')(

@@ -126,7 +126,7 @@ def test_image_waits_for_the_camera_info_of_its_stamp(ros_context):
             h.image(img, t)
             assert len(h.poses) == k                  # waiting for its camera_info
             h.info(stamp_ns=t)
-            assert spin_until(h.ex, lambda: len(h.poses) == k + 1, 3.0)
+            assert spin_until(h.ex, lambda k=k: len(h.poses) == k + 1, 3.0)
             assert stamp_ns(h.poses[-1].header) == t
         h.image(img, T0 + 150_000_000)                # its camera_info is lost
         h.image(img, T0 + 200_000_000)

@@ -67,7 +67,7 @@ def test_hard_profile_motion_pans_and_lever_arm_physics():
     err = np.linalg.norm(a_num - tr.imu_accel, axis=1)[10:-10]
     assert np.percentile(err, 99.5) < 0.05        # (a pan starts with a step in angular acceleration)
     assert np.abs(tr.imu_accel - tr.cam.accel).max() > 1.0       # the pans swing the IMU around
-    gyro, accel = rr.simulate_imu(tr, ra.make_imu_errors(1), 1)
+    _, accel = rr.simulate_imu(tr, ra.make_imu_errors(1), 1)
     still = (tr.cam.speed_m_s == 0) & (rate == 0)
     assert abs(np.linalg.norm(accel[still], axis=1).mean() - 9.80665) < 0.1
 
@@ -79,7 +79,7 @@ def test_hard_profile_bag_distortion_gamma_mount_and_truth_corners(tmp_path):
     assert 'imu_to_camera_xyzw' not in vi and 'camera_in_imu_m' not in vi   # the mount is on /tf_static only
     assert side['marker_tracker']['ros__parameters']['marker_print_contrast'] == ra.WHITE / ra.BLACK
     with BagReader(a) as bag:
-        tf = [bag.deserialize(m) for m in bag.messages(['/tf_static'])][0].transforms[0]
+        tf = next(bag.deserialize(m) for m in bag.messages(['/tf_static'])).transforms[0]
         infos = [(m.log_time_ns, bag.deserialize(m)) for m in bag.messages(['/camera/camera_info'])]
         imgs = [(m.log_time_ns, bag.deserialize(m)) for m in bag.messages(['/camera/image_raw'])]
         corners = [bag.deserialize(m) for m in bag.messages([rr.TOPIC_CORNERS])]

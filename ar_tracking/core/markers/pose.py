@@ -161,9 +161,10 @@ def estimate_camera_pose(observations: Sequence[MarkerObservation], marker_map: 
         ok, rvec, tvec = cv2.solvePnP(X, x, K, None, flags=cv2.SOLVEPNP_SQPNP)
         if not ok:
             return None
-    rvec, tvec = cv2.solvePnPRefineLM(X, x, K, None, rvec.copy(), tvec.copy(),
-                                      (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-12))
-    rvec, tvec = rvec.reshape(3, 1).astype(np.float64), tvec.reshape(3, 1).astype(np.float64)
+    rvec_lm, tvec_lm = cv2.solvePnPRefineLM(X, x, K, None, rvec.copy(), tvec.copy(),
+                                            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-12))
+    rvec = np.asarray(rvec_lm, dtype=np.float64).reshape(3, 1)
+    tvec = np.asarray(tvec_lm, dtype=np.float64).reshape(3, 1)
     for _ in range(3):  # weighted Gauss-Newton: the corners count by their own sigma
         proj, J = cv2.projectPoints(X, rvec, tvec, K, None)
         res = (proj.reshape(-1, 2) - x).ravel()
@@ -179,16 +180,13 @@ def estimate_camera_pose(observations: Sequence[MarkerObservation], marker_map: 
         if np.abs(step).max() < 1e-12:
             break
     proj, J = cv2.projectPoints(X, rvec, tvec, K, None)
-    res2 = proj.reshape(-1, 2) - x
-    res = res2.ravel()
-    n_obs = res.size
+    res = proj.reshape(-1, 2) - x
     J6 = J[:, :6]
-    chi2_dof = float(np.sum(w * res ** 2) / max(n_obs - 6, 1))
+    chi2_dof = float(np.sum(w * res.ravel() ** 2) / max(res.size - 6, 1))
     try:
         cov_rt = max(1.0, chi2_dof) * np.linalg.inv(J6.T @ (J6 * w[:, None]))
     except np.linalg.LinAlgError:
         return None
-    res = res2
     R_map_cam, p_map_cam = _camera_from_rt(rvec, tvec)
     # Propagate to (p, dtheta) of the camera in the map frame by a numeric Jacobian.
     F = np.zeros((6, 6))
