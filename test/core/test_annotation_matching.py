@@ -495,15 +495,40 @@ def test_alignment_far_from_the_prior_needs_strong_support():
     assert run(math.radians(3.0), 10).supported  # within 3 sigma of an honest, wide prior
 
 
+def _flags(case, annotations_at):
+    """Landmark flags: every patch is a landmark except those nearest the target columns given."""
+    keep = {int(np.argmin(GEO.column_distance(case.truth_uv[:, 0], u))) for u in annotations_at}
+    return [k not in keep for k in range(len(case.patches))], sorted(keep)
+
+
 def test_inferred_label_far_from_every_match_is_not_supported():
     case = make_case(seed=3, n=10)  # an anchor at u = 690, its neighbours at 368 and 1004
     tiles = tiles_of(case.mapped)
     tiles[:, 8:14] = 0  # columns 512-895 of the browsing map not finished
-    al = _run(ReDetector(case.patches, case.dirs, ['p'] * 10, MatchConfig(sensor_prior=False, guided_search=False)),
-              case, tiles)
-    assert al.supported
-    matched_u = np.array([p.u for p in al.placements if p.status == 'matched'])
-    far = [p for p in al.placements if p.status == 'inferred'
-           and np.min(GEO.column_distance(matched_u, p.u)) > MatchConfig().local_support_px]
-    assert far and not any(p.supported for p in far)
-    assert all(p.supported for p in al.placements if p.status == 'matched')
+    flags, _ = _flags(case, (690.0, 1004.0))
+    det = ReDetector(case.patches, case.dirs, ['p'] * 10,
+                     MatchConfig(sensor_prior=False, guided_search=False, local_support_matched=False), landmark=flags)
+    al = _run(det, case, tiles)
+    assert al.supported and len(al.placements) == 2
+    far = [p for p in al.placements if abs(p.u - 690) < 20]
+    near = [p for p in al.placements if abs(p.u - 1004) < 20]
+    assert far[0].status == 'inferred' and not far[0].supported
+    assert near[0].status == 'matched' and near[0].supported
+    no_landmarks = _run(ReDetector(case.patches, case.dirs, ['p'] * 10,
+                                   MatchConfig(sensor_prior=False, guided_search=False)), case, tiles)
+    assert all(p.supported for p in no_landmarks.placements)  # too sparse for the local test
+
+
+def test_isolated_match_is_only_approximate_with_local_support_matched():
+    """An annotation matched far from every other match is shown as placed only when matched
+    labels are exempt from the local test (local_support_matched false)."""
+    case = make_case(seed=3, n=10)  # the anchor at u = 690 has its neighbours at 368 and 1004
+    tiles = tiles_of(case.mapped)
+    tiles[:, 6:9] = 0  # columns 384-575 (the left neighbour's side) not finished
+    tiles[:, 12:15] = 0  # nor 768-959: 690's tile (10) is finished, nothing within 171 px of it
+    flags, _ = _flags(case, (690.0,))
+    for strict in (True, False):
+        cfg = MatchConfig(sensor_prior=False, guided_search=False, local_support_matched=strict)
+        al = _run(ReDetector(case.patches, case.dirs, ['p'] * 10, cfg, landmark=flags), case, tiles)
+        assert al.supported and len(al.placements) == 1 and al.placements[0].status == 'matched'
+        assert al.placements[0].supported is (not strict)

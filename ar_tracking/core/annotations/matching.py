@@ -173,9 +173,13 @@ class MatchConfig:
     #: ``local_support_matches`` matched annotations/landmarks within ``local_support_px`` columns
     #: of it: early on, with the matches all in the first finished tiles, the heading and the
     #: parallax fitted there are extrapolated to the far side of the panorama (1-3 deg off on the
-    #: sample bag for the first seconds).
+    #: sample bag for the first seconds). The local tests apply to source panoramas with
+    #: landmarks only (a handful of annotations alone is too sparse for them).
     local_support_matches: int = 2
     local_support_px: float = 171.0
+    #: Matched labels too need ``local_support_matches`` other matches within ``local_support_px``
+    #: (an isolated look-alike is then only approximate).
+    local_support_matched: bool = True
     seed: int = 0
 
 
@@ -1045,9 +1049,15 @@ class ReDetector:
         al.support_reason = ''
         matched = [p for p in al.placements + al.landmarks if p.status == 'matched']
         mu = np.array([p.u for p in matched])
+        local = bool(self.landmark[ids].any())  # the local tests need landmarks' density
         for p in al.placements:
             near = int(np.sum(self.geometry.column_distance(mu, p.u) <= cfg.local_support_px)) if len(mu) else 0
-            p.supported = p.status == 'matched' or near >= cfg.local_support_matches
+            if not local:
+                p.supported = True
+            elif p.status == 'matched':
+                p.supported = not cfg.local_support_matched or near - 1 >= cfg.local_support_matches
+            else:
+                p.supported = near >= cfg.local_support_matches
 
     def _up(self) -> Array | None:
         """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
