@@ -286,7 +286,7 @@ def bench_annotations(fig7_spots: int = 30, duration_s: float = 30.0, fig7_first
 # -- the whole browsing graph on fresh simulated spots ---------------------------------------
 
 def bench_graph_spots(spots: int = 6, first_seed: int = 341, duration_s: float = 30.0,
-                      workdir: str | None = None) -> dict[str, Any]:
+                      workdir: str | None = None, matcher_params: dict[str, Any] | None = None) -> dict[str, Any]:
     """What a user sees, end to end, on ``spots`` fresh simulated spots: per seed an authoring
     and a browsing bag made independently (``make_bag``; browsing 0.4-1.5 m away under the
     changed lighting, 'hard' sensor profile), ``annotate`` with the estimated orientation (the
@@ -294,7 +294,9 @@ def bench_graph_spots(spots: int = 6, first_seed: int = 341, duration_s: float =
     graph (imu_magnetometer, panorama_mapper, hybrid_orientation_filter, annotation_matcher) in
     lockstep on the browsing bag, and :func:`evaluate_annotations` on its output. Pooled
     ``redetection_rate`` / ``wrong_rate`` (final placements), ``wrong_label_time_share`` (pooled
-    label-time), ``time_to_first_s`` median and max, and the per-spot rows. Needs rclpy."""
+    label-time), ``time_to_first_s`` median and max, and the per-spot rows. ``matcher_params``:
+    annotation_matcher parameters besides the store (e.g. ``{'local_support_deg': 60.0}``).
+    Needs rclpy."""
     import tempfile
     from pathlib import Path
 
@@ -318,7 +320,8 @@ def bench_graph_spots(spots: int = 6, first_seed: int = 341, duration_s: float =
         store.unlink(missing_ok=True)
         rep = annotate_bag(auth, store, positions=simulated_user_positions(auth))
         params = root / f'{seed}_store.yaml'
-        params.write_text(yaml.safe_dump({'annotation_matcher': {'ros__parameters': {'store_path': str(store)}}}))
+        params.write_text(yaml.safe_dump({'annotation_matcher': {'ros__parameters': {
+            'store_path': str(store), **(matcher_params or {})}}}))
         out = root / f'{seed}_out.mcap'
         GraphRunner(browse, out, params_files=[browse.with_name(browse.stem + '.params.yaml'), params],
                     nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter',
