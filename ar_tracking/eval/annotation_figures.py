@@ -73,3 +73,47 @@ def annotation_figure(out_bag: str | Path, png: str | Path, overlay_frames: int 
     fig.savefig(png, dpi=80)
     plt.close(fig)
     return png
+
+
+def label_timeline(out_bag: str | Path, png: str | Path, correct_deg: float = 1.0) -> Path | None:
+    """What a user saw, label by label (one row each) over the bag's time since the first
+    panorama frame: green placed within ``correct_deg`` of the truth, red placed further off,
+    grey shown as approximate, blank not shown; the wrong share of the label-time in the title.
+    None when the bag has no markers or no truth to score them."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from .annotation_metrics import CONFIDENT_NS
+    from .annotation_metrics import label_timeline as timeline_data
+
+    got = timeline_data(out_bag)
+    if got is None:
+        return None
+    t0, t_end, labels, spans = got
+    colours = {'right': (0.16, 0.75, 0.25), 'wrong': (0.85, 0.15, 0.15), 'approximate': (0.7, 0.7, 0.7)}
+    fig, ax = plt.subplots(figsize=(9.0, 0.45 * len(labels) + 1.4))
+    shown = wrong = 0.0
+    for row, label in enumerate(labels):
+        for a, b, states in spans:
+            if label not in states or b <= a:
+                continue
+            err, ns = states[label]
+            kind = 'approximate' if ns not in CONFIDENT_NS else ('right' if err <= correct_deg else 'wrong')
+            if kind != 'approximate':
+                shown += (b - a) * 1e-9
+                wrong += (b - a) * 1e-9 if kind == 'wrong' else 0.0
+            ax.broken_barh([((a - t0) * 1e-9, (b - a) * 1e-9)], (row - 0.35, 0.7), color=colours[kind])
+    ax.set_yticks(range(len(labels)), [lab[:28] for lab in labels], fontsize=7)
+    ax.set_xlim(0.0, max((t_end - t0) * 1e-9, 1e-3))
+    ax.set_xlabel('time since the first panorama frame, s (header stamps)')
+    share = f'{wrong / shown:.3f}' if shown > 0 else 'n/a'
+    ax.set_title(f'labels shown: green within {correct_deg:g} deg, red further off, grey approximate '
+                 f'(wrong label-time share {share})', fontsize=8)
+    ax.invert_yaxis()
+    fig.tight_layout()
+    png = Path(png)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return png

@@ -88,9 +88,9 @@ def _anchors(bag: BagReader) -> tuple[list[str], np.ndarray]:
     return labels, pos.reshape(-1, 3)
 
 
-def evaluate_annotations(path: str | Path, correct_deg: float = CORRECT_DEG) -> dict[str, Any] | None:
-    """The measures of the module docstring, or None when the bag has no annotation markers or
-    no ground truth to score them."""
+def _scored_arrays(path: str | Path) -> tuple[int, int, dict[str, np.ndarray], list[tuple[int, Any]]] | None:
+    """(first and last panorama stamp, truth direction per label in the browsing panorama frame,
+    the marker arrays sorted by stamp), or None without what scoring needs."""
     with BagReader(path) as bag:
         topics = bag.topics
         if TOPIC_MARKERS not in topics or not {TOPIC_GT, TOPIC_GT_ANN, TOPIC_PANO} <= set(topics):
@@ -112,25 +112,52 @@ def evaluate_annotations(path: str | Path, correct_deg: float = CORRECT_DEG) -> 
     for label, p in zip(labels, positions):
         d = np.asarray(p, float) - spot
         truth[label] = R_enu_pano.T @ (d / np.linalg.norm(d))
-    t0, t_end = pano[0][0], pano[-1][0]
+    stamped = sorted(((_ns(m.markers[0].header), m) for m in arrays if m.markers), key=lambda x: x[0])
+    return pano[0][0], pano[-1][0], truth, stamped
+
+
+def label_states(msg: Any, truth: dict[str, np.ndarray]) -> dict[str, tuple[float, str]]:
+    """label -> (error in deg, namespace) of every ADD marker of one array whose text is a true
+    label (approximate ones included)."""
+    out = {}
+    for mk in msg.markers:
+        if mk.action != 0 or mk.text not in truth:
+            continue
+        d = np.array([mk.pose.position.x, mk.pose.position.y, mk.pose.position.z])
+        n = np.linalg.norm(d)
+        if not np.isfinite(n) or n == 0:
+            continue
+        out[mk.text] = (float(np.degrees(np.arccos(np.clip(d / n @ truth[mk.text], -1.0, 1.0)))), mk.ns)
+    return out
+
+
+def label_timeline(path: str | Path) -> tuple[int, int, list[str], list[tuple[int, int, dict[str, tuple[float, str]]]]] | None:
+    """(first panorama stamp, last, the true labels, [(from, to, label -> (error deg, ns))]): what
+    was on screen when (each array until the next one, the last until the last panorama frame)."""
+    got = _scored_arrays(path)
+    if got is None:
+        return None
+    t0, t_end, truth, stamped = got
+    spans = []
+    for k, (t, msg) in enumerate(stamped):
+        t_next = stamped[k + 1][0] if k + 1 < len(stamped) else max(t_end, t)
+        spans.append((t, t_next, label_states(msg, truth)))
+    return t0, t_end, sorted(truth), spans
+
+
+def evaluate_annotations(path: str | Path, correct_deg: float = CORRECT_DEG) -> dict[str, Any] | None:
+    """The measures of the module docstring, or None when the bag has no annotation markers or
+    no ground truth to score them."""
+    got = _scored_arrays(path)
+    if got is None:
+        return None
+    t0, t_end, truth, stamped = got
 
     def placements(msg: Any) -> tuple[dict[str, tuple[float, str]], int]:
-        out, approx = {}, 0
-        for mk in msg.markers:
-            if mk.action != 0 or mk.text not in truth:
-                continue
-            if mk.ns not in CONFIDENT_NS:
-                approx += 1
-                continue
-            d = np.array([mk.pose.position.x, mk.pose.position.y, mk.pose.position.z])
-            n = np.linalg.norm(d)
-            if not np.isfinite(n) or n == 0:
-                continue
-            err = float(np.degrees(np.arccos(np.clip(d / n @ truth[mk.text], -1.0, 1.0))))
-            out[mk.text] = (err, mk.ns)
-        return out, approx
+        states = label_states(msg, truth)
+        shown = {k: v for k, v in states.items() if v[1] in CONFIDENT_NS}
+        return shown, len(states) - len(shown)
 
-    stamped = sorted(((_ns(m.markers[0].header), m) for m in arrays if m.markers), key=lambda x: x[0])
     first = None
     shown_s = wrong_s = 0.0
     for k, (t, msg) in enumerate(stamped):

@@ -85,3 +85,16 @@ def test_approximate_labels_are_not_placements(tmp_path):
     m = evaluate_annotations(write(tmp_path / 'a.mcap', [{'door': unit(POS[0])}], ns='approximate'))
     assert m['placed'] == 0 and m['approximate'] == 1 and m['redetection_rate'] == 0.0
     assert m['wrong_label_time_share'] is None and m['time_to_first_s'] is None
+
+
+def test_label_timeline_figure(tmp_path):
+    from ar_tracking.eval.annotation_figures import label_timeline
+    from ar_tracking.eval.annotation_metrics import label_timeline as data
+
+    off = rot_z(np.radians(2.0))
+    bag = write(tmp_path / 't.mcap', [{'door': unit(off @ POS[0])}, {'door': unit(POS[0]), 'sign': unit(POS[1])}])
+    t0, t_end, labels, spans = data(bag)
+    assert labels == sorted(LABELS) and len(spans) == 2 and spans[0][2]['door'][0] > 1.9
+    png = label_timeline(bag, tmp_path / 't.png')
+    assert png is not None and png.stat().st_size > 5_000
+    assert label_timeline(write(tmp_path / 'e.mcap', []), tmp_path / 'e.png') is None  # no markers: no figure
