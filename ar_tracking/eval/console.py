@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 #: Areas in the order they are shown; the names are DESIGN sec. 8's.
-AREAS = ('orientation', 'panorama', 'annotations', 'slam', 'vi')
+AREAS = ('orientation', 'panorama', 'annotations', 'slam', 'markers', 'vi')
 
 #: What a reader calls each orientation estimate (the JSON keys stay the topic names).
 ESTIMATE_NAMES: dict[str, str] = {
@@ -224,9 +224,26 @@ def vi_rows(area: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def marker_rows(area: dict[str, Any]) -> list[Row]:
+    """Marker poses from the camera alone and corner accuracy (issue #23)."""
+    rows = [
+        _row('camera-only position RMSE', _get(area, 'pose.position_rmse_cm'), 'cm', 3, '<=', 0.35, '#23'),
+        _row('camera-only orientation RMSE', _get(area, 'pose.orientation_rmse_deg'), 'deg', 3),
+        _row('coverage (poses / frames)', _get(area, 'pose.coverage'), '', 2),
+        _row('position NEES median (3 = honest)', _get(area, 'pose.nees_position_median'), '', 2),
+        _row('quick pans: position max', _get(area, 'pose.fast_rotation.position_max_cm'), 'cm', 2),
+    ]
+    bias = _num(area.get('corner_bias_px'))
+    if bias is not None:
+        rows.append(Row('corner bias (outward +)', _fmt(bias, 'px', 3), '|bias| <= 0.05 px (#23)',
+                        _verdict(abs(bias), '<=', 0.05)))
+        rows.append(_row('corner RMSE', area.get('corner_rmse_px'), 'px', 3))
+    return rows
+
+
 AREA_ROWS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     'orientation': orientation_rows, 'panorama': panorama_rows, 'annotations': annotation_rows,
-    'slam': slam_rows, 'vi': vi_rows,
+    'slam': slam_rows, 'markers': marker_rows, 'vi': vi_rows,
 }
 
 AREA_TITLES = {
@@ -234,6 +251,7 @@ AREA_TITLES = {
     'panorama': 'panorama (panorama_mapper, against ground_truth/orientation)',
     'annotations': 'annotations (annotation_matcher, against ground_truth/annotations)',
     'slam': 'slam (keyframe_slam_mapper, Sim(3)-aligned to ground_truth/pose)',
+    'markers': 'markers (marker_tracker, camera only, against ground_truth/pose)',
     'vi': 'vi (visual_inertial_filter, against ground_truth/pose)',
 }
 
@@ -274,6 +292,7 @@ _PRODUCERS = {
     'annotations': ('/annotations/markers',
                     'annotation_matcher (needs a store: --params-file with annotation_matcher store_path)'),
     'slam': ('/slam/pose', 'keyframe_slam_mapper (ar-tracking run --graph slam)'),
+    'markers': ('/markers/pose', 'marker_tracker (ar-tracking run --graph markers)'),
     'vi': ('/vi/odometry', 'visual_inertial_filter (ar-tracking run --graph markers)'),
 }
 _TRUTH = {
@@ -281,6 +300,7 @@ _TRUTH = {
     'panorama': ('/ground_truth/orientation',),
     'annotations': ('/ground_truth/annotations', '/ground_truth/orientation'),
     'slam': ('/ground_truth/pose',),
+    'markers': ('/ground_truth/pose',),
     'vi': ('/ground_truth/pose',),
 }
 
@@ -312,14 +332,14 @@ def unscored_areas(metrics: dict[str, Any], bag: str | Path | None = None,
         if area == 'orientation':
             if not any(isinstance(v, dict) and v.get('n') for v in values.values()):
                 out.append((area, 'no estimate could be scored (see the rows above)'))
-        elif key is not None and _num(values.get(key)) is None:
+        elif key is not None and _num(_get(values, key)) is None:
             out.append((area, f'{key} not scored: ' + _why(area, have, values)))
     return out
 
 
 #: The figure without which an area counts as not scored although it has a table.
 _KEY_FIGURE = {'panorama': 'tracking_rmse_deg', 'slam': 'ate_rmse_m', 'annotations': 'redetection_rate',
-               'vi': 'position_rmse_cm'}
+               'vi': 'position_rmse_cm', 'markers': 'pose.position_rmse_cm'}
 
 
 def _why(area: str, have: set[str], values: Any) -> str:

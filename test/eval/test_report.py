@@ -215,6 +215,7 @@ def test_console_table_for_every_area_with_targets() -> None:
         'annotations': {'redetection_rate': 0.96, 'wrong_rate': 0.04, 'time_to_first_s': 1.0, 'n': 6, 'placed': 6},
         'slam': {'tracked_ratio': 0.9, 'ate_rmse_m': 0.002, 'ate_ratio': 0.0004, 'path_length_m': 5.0},
         'vi': {'position_rmse_cm': 0.15, 'orientation_rmse_deg': 0.08, 'camera_only': {'position_rmse_cm': 3.0}},
+        'markers': {'pose': {'position_rmse_cm': 0.47, 'coverage': 0.94}, 'corner_bias_px': -0.08},
     }
     text = format_console(metrics, topics=[])
     lines = text.splitlines()
@@ -222,7 +223,7 @@ def test_console_table_for_every_area_with_targets() -> None:
     def line(start: str) -> str:
         return next(x for x in lines if x.strip().startswith(start))
 
-    for title in ('orientation (', 'panorama (', 'annotations (', 'slam (', 'vi ('):
+    for title in ('orientation (', 'panorama (', 'annotations (', 'slam (', 'markers (', 'vi ('):
         assert any(x.startswith(title) for x in lines), title
     assert 'not scored:' not in text
     assert line('hybrid heading RMSE ').endswith('target <= 1 deg (#16): NOT met')
@@ -234,6 +235,8 @@ def test_console_table_for_every_area_with_targets() -> None:
     assert line('tracked frames').endswith('NOT met') and line('ATE / path length').endswith(': met')
     assert line('fused position RMSE').endswith(': met') and line('fused orientation RMSE').endswith('NOT met')
     assert line('fused vs camera-only hold').endswith(': met')
+    assert line('camera-only position RMSE').endswith('NOT met')
+    assert '-0.080 px' in line('corner bias') and line('corner bias').endswith('NOT met')  # |-0.08| > 0.05
 
 
 def test_console_says_which_areas_are_not_scored_and_why() -> None:
@@ -242,7 +245,8 @@ def test_console_says_which_areas_are_not_scored_and_why() -> None:
     metrics = {'slam': {'tracked_ratio': 0.0, 'ate_rmse_m': None, 'keyframes': 0, 'frames': 50}}
     topics = ['/camera/image_raw', '/slam/pose', '/slam/keyframes']
     why = dict(unscored_areas(metrics, topics=topics))
-    assert set(why) == {'orientation', 'panorama', 'annotations', 'slam', 'vi'}
+    assert set(why) == {'orientation', 'panorama', 'annotations', 'slam', 'markers', 'vi'}
+    assert 'marker_tracker' in why['markers']
     assert '/ground_truth/orientation' in why['orientation']
     assert 'panorama_mapper' in why['panorama'] and 'annotation_matcher' in why['annotations']
     assert '/ground_truth/pose' in why['slam'] and 'visual_inertial_filter' in why['vi']
