@@ -56,6 +56,8 @@ class ScheduledMessage:
     topic: str  # after remapping
     message: BagMessage
     loop_index: int
+    #: a latched message from before the start offset, played first: it does not set the clock
+    before_start: bool = False
 
 
 def schedule(bag: BagReader, options: ReplayOptions) -> Iterator[ScheduledMessage]:
@@ -76,7 +78,7 @@ def schedule(bag: BagReader, options: ReplayOptions) -> Iterator[ScheduledMessag
     latched = [t for t in (normalize_topic(t) for t in options.latched) if t in wanted]
     if latched and start_ns > bag.start_ns:
         for msg in bag.messages(latched, stop_ns=start_ns):
-            yield ScheduledMessage(0.0, options.remap.get(msg.topic, msg.topic), msg, loop_index)
+            yield ScheduledMessage(0.0, options.remap.get(msg.topic, msg.topic), msg, loop_index, before_start=True)
     while True:
         count = 0
         for msg in bag.messages(wanted, start_ns=start_ns):

@@ -93,7 +93,7 @@ class BagReplayNode(TrackingNode):
         self.player.start()
 
     def _publish(self, item: ScheduledMessage) -> None:
-        if self.clock_pub is not None:
+        if self.clock_pub is not None and not item.before_start:  # the clock starts at the offset
             to_stamp(item.message.log_time_ns, self._clock_msg.clock)
             self.clock_pub.publish(self._clock_msg)
         self.publishers_by_topic[item.message.topic].publish(item.message.rawdata)

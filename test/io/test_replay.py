@@ -80,7 +80,8 @@ def test_start_offset_plays_latched_messages_from_before_it_first(bag):
     """/b stands for /tf_static: with an offset of 0.42 s, its messages at 0.05 and 0.3 s are
     played at once, first (a late joiner of a latched topic gets them), then the rest as usual."""
     items = list(schedule(bag, ReplayOptions(start_offset_s=0.42, latched=['b'])))
-    assert [(s.topic, s.due_s) for s in items[:2]] == [('/b', 0.0), ('/b', 0.0)]
+    assert [(s.topic, s.due_s, s.before_start) for s in items[:2]] == [('/b', 0.0, True), ('/b', 0.0, True)]
+    assert not any(s.before_start for s in items[2:])
     assert [s.message.log_time_ns for s in items[:2]] == [T0 + 50 * MS, T0 + 300 * MS]
     rest = [t for t in ALL_OFFSETS_S if t >= 0.42]
     assert [s.message.log_time_ns for s in items[2:]] == [T0 + round(t * 1000) * MS for t in rest]
