@@ -52,6 +52,8 @@ if [ "$cmd" = test ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1
     || echo "ar-tracking.sh: PostgreSQL/PostGIS not installed; the PostGIS store tests will skip" >&2
 fi
 case "$cmd" in
-  test) exec "$VENV/bin/python" -m pytest "$@" ;;
+  # Two workers (pytest-xdist): the suite is half waiting (replays at bag speed, discovery), so
+  # two processes on two cores take ~4 instead of ~7 minutes. AR_TRACKING_TEST_WORKERS=0: serial.
+  test) exec "$VENV/bin/python" -m pytest -n "${AR_TRACKING_TEST_WORKERS:-2}" "$@" ;;
   *)    exec "$VENV/bin/ar-tracking" "$cmd" "$@" ;;
 esac
