@@ -47,9 +47,9 @@ from ..ros.conversions import (
     stamp_ns,
     to_stamp,
 )
-from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
-from ..ros.tf import TfBroadcaster, transform_stamped
+from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamped
 
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
@@ -181,24 +181,9 @@ class HybridOrientationFilterNode(TrackingNode):
     # -- extrinsics ------------------------------------------------------------------------
 
     def _subscribe_tf_static(self) -> None:
-        """/tf_static on a ROS install (tf2_msgs is not on the pip-only path: there the graph
-        runner hands the bag's static transforms to :meth:`on_static_transforms`)."""
-        try:
-            from tf2_msgs.msg import TFMessage
-        except ImportError:
-            return
-
-        def on_tf(msg: Any) -> None:
-            from types import SimpleNamespace
-
-            items = []
-            for tf in msg.transforms:
-                q = tf.transform.rotation
-                items.append(SimpleNamespace(parent=tf.header.frame_id, child=tf.child_frame_id,
-                                             rotation=quat_xyzw_to_matrix(np.array([q.x, q.y, q.z, q.w]))))
-            self.on_static_transforms(items)
-
-        self.create_subscription(TFMessage, '/tf_static', on_tf, LATCHED_QOS)
+        """/tf_static where tf2_msgs exists; on the pip-only path without it the graph runner
+        hands the bag's static transforms to :meth:`on_static_transforms`."""
+        subscribe_static_transforms(self, self.on_static_transforms)
 
     def on_static_transforms(self, transforms: list[Any]) -> None:
         """Static transforms (``parent``, ``child``, ``rotation`` rotating child vectors into

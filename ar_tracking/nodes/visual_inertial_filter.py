@@ -41,13 +41,13 @@ from ..ros.conversions import (
     vector3,
 )
 from ..ros.node_base import (
-    LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
     TrackingNode,
     run_node,
 )
 from ..ros.stamp_guard import StampGuard, StampVerdict
+from ..ros.tf import subscribe_static_transforms
 
 #: /tf_static and the parameters disagree enough for a warning (rotation rad, lever arm m).
 _MOUNT_WARN_RAD = np.radians(1.0)
@@ -125,25 +125,9 @@ class VisualInertialFilterNode(TrackingNode):
     # -- the IMU mount --------------------------------------------------------------------
 
     def _subscribe_tf_static(self) -> None:
-        """/tf_static on a ROS install (on the pip-only path the runner calls
-        :meth:`on_static_transforms` with the bag's)."""
-        try:
-            from tf2_msgs.msg import TFMessage
-        except ImportError:
-            return
-
-        def on_tf(msg: Any) -> None:
-            from types import SimpleNamespace
-
-            items = []
-            for tf in msg.transforms:
-                q, t = tf.transform.rotation, tf.transform.translation
-                items.append(SimpleNamespace(parent=tf.header.frame_id, child=tf.child_frame_id,
-                                             rotation=quat_xyzw_to_matrix(np.array([q.x, q.y, q.z, q.w])),
-                                             translation=np.array([t.x, t.y, t.z])))
-            self.on_static_transforms(items)
-
-        self.create_subscription(TFMessage, '/tf_static', on_tf, LATCHED_QOS)
+        """/tf_static where tf2_msgs exists; on the pip-only path without it the graph runner
+        hands the bag's static transforms to :meth:`on_static_transforms`."""
+        subscribe_static_transforms(self, self.on_static_transforms)
 
     def on_static_transforms(self, transforms: list[Any]) -> None:
         """Static transforms (``parent``, ``child``, ``rotation`` rotating child vectors into the

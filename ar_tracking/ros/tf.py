@@ -10,7 +10,7 @@ is a side channel that no node of the graph waits for, so the lockstep runner mu
 """
 from __future__ import annotations
 
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 from geometry_msgs.msg import TransformStamped
@@ -88,3 +88,30 @@ class TfBroadcaster:
         if self._pub is not None:
             node.destroy_publisher(self._pub)
             self._pub = None
+
+
+def subscribe_static_transforms(node: Any, callback: Callable[[list[Any]], None]) -> bool:
+    """Subscribe ``node`` to ``/tf_static`` (latched, as tf2_ros does) and call ``callback``
+    with each message's transforms as io.bags.StaticTransform - the form in which the graph
+    runner hands a bag's static transforms to a node. False where tf2_msgs is missing (the
+    pip-only path before ./ar-tracking.sh built it): the runner's hand-over is all there is."""
+    TFMessage = tf_message_class()
+    if TFMessage is None:
+        return False
+    from ..io.bags import StaticTransform
+    from ..core.rotations import quat_xyzw_to_matrix
+
+    def on_tf(msg: Any) -> None:
+        items = []
+        for tf in msg.transforms:
+            q, t = tf.transform.rotation, tf.transform.translation
+            items.append(StaticTransform(parent=tf.header.frame_id.lstrip('/'), child=tf.child_frame_id.lstrip('/'),
+                                         rotation=quat_xyzw_to_matrix(np.array([q.x, q.y, q.z, q.w])),
+                                         translation=np.array([t.x, t.y, t.z])))
+        callback(items)
+
+    # tf2_ros's static listener: transient local, a deep history (several broadcasters at once)
+    listener_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+    node.create_subscription(TFMessage, '/tf_static', on_tf, listener_qos)
+    return True

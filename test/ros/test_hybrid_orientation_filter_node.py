@@ -357,3 +357,25 @@ def test_declination_changes_live(ros_context):
         assert abs(turn[0]) < 0.01 and abs(turn[1]) < 0.01
     finally:
         h.close()
+
+
+def test_imu_mount_from_a_tf_static_publisher(ros_context):
+    """Where tf2_msgs exists the node listens to /tf_static itself (a latched publisher, as
+    robot_state_publisher's): the IMU -> camera rotation comes from it."""
+    TFMessage = pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs not built (./ar-tracking.sh builds it)').TFMessage
+    from geometry_msgs.msg import TransformStamped as TS
+
+    from ar_tracking.core.rotations import rot_z
+    from ar_tracking.ros.tf import TF_STATIC_QOS
+
+    h = Harness(ros_context)
+    try:
+        mount = rot_z(0.3) @ R_IMU_CAM
+        tf = TS()
+        tf.header.frame_id, tf.child_frame_id = 'imu', 'camera_optical'
+        set_quaternion(tf.transform.rotation, mount)
+        pub = h.src.create_publisher(TFMessage, '/tf_static', TF_STATIC_QOS)
+        pub.publish(TFMessage(transforms=[tf]))
+        assert spin_until(h.ex, lambda: np.allclose(h.node.R_imu_cam, mount, atol=1e-9), 5.0)
+    finally:
+        h.close()
