@@ -330,7 +330,8 @@ def write_robot_arcs_bag(bag: Any, seed: int, duration_s: float, image_format: s
         robot_arcs_real.write_bag(bag, seed, duration_s, image_format, progress, speeds)
         return
     from ..io.bags import msg_class
-    from .bagmaker import START_NS, _Msgs
+    from .messages import START_NS
+    from .messages import Msgs as _Msgs
 
     m = _Msgs()
     cam = Camera()

@@ -288,7 +288,8 @@ def write_bag(bag: Any, seed: int, duration_s: float, image_format: str,
     ``mount_on_tf_static`` False leaves /tf_static out (the same bag otherwise: for comparing
     the mount from /tf_static with the mount from parameters, :func:`mount_params`)."""
     from ..io.bags import msg_class
-    from .bagmaker import START_NS, _Msgs
+    from .messages import START_NS
+    from .messages import Msgs as _Msgs
 
     m = _Msgs()
     cam = RealCamera()

@@ -17,7 +17,6 @@ and the input's sidecar params file is copied next to it. Seeded: same inputs, s
 from __future__ import annotations
 
 import logging
-import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,7 +122,7 @@ def add_visual_orientation(bag_in: str | Path, bag_out: str | Path, seed: int = 
         V3 = msg_class('geometry_msgs/msg/Vector3')
         Q = msg_class('geometry_msgs/msg/Quaternion')
         visual = []
-        for t, Rk in zip(stamps, R):
+        for t, Rk in zip(stamps, R, strict=True):
             q = matrix_to_quat_xyzw(Rk)
             visual.append((int(t), TS(header=Header(stamp=ns_to_stamp(int(t)), frame_id=FRAME_PANORAMA),
                                       child_frame_id=FRAME_CAMERA,

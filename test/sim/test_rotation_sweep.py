@@ -20,9 +20,9 @@ import yaml
 from ar_tracking.core.rotations import (camera_heading_pitch_roll_deg, matrix_to_quat_xyzw,
                                         quat_xyzw_to_matrix)
 from ar_tracking.io.bags import BagReader, read_metadata, stamp_to_ns
-from ar_tracking.sim import bagmaker, rotation_sweep as rs
+from ar_tracking.sim import bagmaker, rotation_sweep as rs, rotation_sweep_bag
 from ar_tracking.sim.bagmaker import SCENARIOS, SimError, make_bag
-from ar_tracking.sim.world import FrameRenderer, PinholeCamera
+from ar_tracking.sim.camera import FrameRenderer, PinholeCamera
 
 SEED = 1
 DURATION_S = 4.0
@@ -256,8 +256,8 @@ def test_cli_profile_option() -> None:
 
 def test_same_seed_same_bytes_different_seed_different(bag_dir: Path, authoring_bag: Path,
                                                        short_bag: Path) -> None:
-    bagmaker.session_view.cache_clear()  # regenerate the world and panorama from scratch
-    bagmaker._world.cache_clear()
+    rotation_sweep_bag.session_view.cache_clear()  # regenerate the world and panorama from scratch
+    rotation_sweep_bag._world.cache_clear()
     again = make_bag('rotation_sweep', bag_dir / 'again.mcap', seed=SEED, duration_s=DURATION_S)
     assert again.read_bytes() == authoring_bag.read_bytes()
     other = make_bag('rotation_sweep', bag_dir / 'other.mcap', seed=SEED + 1, duration_s=1.0)
@@ -577,7 +577,7 @@ def test_whole_sweep_textured_in_both_sessions() -> None:
     cam = PinholeCamera()
     t = np.arange(0, 60, 20 / 30)
     for session in ('authoring', 'browsing'):
-        _, light, pano = bagmaker.session_view(SEED, session)
+        _, light, pano = rotation_sweep_bag.session_view(SEED, session)
         renderer = FrameRenderer(pano, light, cam, np.random.default_rng(0))
         tr = rs.make_trajectory(SEED, session, 60.0)
         for R in tr.R_enu_cam(t):
@@ -609,8 +609,8 @@ def test_browsing_same_spot_other_light(browsing_bag: Path, data: dict[str, list
     views = {}
     for session in ('authoring', 'browsing'):
         scn = rs.make_scenario(SEED, session, 1.0)
-        _, light, pano = bagmaker.session_view(SEED, session)
-        gain = bagmaker._Plan.make(scn, pano).gain[0]
+        _, light, pano = rotation_sweep_bag.session_view(SEED, session)
+        gain = rotation_sweep_bag.Plan.make(scn, pano).gain[0]
         renderer = FrameRenderer(pano, light, cam, np.random.default_rng(0))
         views[session] = renderer.render(R[None], gain, np.ones(3)).astype(float)
     diff = views['browsing'].mean() - views['authoring'].mean()

@@ -1,0 +1,49 @@
+"""The scenario protocol that :mod:`.bagmaker` dispatches on, and the simulator's error.
+
+A scenario module (or adapter) offers one object with a ``name``, a ``write_bag`` that writes all
+its messages into an open bag in log-time order, and a ``write_sidecars`` that writes the
+``<stem>.params.yaml`` beside the bag. :func:`.bagmaker.make_bag` checks the arguments, opens
+the bag and calls these; the scenarios never import :mod:`.bagmaker` (they take shared message
+builders and constants from :mod:`.messages`), so the import graph has no cycle.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+Progress = Callable[[float], None]
+
+
+class SimError(Exception):
+    """Bad arguments to the simulator; the message is one line meant for the user."""
+
+
+@dataclass(frozen=True)
+class BagRequest:
+    """The checked arguments of one :func:`.bagmaker.make_bag` call.
+
+    ``session`` and ``lighting`` are rotation_sweep's; ``profile`` rotation_sweep's and
+    robot_arcs'; a scenario ignores what it has no use for."""
+
+    seed: int
+    duration_s: float
+    session: str = 'authoring'
+    image_format: str = 'raw'
+    lighting: str | None = None
+    profile: str = 'hard'
+
+
+class ScenarioBag(Protocol):
+    """What :func:`.bagmaker.make_bag` needs of a scenario."""
+
+    name: str
+
+    def write_bag(self, bag: Any, req: BagRequest, progress: Progress | None) -> None:
+        """Every message of the scenario into the open ``bag`` (an io.bags.BagWriter)."""
+
+    def write_sidecars(self, sidecar: Path, bag_path: Path, req: BagRequest) -> None:
+        """The ``<stem>.params.yaml`` (device calibration or node parameters) beside the bag."""
+
+    def summary(self, req: BagRequest) -> str:
+        """A few words for the 'wrote ...' log line (scenario, seed, ...)."""
