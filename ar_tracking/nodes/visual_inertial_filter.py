@@ -104,6 +104,8 @@ class VisualInertialFilterNode(TrackingNode):
             max_imu_gap_s=p('max_imu_gap_s', dc.max_imu_gap_s, 'IMU gaps longer than this are bridged with the newer sample and reported, s', min_value=0.001, max_value=10.0),
             reset_gap_s=p('reset_gap_s', dc.reset_gap_s, 'IMU gaps longer than this lose the track until the next camera pose, s', min_value=0.001, max_value=60.0),
             rollback=p('rollback', True, 'Roll back to the capture time of late poses (false: apply on arrival, for comparison)'),
+            joint=p('joint_error_state', dc.joint, 'One joint 15-state error filter (orientation-position couplings, the pose covariance in full); false: the two separate filters of Fig. 7'),
+            sampling_error_scale=p('sampling_error_scale', dc.sampling_error_scale, 'Scale of the IMU sampling-error covariance (a step of the specific force between two samples, delta^2/12; 0: off)', min_value=0.0, max_value=100.0),
         )
         self.render_latency_ns = int(1e9 * p('render_latency_s', 0.03, 'Display latency: vi/predicted_pose is extrapolated this far ahead of the newest IMU sample, s', min_value=0.0, max_value=1.0))
         self.world_frame_id = p('world_frame_id', 'enu', 'frame_id of the outputs (the marker-map frame of markers/pose)')
@@ -120,7 +122,8 @@ class VisualInertialFilterNode(TrackingNode):
         self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
         self.subscribe(PoseWithCovarianceStamped, 'markers/pose', self.on_pose, RELIABLE_QOS)
         self._subscribe_tf_static()
-        self.get_logger().info(f'visual_inertial_filter: roll-back {"on" if self.config.rollback else "off"}, buffer {self.config.buffer_s:g} s')
+        self.get_logger().info(f'visual_inertial_filter: roll-back {"on" if self.config.rollback else "off"}, buffer {self.config.buffer_s:g} s, '
+                               f'{"joint error state" if self.config.joint else "separate orientation and position filters"}')
 
     # -- the IMU mount --------------------------------------------------------------------
 

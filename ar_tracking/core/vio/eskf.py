@@ -209,13 +209,18 @@ def predict_orientation(s: OrientationState, gyro: Array, dt: float, noise: Filt
 
 
 def predict_position(s: PositionState, R_world_imu: Array, accel: Array, dt: float,
-                     noise: FilterNoise, gravity_m_s2: float = GRAVITY_M_S2) -> Array:
+                     noise: FilterNoise, gravity_m_s2: float = GRAVITY_M_S2,
+                     accel_step_cov: Array | None = None) -> Array:
     """Advance position/velocity with the specific force and propagate P (in place).
 
     Fig. 7: v_k = v_(k-1) + (R_k a_k - g) dt, p_k = p_(k-1) + (v_(k-1) + v_k) dt / 2,
     b_a,k = b_a,(k-1); Phi = [[I, I dt, -R dt^2/2], [0, I, -R dt], [0, 0, I]],
     Gamma = [R dt^2/2, R dt, 0], Q_da and Q_db as in the figure (with R in the bias coupling,
     because b_a is kept in the IMU frame). Returns the world acceleration used.
+
+    ``accel_step_cov`` (3x3, world frame, (m/s^2)^2) is the uncertainty of the step's mean
+    acceleration itself - the integration error of the sampled input, see
+    :func:`sampling_error_cov` - entered through Gamma = [dt^2/2, dt, 0] like the sensor noise.
     """
     a_world = R_world_imu @ (accel - s.accel_bias)
     a_world[2] -= gravity_m_s2
@@ -248,8 +253,31 @@ def predict_position(s: PositionState, R_world_imu: Array, accel: Array, dt: flo
     out[3:6, 6:] += qvb
     out[6:, 3:6] += qvb.T
     out[6:, 6:] += sdb2 * dt * I3
+    if accel_step_cov is not None:
+        out[:3, :3] += h * h * accel_step_cov
+        out[:3, 3:6] += h * dt * accel_step_cov
+        out[3:6, :3] += h * dt * accel_step_cov
+        out[3:6, 3:6] += dt2 * accel_step_cov
     s.P = out
     return a_world
+
+
+def sampling_error_cov(delta_world: Array) -> Array:
+    """Covariance of the error of the trapezoid mean of a sampled input over one step, from the
+    change of that input between the step's two samples (world frame).
+
+    The time update takes the mean of the two samples as the input over the step. That is exact
+    for an input that changes linearly between samples, but not when it changes abruptly in
+    between: a tool that starts or stops turning fast steps its angular acceleration, and the
+    IMU, turned with a lever arm, sees a step of alpha x r in its specific force (several m/s^2
+    at 100 Hz). With the step at an unknown, uniformly distributed instant inside the interval,
+    the mean the filter uses is wrong by (1/2 - u) * delta, u ~ U(0, 1): variance
+    delta delta^T / 12. Where the input is smooth delta is small and so is this term; where it
+    jumps the filter now knows that its velocity is less certain, and the next camera poses pull
+    it back instead of being weighed against a confident but wrong prediction.
+    """
+    d = np.asarray(delta_world, dtype=float).reshape(3)
+    return np.outer(d, d) / 12.0
 
 
 # --- observation update (Fig. 8) ----------------------------------------------------------

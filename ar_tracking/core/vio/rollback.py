@@ -49,7 +49,9 @@ from .eskf import (
     update_position,
     predict_orientation,
     predict_position,
+    sampling_error_cov,
 )
+from .joint import predict_joint, update_joint
 
 logger = logging.getLogger(__name__)
 
@@ -105,6 +107,11 @@ class FusionConfig:
     reset_gap_s: float = 0.5
     rollback: bool = True
     gravity_m_s2: float = GRAVITY_M_S2
+    #: Scale of the sampling error of the IMU input (:func:`.eskf.sampling_error_cov`; 0: off).
+    sampling_error_scale: float = 1.0
+    #: One joint 15-state error filter (:mod:`.joint`: orientation-position couplings in the
+    #: time update, the pose's full 6x6 covariance in the update) instead of Fig. 7's two.
+    joint: bool = True
 
 
 @dataclass
@@ -118,10 +125,13 @@ class FusionState:
     accel: Array
     omega: Array     # bias-corrected angular rate, IMU frame
     a_world: Array   # acceleration in the world frame (gravity removed)
+    #: covariance between the orientation (dtheta, db_g) and position (dp, dv, db_a) errors,
+    #: 6x9; kept zero by the separate filters, propagated by the joint one
+    cross: Array = field(default_factory=lambda: np.zeros((6, 9)))
 
     def copy(self) -> 'FusionState':
         return FusionState(self.t_ns, self.ori.copy(), self.pos.copy(), self.gyro, self.accel,
-                           self.omega, self.a_world)
+                           self.omega, self.a_world, self.cross.copy())
 
     def is_finite(self) -> bool:
         return bool(np.all(np.isfinite(self.ori.quat_wxyz)) and np.all(np.isfinite(self.ori.P))
@@ -313,6 +323,16 @@ class RollbackFusion:
         Ro = R_w_imu.T @ m.cov[3:, 3:] @ R_w_imu + np.eye(3) * so2
         return Rp, Ro
 
+    def _meas_cov_world(self, m: PoseMeasurement) -> Array:
+        """The pose's full 6x6 covariance (position, rotation about the world axes) with the
+        configured floors added to its diagonal (the configured sigmas alone without one)."""
+        cfg = self.config
+        floor = np.diag([cfg.position_sigma_m ** 2] * 3 + [cfg.orientation_sigma_rad ** 2] * 3)
+        if m.cov is None:
+            return floor
+        c = np.asarray(m.cov, dtype=float)
+        return 0.5 * (c + c.T) + floor
+
     def _advance(self, prev: FusionState | None, prev_ev: _Event | None, ev: _Event) -> FusionState | None:
         """The state after ``ev`` from the state after the previous event."""
         cfg = self.config
@@ -339,9 +359,17 @@ class RollbackFusion:
         s.gyro, s.accel = ev.gyro, ev.accel
         if dt > 0:
             q_prev = s.ori.quat_wxyz
-            w = predict_orientation(s.ori, gyro, dt, cfg.noise)
-            R_mid = quat_to_matrix(quat_mul(q_prev, quat_exp(0.5 * dt * w)))
-            s.a_world = predict_position(s.pos, R_mid, accel, dt, cfg.noise, cfg.gravity_m_s2)
+            step_cov = None
+            if cfg.sampling_error_scale > 0:
+                step_cov = cfg.sampling_error_scale * sampling_error_cov(
+                    quat_to_matrix(q_prev) @ (ev.accel - prev_ev.accel))
+            if cfg.joint:
+                s.cross, w, s.a_world = predict_joint(s.ori, s.pos, s.cross, gyro, accel, dt, cfg.noise,
+                                                      cfg.gravity_m_s2, step_cov)
+            else:
+                w = predict_orientation(s.ori, gyro, dt, cfg.noise)
+                R_mid = quat_to_matrix(quat_mul(q_prev, quat_exp(0.5 * dt * w)))
+                s.a_world = predict_position(s.pos, R_mid, accel, dt, cfg.noise, cfg.gravity_m_s2, step_cov)
             s.omega = w
             self.imu_updates += 1
         if ev.meas is not None:
@@ -353,11 +381,20 @@ class RollbackFusion:
 
     def _apply(self, s: FusionState, m: PoseMeasurement) -> Verdict:
         cfg = self.config
+        gate = cfg.gate_chi2 if cfg.gate_chi2 > 0 else None
+        if cfg.joint:
+            R6 = self._meas_cov_world(m)
+            ok, _ = update_joint(s.ori, s.pos, s.cross, cfg.R_imu_cam, cfg.t_imu_cam, m.R_world_cam,
+                                 m.p_world_cam, R6, gate, apply=False)
+            if not ok.accepted:
+                return Verdict.OUTLIER
+            _, s.cross = update_joint(s.ori, s.pos, s.cross, cfg.R_imu_cam, cfg.t_imu_cam, m.R_world_cam,
+                                      m.p_world_cam, R6, None)
+            return Verdict.APPLIED
         R_w_imu_m = m.R_world_cam @ cfg.R_imu_cam.T
         p_imu_m = m.p_world_cam - R_w_imu_m @ cfg.t_imu_cam
         Rp, Ro = self._meas_cov(m, R_w_imu_m)
         q_m = matrix_to_quat(R_w_imu_m)
-        gate = cfg.gate_chi2 if cfg.gate_chi2 > 0 else None
         # Both parts must pass the gate before either is applied: a pose is one measurement.
         ok_o = update_orientation(s.ori, q_m, Ro, gate, apply=False)
         ok_p = update_position(s.pos, p_imu_m, Rp, gate, apply=False)
