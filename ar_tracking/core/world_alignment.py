@@ -93,13 +93,21 @@ class WorldAlignmentConfig:
     correlation_s: float = 0.25
     #: Typical speed of the phone in the hand (the velocity term of the gravity mean), m/s.
     hand_velocity_m_s: float = 0.3
-    #: A denser cluster of window headings takes over from the one the last solve chose only
-    #: with this many times its support (hysteresis against a disturbance as long as the
-    #: clean data so far).
-    mode_switch_ratio: float = 1.25
-    #: Typical length of a magnetic disturbance, s: how fast the doubt between two clusters of
-    #: window headings fades as one outlasts the other (heading covariance).
+    #: Another cluster of window headings takes over from the one the last solve chose only
+    #: when its episode cost (below) is lower by this many nats (hysteresis).
+    mode_switch_nats: float = 1.0
+    #: Typical length of a magnetic disturbance, s: each second a hypothesis has to call
+    #: disturbed costs 1 / this many nats.
     disturbance_duration_s: float = 3.0
+    #: Cost of one disturbance episode (a maximal run of windows off the hypothesised field),
+    #: nats: -log of the odds that a disturbance starts. It is what makes a field the phone
+    #: returns to the Earth's: calling it disturbed takes two episodes with the same deflection.
+    disturbance_onset_nats: float = 3.0
+    #: Runs of fewer windows than this off a field are noise, not episodes (no onset cost).
+    min_episode_windows: int = 2
+    #: Windows whose heading is more than this many Cauchy widths off the chosen cluster get
+    #: no weight (and count as off it in the episode cost).
+    reject_widths: float = 2.0
     #: Window of the robust field fit, s (short, so that a disturbance of a few seconds is a
     #: minority of the windows early in a session too).
     window_s: float = 0.5
@@ -472,16 +480,12 @@ class WorldAlignment:
         centre, spread = _shorth(rel)
         spread = max(spread, math.radians(0.25))
         width = c.cauchy_scale * spread
-        if self._heading_mode is not None:
-            # Hysteresis between clusters of window headings (a turned field early in a session
-            # can hold as many windows as the true one): keep the cluster the last solve chose
-            # unless the densest one now holds clearly more support.
-            prev = (self._heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-            support = lambda c0: float(n_w @ (1.0 / (1.0 + ((rel - c0) / width) ** 2)))  # noqa: E731
-            if support(centre) <= c.mode_switch_ratio * support(prev):
-                centre = prev
+        centre = self._choose_cluster(rel, centre, f_abs, width)
         w_psi = 1.0 / (1.0 + ((rel - centre) / width) ** 2)
-        self._ambiguity_var = self._cluster_ambiguity(rel, centre, width)
+        # Past reject_widths the weight is zero, not a Cauchy tail: a tail still lets the hard
+        # iron drift towards a disturbance, which then looks like the clean field (with little
+        # rotation a field offset fixed in the phone and one fixed in the world look alike).
+        w_psi[np.abs(rel - centre) > c.reject_widths * width] = 0.0
         # Most real disturbances also change the field's strength or dip: a window whose mean
         # field departs in either is down-weighted too (a turn that keeps both is left to the
         # heading test).
@@ -491,24 +495,57 @@ class WorldAlignment:
         w_dip, _ = _cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
         return w_psi * w_norm * w_dip, spread
 
-    def _cluster_ambiguity(self, rel: Array, centre: float, width: float) -> float:
-        """Heading variance (rad^2) of the chance that the cluster of window headings not chosen
-        is the true field. Nothing in the field tells a turned field from the true one; what
-        does is time: with disturbances of ``disturbance_duration_s`` typical length, the
-        cluster that has lasted d_c against the other's d_o is the true one with odds
-        exp((d_c - d_o) / tau). A mixture of the two clusters, separated by delta, adds
-        p (1 - p) delta^2 - so the stated heading covariance is wide while a disturbance as long
-        as the clean data so far holds half the windows, and narrows as the chosen field outlasts it."""
+    def _episode_cost(self, rel: Array, centre: float, width: float) -> float:
+        """Negative log-odds (nats, up to a constant) that the field whose window headings sit at
+        ``centre`` is the Earth's: every other window is then disturbed, each maximal run of
+        them (in time order) is one episode costing ``disturbance_onset_nats``, and every
+        disturbed second costs 1 / ``disturbance_duration_s`` (episodes of exponentially
+        distributed length). Runs shorter than ``min_episode_windows`` are noise: length only."""
         c = self.config
-        far = np.abs(rel - centre) > 2.0 * width
-        if int(far.sum()) < 2:
+        off = np.abs(rel - centre) > c.reject_widths * width
+        n_off = int(off.sum())
+        if n_off == 0:
             return 0.0
-        other, _ = _shorth(rel[far])
-        d_chosen = float(np.sum(np.abs(rel - centre) <= 2.0 * width)) * c.window_s
-        d_other = float(np.sum(np.abs(rel - other) <= 2.0 * width)) * c.window_s
-        z = (d_chosen - d_other) / c.disturbance_duration_s
-        p = 1.0 / (1.0 + math.exp(min(z, 50.0)))
-        return p * (1.0 - p) * (other - centre) ** 2
+        edges = np.flatnonzero(np.diff(np.concatenate(([0], off.astype(np.int8), [0]))))
+        lengths = edges[1::2] - edges[0::2]
+        episodes = int(np.sum(lengths >= c.min_episode_windows))
+        return episodes * c.disturbance_onset_nats + n_off * c.window_s / c.disturbance_duration_s
+
+    def _choose_cluster(self, rel: Array, densest: float, f_abs: float, width: float) -> float:
+        """The heading (relative to f_abs) of the window cluster taken as the Earth's field.
+
+        Nothing in one window tells a field turned by a disturbance (strength and dip kept)
+        from the Earth's; the history does. Candidates: the densest cluster, the one the last
+        solve chose and the densest of the windows far from those; the one with the lowest
+        :meth:`_episode_cost` wins, the last choice keeping its place unless beaten by
+        ``mode_switch_nats``. So a disturbance as long as the clean data so far takes over (the
+        longer run is the likelier field), but a field the phone returns to after an episode is
+        the Earth's at once (calling it disturbed would take two episodes). The doubt between
+        the winner and the runner-up enters the heading variance (:attr:`_ambiguity_var`)."""
+        c = self.config
+        candidates = [densest]
+        prev = None
+        if self._heading_mode is not None:
+            prev = (self._heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
+            candidates.append(prev)
+        far = np.ones(len(rel), dtype=bool)
+        for x in candidates:
+            far &= np.abs(rel - x) > c.reject_widths * width
+        if int(far.sum()) >= 2:
+            candidates.append(_shorth(rel[far])[0])
+        costs = [self._episode_cost(rel, x, width) for x in candidates]
+        best = int(np.argmin(costs))
+        if prev is not None and costs[best] > costs[1] - c.mode_switch_nats:
+            best = 1
+        chosen, cost = candidates[best], costs[best]
+        # The runner-up: the cheapest candidate clearly apart from the chosen one.
+        rivals = [(k, x) for k, x in zip(costs, candidates) if abs(x - chosen) > c.reject_widths * width]
+        self._ambiguity_var = 0.0
+        if rivals:
+            k, x = min(rivals)
+            p = 1.0 / (1.0 + math.exp(min(k - cost, 50.0)))
+            self._ambiguity_var = p * (1.0 - p) * (x - chosen) ** 2
+        return chosen
 
     def _up_estimate(self) -> Array:
         """Gravity direction in the panorama frame from the current sums (z before any)."""

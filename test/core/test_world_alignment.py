@@ -70,6 +70,19 @@ def test_a_turned_field_as_long_as_the_clean_data_does_not_take_over():
     assert heading < 1.0
 
 
+def test_a_field_the_phone_returns_to_is_the_earths_at_once():
+    """2 s clean, then a 6 deg turn (strength and dip kept) for 6 s: by then the turn is the
+    longer run and the likelier field. Then the clean field comes back: 1.5 s after its
+    return it still holds fewer windows than the turn, but calling it the disturbed one would
+    take two episodes with the same deflection - it is the Earth's at the next solve."""
+    turn = lambda t: math.radians(6.0) if 2.0 <= t < 8.0 else 0.0  # noqa: E731
+    during = run(duration=7.9, turns=0.12, field_turn=turn)
+    after = run(duration=9.5, turns=0.14, field_turn=turn)
+    assert errors_deg(during)[0] > 5.0
+    assert math.degrees(math.sqrt(during.covariance_enu[2, 2])) > 2.0  # and says it may be wrong
+    assert errors_deg(after)[0] < 0.6
+
+
 def test_heading_covariance_holds_the_doubt_between_two_field_clusters():
     """While a turned field has lasted almost as long as the clean one, either could be the
     Earth's: the stated heading sigma covers the 6 deg between them; once the clean field has
