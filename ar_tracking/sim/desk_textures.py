@@ -310,8 +310,7 @@ def room_wall_texture(rng: np.random.Generator, shape: tuple[int, int], density:
     """The wall from the floor up (local b = height above the floor); things hang above the desk."""
     img = np.clip(172 + 4 * smooth_noise(rng, shape, (shape[1] // 4, shape[0] // 4))
                   + 8 * smooth_noise(rng, shape, (4, 3)), 0, 255).astype(np.uint8)
-    p = Painter(img, density)
-    p._T[0] = np.array([[1.0, 0, 0], [0, 1.0, -FLOOR_Z_M], [0, 0, 1.0]])  # origin at desk height
+    p = Painter(img, density, origin_m=(0.0, -FLOOR_Z_M))  # y = 0 at desk height
     px = rng.uniform(0.5, 0.9)
     p.rect(px - 0.01, 0.19, 0.37, 0.52, 40)
     _picture(p, rng, px, 0.2, 0.35, 0.4)

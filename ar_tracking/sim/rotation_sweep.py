@@ -54,10 +54,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .imu import imu_samples, specific_force_cam
-from .phone_sensors import (HARD_ACCEL_SCALE_ERROR, HARD_GYRO_DRIFT_PER_MINUTE_RAD_S,  # noqa: F401
-                            BiasDrift, Disturbances, EarthField, SensorErrors, heading_deflection,
-                            make_disturbances, make_gyro_bias_drift, make_hard_sensor_errors,
-                            make_sensor_errors)
+from .phone_sensors import (Disturbances, EarthField, SensorErrors, heading_deflection, make_disturbances,
+                            make_hard_sensor_errors, make_sensor_errors)
 from .rng import rng_stream
 
 Array = NDArray[np.float64]
@@ -340,6 +338,10 @@ def _tremor(rng: np.random.Generator) -> SineSum:
 def _add(a: SineSum, b: SineSum) -> SineSum:
     return SineSum(a.offset + b.offset, np.concatenate([a.amp, b.amp]),
                    np.concatenate([a.freq_hz, b.freq_hz]), np.concatenate([a.phase, b.phase]))
+
+
+# --------------------------------------------------------------------------------------------
+# Scenario and sensor samples (the sensor models: .phone_sensors; the IMU: .imu)
 
 
 @dataclass(frozen=True)

@@ -78,12 +78,17 @@ def pick_colour(rng: np.random.Generator, palette: list[tuple[int, int, int]], j
     return int(c[0]), int(c[1]), int(c[2])
 
 class Painter:
-    """Draws shapes given in metres (local 2-D frames) into a uint8 face texture."""
+    """Draws shapes given in metres (local 2-D frames) into a uint8 face texture.
 
-    def __init__(self, img: NDArray[np.uint8], density: float) -> None:
+    ``density`` texels per metre; texel (row i, col j) covers ((j + 0.5) / density, (i + 0.5) /
+    density). ``origin_m`` shifts the base frame: a point (x, y) is drawn at texture coordinates
+    (x + origin_m[0], y + origin_m[1]). Shapes are antialiased with 4 bits of sub-texel precision."""
+
+    def __init__(self, img: NDArray[np.uint8], density: float,
+                 origin_m: tuple[float, float] = (0.0, 0.0)) -> None:
         self.img = img
         self.d = density
-        self._T = [np.eye(3)]
+        self._T = [np.array([[1.0, 0.0, origin_m[0]], [0.0, 1.0, origin_m[1]], [0.0, 0.0, 1.0]])]
 
     @contextmanager
     def at(self, x: float, y: float, angle: float = 0.0) -> Iterator[None]:

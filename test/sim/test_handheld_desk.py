@@ -19,7 +19,7 @@ def test_same_seed_same_images_other_seed_other_images():
     b = list(hd.frames(3, 0.15, 160, 120))
     c = list(hd.frames(4, 0.15, 160, 120))
     assert len(a) == 3 and [f.stamp_ns for f in a] == [0, 50_000_000, 100_000_000]
-    for fa, fb, fc in zip(a, b, c):
+    for fa, fb, fc in zip(a, b, c, strict=True):
         assert fa.image.dtype == np.uint8 and fa.image.shape == (120, 160)
         assert np.array_equal(fa.image, fb.image)
         assert not np.array_equal(fa.image, fc.image)

@@ -393,7 +393,7 @@ def test_disturbance_schedule_and_truth(profile: str) -> None:
     t = np.arange(0, 60, 0.01)
     imu = rs.simulate_imu(scn, t)
     peaks = [np.max(np.abs(imu.deflection_rad[(t >= s) & (t <= s + w)]))
-             for s, w in zip(d.start_s, d.duration_s)]
+             for s, w in zip(d.start_s, d.duration_s, strict=True)]
     assert all(math.radians(1.9) < pk < math.radians(10.1) for pk in peaks)
     assert np.all(np.abs(np.diff(imu.deflection_rad)) < math.radians(0.5)), 'smooth onsets'
     b = scn.earth.vector_enu
@@ -510,7 +510,8 @@ def test_residual_iron_makes_heading_error_vary_with_heading() -> None:
         R_enu_imu = imu.R_enu_cam @ rs.R_IMU_CAM.T
         b = scn.earth.vector_enu
 
-        def compass_error_deg(hard_iron: np.ndarray, S: np.ndarray) -> np.ndarray:
+        def compass_error_deg(hard_iron: np.ndarray, S: np.ndarray, R_enu_imu: np.ndarray = R_enu_imu,
+                              imu: rs.ImuSamples = imu, b: np.ndarray = b) -> np.ndarray:
             m = np.einsum('nij,nj->ni', R_enu_imu, (imu.mag_t - hard_iron) @ S.T)
             return np.degrees(rs.heading_deflection(np.broadcast_to(b, m.shape), m))
 
@@ -593,7 +594,7 @@ def test_browsing_same_spot_other_light(browsing_bag: Path, data: dict[str, list
     (_, ref), = data['/ground_truth/annotations']
     assert [m.text for m in arr.markers] == [m.text for m in ref.markers]
     assert all(np.allclose(_vec(a.pose.position), _vec(b.pose.position))
-               for a, b in zip(arr.markers, ref.markers))
+               for a, b in zip(arr.markers, ref.markers, strict=True))
     pos_b = np.array([_vec(m.pose.position) for _, m in poses])
     pos_a = np.array([_vec(m.pose.position) for _, m in data['/ground_truth/pose']])
     assert np.all(np.linalg.norm(pos_b - pos_a.mean(0), axis=1) < 2.0)
@@ -648,4 +649,4 @@ def test_progress_is_reported(bag_dir: Path) -> None:
     seen: list[float] = []
     make_bag('rotation_sweep', bag_dir / 'prog.mcap', seed=SEED, duration_s=1.0,
              progress=seen.append)
-    assert seen and seen[-1] == 1.0 and all(0 < a <= b for a, b in zip(seen, seen[1:]))
+    assert seen and seen[-1] == 1.0 and all(0 < a <= b for a, b in zip(seen, seen[1:], strict=False))

@@ -52,7 +52,7 @@ def test_bag_gets_panorama_orientation_and_keeps_every_topic(tmp_path):
     V3 = msg_class('geometry_msgs/msg/Vector3')
     Q = msg_class('geometry_msgs/msg/Quaternion')
     with BagWriter(src) as bag:
-        for k, (t, Rk) in enumerate(zip(t_ns, R)):
+        for k, (t, Rk) in enumerate(zip(t_ns, R, strict=True)):
             q = matrix_to_quat_xyzw(Rk)
             bag.write('/ground_truth/orientation', int(t), TS(
                 header=Header(stamp=ns_to_stamp(int(t)), frame_id='enu'), child_frame_id='camera_optical',
