@@ -43,6 +43,11 @@ frame ``world``, the camera_optical pose) at 100 Hz and at every camera stamp; /
 (100 Hz, frame imu, phone-grade noise and biases) and /tf_static (imu -> camera_optical,
 R_imu_cam = diag(1, -1, -1), as the other scenarios' device). The sidecar
 ``<stem>.params.yaml`` holds the keyframe_slam_mapper parameters (the readout time).
+
+This module is the scenario (motion, frames, IMU, bag); the parts it shares with the street scene
+live by concern: the faces and atlas in :mod:`.model`, the painters in :mod:`.desk_textures` and
+:mod:`.textures`, the desk layout in :mod:`.layout`, the shading in :mod:`.lighting`, the ray
+caster in :mod:`.render`, the camera in :mod:`.camera`, the IMU sensor model in :mod:`.imu`.
 """
 from __future__ import annotations
 
