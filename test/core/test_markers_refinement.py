@@ -125,3 +125,39 @@ def test_marker_map_text_and_errors(tmp_path):
         MarkerMap.from_text('[1, 2')
     with pytest.raises(MarkerError):
         MarkerMap.from_arrays([1, 1], [0.1, 0.1], [0, 0, 0, 0, 0, 0, 1] * 2)
+
+
+def _decelerating_edge_image(x_mid: float, v_px_s: float, a_px_s2: float, exposure_s: float = 0.012,
+                             cell_px: float = 7.0, height: int = 40, width: int = 80) -> np.ndarray:
+    """Light image of a vertical marker edge (white quiet zone left, a black border strip one
+    cell wide, then a white code bit) moving right with constant deceleration over the
+    exposure; x_mid is the edge at mid-exposure. Each pixel integrates over its area and time."""
+    xs = np.arange(width)[None, :] + (np.arange(16)[:, None] + 0.5) / 16 - 0.5   # pixel sub-samples
+    img = np.zeros(width)
+    ts = (np.arange(400) + 0.5) / 400 * exposure_s - exposure_s / 2
+    for t in ts:
+        e = x_mid + v_px_s * t + 0.5 * a_px_s2 * t * t
+        black = (xs >= e) & (xs < e + cell_px)
+        img += np.mean(np.where(black, 0.11, 1.0), axis=0)
+    img /= len(ts)
+    return np.tile(img, (height, 1)).astype(np.float32)
+
+
+def test_blurred_side_is_located_at_its_mid_exposure_position():
+    """A decelerating edge (the end of a quick pan: ~7 px of blur, the speed halving within the
+    exposure) is found where it was at mid-exposure by the half level, while the gradient peak
+    sits towards where it lingered; a code bit one cell inside does not move the half level."""
+    from ar_tracking.core.markers.edge_refinement import (edge_points_along_side, gaussian_gradient,
+                                                          relocate_blurred_side)
+    for x_mid in (30.0, 30.3, 30.7):
+        img = _decelerating_edge_image(x_mid, v_px_s=620.0, a_px_s2=-35000.0)
+        gx, gy = gaussian_gradient(img, 1.0)
+        mag = np.sqrt(gx * gx + gy * gy)
+        a, b = np.array([x_mid, 35.0]), np.array([x_mid, 5.0])   # the side runs up: outward is -x
+        found = edge_points_along_side(gx, gy, mag, a, b)
+        assert len(found) > 10
+        peak_err = float(np.mean(found[:, 0]) - x_mid)
+        moved = relocate_blurred_side(img, a, b, found, 0.5 * (1.0 + 0.11), 0.9 * 7.0)
+        half_err = float(np.mean(moved[:, 0]) - x_mid)
+        assert abs(half_err) < 0.05, (x_mid, half_err)
+        assert abs(peak_err) > 0.2, (x_mid, peak_err)

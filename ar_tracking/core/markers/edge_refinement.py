@@ -139,6 +139,87 @@ def _scan_rows(mag: Array, a: Array, b: Array, length: float, margin_px: float, 
     return pts[m_used >= 0.5 * np.median(m_used)]
 
 
+#: Sides blurred beyond this (eq. 1 sigma, px) are located at their half level, not at the
+#: gradient peak (:func:`relocate_blurred_side`).
+MEDIAN_EDGE_BLUR_PX = 1.6
+
+
+def plate_levels(lin: Array, a: Array, b: Array, cell_px: float, margin_px: float = 3.0) -> tuple[float, float] | None:
+    """(white, black) light levels beside a *sharp* side a->b: the median of the image half a
+    code cell outside the side (the white quiet zone) and half a cell inside it (the middle of
+    the black border strip, which runs along the whole side). None when out of the image."""
+    d = b - a
+    length = float(np.hypot(*d))
+    if length < 2 * margin_px + 2:
+        return None
+    n_out = np.array([d[1], -d[0]]) / length
+    s = np.linspace(margin_px + 0.5 * cell_px, length - margin_px - 0.5 * cell_px, max(int(length / 2), 3)) / length
+    base = a[None, :] + s[:, None] * d[None, :]
+    h, w = lin.shape
+    out = []
+    for sign in (1.0, -1.0):
+        pts = base + sign * 0.5 * cell_px * n_out[None, :]
+        if np.any(pts < 0) or np.any(pts[:, 0] > w - 1) or np.any(pts[:, 1] > h - 1):
+            return None
+        v = cv2.remap(np.asarray(lin, np.float32), pts[:, 0].astype(np.float32).reshape(-1, 1),
+                      pts[:, 1].astype(np.float32).reshape(-1, 1), cv2.INTER_LINEAR)
+        out.append(float(np.median(v)))
+    white, black = out
+    return (white, black) if white > black else None
+
+
+def relocate_blurred_side(lin: Array, a: Array, b: Array, points: Array, level: float,
+                          reach_px: float) -> Array:
+    """Edge points of a motion-blurred side where the image (in light) crosses ``level`` - the
+    mean of the plate's white and black (:func:`plate_levels`, from the sides the motion left
+    sharp) - instead of at the gradient peak.
+
+    Why: during the exposure a moving edge sweeps its blur; the light at x is the share of the
+    exposure the edge spent on either side of x, so the half level is crossed exactly where the
+    edge was at mid-exposure - the image stamp and what the pose must give - whatever the speed
+    profile. The gradient peak is where the edge *lingered*: at the slow end of a decelerating
+    pan, up to about half the blur length off (0.5-1 px at the end of this repository's quick
+    pans). The half level at that point is also the only one the neighbours leave alone: the
+    quiet zone's outer edge and the border's inner edge (to the code bits) are a code cell away
+    and, while the blur is shorter than two cells, never sweep over it; so the search runs
+    from the outside inward over +-``reach_px`` (about a cell) and takes the first crossing.
+    Points without a crossing keep their peak position.
+    """
+    if len(points) == 0:
+        return points
+    d = b - a
+    rows_scan = abs(d[1]) >= abs(d[0])
+    img = np.asarray(lin) if rows_scan else np.asarray(lin).T
+    pts = points[:, :2] if rows_scan else points[:, 1::-1]
+    n_out = np.array([d[1], -d[0]])
+    outward = np.sign(n_out[0] if rows_scan else n_out[1]) or 1.0
+    h, w = img.shape
+    reach = int(max(2, math.floor(reach_px)))
+    rows = np.rint(pts[:, 1]).astype(int)
+    centre = np.rint(pts[:, 0]).astype(int)
+    ok = (rows >= 0) & (rows < h) & (centre - reach >= 0) & (centre + reach < w)
+    out = pts.copy()
+    idx = np.flatnonzero(ok)
+    if len(idx):
+        # samples ordered from the outside (white) inward (black)
+        offs = outward * np.arange(reach, -reach - 1, -1)
+        cols = centre[idx, None] + offs[None, :].astype(int)
+        v = img[rows[idx, None], cols].astype(np.float64)
+        below = v < level
+        k = np.argmax(below, axis=1)                       # first sample below the half level
+        found = below[np.arange(len(k)), k] & (k > 0)
+        kk = np.maximum(k, 1)
+        v0, v1 = v[np.arange(len(k)), kk - 1], v[np.arange(len(k)), kk]
+        with np.errstate(divide='ignore', invalid='ignore'):
+            f = np.clip((v0 - level) / (v0 - v1), 0.0, 1.0)
+        pos = centre[idx] + outward * (reach - (kk - 1) - f)
+        good = found & np.isfinite(pos)
+        out[idx[good], 0] = pos[good]
+    res = points.copy()
+    res[:, :2] = out if rows_scan else out[:, ::-1]
+    return res
+
+
 def fit_line(points: Array) -> tuple[Array, Array, Array]:
     """Total-least-squares line through points: (centroid, unit direction, residuals)."""
     c = points.mean(axis=0)
@@ -170,11 +251,13 @@ def intersect(c1: Array, d1: Array, c2: Array, d2: Array) -> Array | None:
 
 
 def refine_quad(gray: NDArray, quad_px: Array, lens: LensModel, sigma: float = 1.0,
-                margin_px: float = 3.0, search_px: int = 2, max_shift_px: float = 3.0) -> RefinedQuad | None:
+                margin_px: float = 3.0, search_px: int = 2, max_shift_px: float = 3.0,
+                median_blur_px: float = MEDIAN_EDGE_BLUR_PX) -> RefinedQuad | None:
     """Refine the 4 corners of a detected quad (Fig. 5 pipeline); None when a side gives too
     few edge points (occluded, out of the image, too small) or the lines do not intersect.
     ``gray`` should be linear in light (:func:`.photometry.linearize`): eq. 1 is a model of
-    light, not of gamma-encoded values."""
+    light, not of gamma-encoded values. Sides blurred beyond ``median_blur_px`` (0: never)
+    are located at their half-crossing (:func:`relocate_blurred_side`)."""
     quad_px = np.asarray(quad_px, dtype=np.float64).reshape(4, 2)
     h, w = gray.shape[:2]
     pad = int(math.ceil(3.5 * sigma)) + search_px + 3
@@ -195,12 +278,12 @@ def refine_quad(gray: NDArray, quad_px: Array, lens: LensModel, sigma: float = 1
     blur = np.zeros(4)
     coverage = np.ones(4)
     side_rms = np.zeros(4)
+    sides = []
     for i in range(4):
         a, b = local[i], local[(i + 1) % 4]
         found = edge_points_along_side(gx, gy, mag, a, b, margin_px, search_px)
         if len(found) < 4:
             return None
-        pts = found[:, :2]
         side = b - a
         length = float(np.hypot(*side))
         # Width along the scan -> across the edge; minus the derivative filter's own scale.
@@ -208,7 +291,23 @@ def refine_quad(gray: NDArray, quad_px: Array, lens: LensModel, sigma: float = 1
         w = found[:, 2] * cos_scan
         w = w[np.isfinite(w)]
         blur[i] = math.sqrt(max(float(np.median(w)) ** 2 - sigma * sigma, 0.0)) if len(w) else float('inf')
-        coverage[i] = min(1.0, len(pts) / max(max(abs(side[0]), abs(side[1])) - 2 * margin_px, 1.0))
+        coverage[i] = min(1.0, len(found) / max(max(abs(side[0]), abs(side[1])) - 2 * margin_px, 1.0))
+        sides.append(found)
+    blurred = [i for i in range(4) if median_blur_px > 0 and blur[i] > median_blur_px]
+    sharp = [i for i in range(4) if blur[i] <= median_blur_px]
+    if blurred and sharp:
+        # The plate's white and black from the sides the motion left sharp (a 36h11 tag is 8
+        # code cells across), then each blurred side at the half level between them.
+        cell = float(np.mean([np.hypot(*(local[(i + 1) % 4] - local[i])) for i in range(4)])) / 8.0
+        levels = [plate_levels(gray[y0:y1, x0:x1], local[i], local[(i + 1) % 4], cell, margin_px) for i in sharp]
+        levels = [lv for lv in levels if lv is not None]
+        if levels:
+            white, black = np.median(np.array(levels), axis=0)
+            for i in blurred:
+                sides[i] = relocate_blurred_side(gray[y0:y1, x0:x1], local[i], local[(i + 1) % 4], sides[i],
+                                                 0.5 * (white + black), 0.9 * cell)
+    for i in range(4):
+        pts = sides[i][:, :2]
         norm = lens.undistort(pts + origin)
         fit = robust_line(norm)
         if fit is None:
