@@ -50,6 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import erfinv
 
 from .rotations import cross3, rot_z
 
@@ -76,8 +77,12 @@ class WorldAlignmentConfig:
     lever_arm_tau_s: float = 0.05
     #: At most this many windows are kept (then neighbours are merged two by two).
     max_windows: int = 20000
-    #: Re-solve the field every this long (sample stamps), s.
+    #: Re-solve the field every this long (sample stamps), s ...
     solve_period_s: float = 1.0
+    #: ... or, early in a session, every this share of its span (at least every 0.1 s): the
+    #: first seconds are when each new degree of rotation tells the hard iron apart most, and
+    #: a solve over a few windows is cheap.
+    solve_period_share: float = 0.1
     #: IRLS iterations per solve.
     irls_iterations: int = 2
     #: Cauchy scale in robust sigmas of the residual norm.
@@ -105,6 +110,9 @@ class WorldAlignmentConfig:
     disturbance_onset_nats: float = 3.0
     #: Runs of fewer windows than this off a field are noise, not episodes (no onset cost).
     min_episode_windows: int = 2
+    #: Share of the windows whose densest interval gives the heading spread (a quarter: still
+    #: one cluster's when a disturbance holds as many windows as the clean field).
+    cluster_share: float = 0.25
     #: Windows whose heading is more than this many Cauchy widths off the chosen cluster get
     #: no weight (and count as off it in the episode cost).
     reject_widths: float = 2.0
@@ -139,17 +147,19 @@ def _cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, f
     return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
 
 
-def _shorth(x: Array) -> tuple[float, float]:
-    """Centre and robust sigma of the densest half of x: the shortest interval that holds half
-    of the values (Rousseeuw's shorth / least median of squares location). Unlike the median it
-    sits in the larger of two clusters instead of between them, and its width (1.349 sigma for
-    normal data) is not inflated by the other cluster."""
+def _shorth(x: Array, share: float = 0.5) -> tuple[float, float]:
+    """Centre and robust sigma of the densest ``share`` of x: the shortest interval that holds
+    that share of the values (Rousseeuw's shorth / least median of squares location for one
+    half). Unlike the median it sits in the larger of two clusters instead of between them;
+    with a share below one half its width is not inflated by a second cluster as large as the
+    first (a half of two equal clusters spans both). The width is scaled to a normal sigma."""
     xs = np.sort(x)
     n = len(xs)
-    h = n // 2 + 1
+    h = min(n, max(2, int(n * share) + 1))
     widths = xs[h - 1:] - xs[:n - h + 1]
     i = int(np.argmin(widths))
-    return float(np.mean(xs[i:i + h])), float(widths[i]) / 1.349
+    # A normal's central share p spans 2 sqrt(2) erfinv(p) sigma.
+    return float(np.mean(xs[i:i + h])), float(widths[i]) / (2.0 * math.sqrt(2.0) * float(erfinv(min(h / n, 0.999))))
 
 
 class _WindowSums:
@@ -279,7 +289,9 @@ class WorldAlignment:
         fw.sums['m'][k] += mag
         fw.sums['norm'][k] += math.sqrt(float(mag @ mag))
         self._field_samples += 1
-        if self._solve_t_ns is None or t_ns - self._solve_t_ns >= int(self.config.solve_period_s * 1e9) \
+        span_ns = t_ns - (self._t_first_ns or t_ns)
+        period_ns = min(int(self.config.solve_period_s * 1e9), max(100_000_000, int(self.config.solve_period_share * span_ns)))
+        if self._solve_t_ns is None or t_ns - self._solve_t_ns >= period_ns \
                 or self._field_samples < 8:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()
@@ -430,10 +442,10 @@ class WorldAlignment:
         # field offset fixed in the world and one fixed in the phone look alike - after which
         # every window agrees with the wrong fit.
         h_held = self._h_last if self._h_last is not None else np.zeros(3)
+        lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         if n_win >= 3:
             f_held = (Rtm_w.sum(axis=0) - np.einsum('nji,j->i', S_w, h_held)) / n_w.sum()
             w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up)
-        lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         for _ in range(max(1, c.irls_iterations)):
             wn = w_win * n_w
             sw = float(wn.sum())
@@ -477,7 +489,7 @@ class WorldAlignment:
         e2 = cross3(up, e1)
         f_abs = math.atan2(float(f @ e2), float(f @ e1))
         rel = (np.arctan2(mean_f @ e2, mean_f @ e1) - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-        centre, spread = _shorth(rel)
+        centre, spread = _shorth(rel, c.cluster_share)
         spread = max(spread, math.radians(0.25))
         width = c.cauchy_scale * spread
         centre = self._choose_cluster(rel, centre, f_abs, width)
@@ -533,9 +545,11 @@ class WorldAlignment:
             far &= np.abs(rel - x) > c.reject_widths * width
         if int(far.sum()) >= 2:
             candidates.append(_shorth(rel[far])[0])
-        costs = [self._episode_cost(rel, x, width) for x in candidates]
+        # A candidate no window supports any more (the last choice, after h moved) cannot win.
+        costs = [self._episode_cost(rel, x, width) if np.any(np.abs(rel - x) <= c.reject_widths * width)
+                 else math.inf for x in candidates]
         best = int(np.argmin(costs))
-        if prev is not None and costs[best] > costs[1] - c.mode_switch_nats:
+        if prev is not None and math.isfinite(costs[1]) and costs[best] > costs[1] - c.mode_switch_nats:
             best = 1
         chosen, cost = candidates[best], costs[best]
         # The runner-up: the cheapest candidate clearly apart from the chosen one.

@@ -110,6 +110,7 @@ class HybridOrientationFilterNode(TrackingNode):
             hard_iron_sigma=p('hard_iron_sigma', a.hard_iron_sigma, 'Prior 1-sigma of the residual hard iron, relative to the field strength', min_value=1e-6, max_value=10.0),
             window_s=p('window_s', a.window_s, 'Window of the robust field fit, s (a disturbance is judged window by window)', min_value=0.01, max_value=60.0),
             solve_period_s=p('solve_period_s', a.solve_period_s, 'Re-solve the field fit this often (sample stamps), s', min_value=0.01, max_value=60.0),
+            solve_period_share=p('solve_period_share', a.solve_period_share, 'Early in a session re-solve the field fit every this share of its span instead (at least every 0.1 s)', min_value=0.0, max_value=1.0),
             hand_velocity_m_s=p('hand_velocity_m_s', a.hand_velocity_m_s, 'Typical speed of the phone in the hand, m/s (tilt covariance: the velocity term of the gravity mean)', min_value=0.0, max_value=10.0),
             correlation_s=p('correlation_s', a.correlation_s, 'Correlation time of field disturbances and hand motion, s (effective sample count of the heading covariance)', min_value=0.05, max_value=60.0),
             lever_arm_sigma_m=p('lever_arm_sigma_m', a.lever_arm_sigma_m, 'Prior 1-sigma of the lever arm (the IMU from the centre the user turns about), m; 0: no lever-arm model', min_value=0.0, max_value=10.0),
