@@ -105,6 +105,7 @@ class VisualInertialFilterNode(TrackingNode):
             reset_gap_s=p('reset_gap_s', dc.reset_gap_s, 'IMU gaps longer than this lose the track until the next camera pose, s', min_value=0.001, max_value=60.0),
             rollback=p('rollback', True, 'Roll back to the capture time of late poses (false: apply on arrival, for comparison)'),
             joint=p('joint_error_state', dc.joint, 'One joint 15-state error filter (orientation-position couplings, the pose covariance in full); false: the two separate filters of Fig. 7'),
+            sampling_model=p('sampling_model', dc.sampling_model, 'Integrate each IMU interval with the step of the specific force placed at the kink of the angular rate (located from the gyro samples around it); false: the trapezoid'),
             sampling_error_scale=p('sampling_error_scale', dc.sampling_error_scale, 'Scale of the IMU sampling-error covariance (a step of the specific force between two samples, delta^2/12; 0: off)', min_value=0.0, max_value=100.0),
         )
         self.render_latency_ns = int(1e9 * p('render_latency_s', 0.03, 'Display latency: vi/predicted_pose is extrapolated this far ahead of the newest IMU sample, s', min_value=0.0, max_value=1.0))

@@ -30,6 +30,7 @@ import enum
 import logging
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +53,7 @@ from .eskf import (
     sampling_error_cov,
 )
 from .joint import predict_joint, update_joint
+from .sampling import interval_model
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +111,10 @@ class FusionConfig:
     gravity_m_s2: float = GRAVITY_M_S2
     #: Scale of the sampling error of the IMU input (:func:`.eskf.sampling_error_cov`; 0: off).
     sampling_error_scale: float = 1.0
+    #: Integrate each IMU interval with the kink of the angular rate located from the gyro
+    #: samples around it (:mod:`.sampling`): a step of the angular acceleration and the step
+    #: of the specific force it causes at the lever arm are placed where they happened.
+    sampling_model: bool = True
     #: One joint 15-state error filter (:mod:`.joint`: orientation-position couplings in the
     #: time update, the pose's full 6x6 covariance in the update) instead of Fig. 7's two.
     joint: bool = True
@@ -161,6 +167,10 @@ class RollbackFusion:
         self._times: list[int] = []
         self._pending: list[PoseMeasurement] = []
         self._rejections = 0
+        # the IMU samples alone (the events hold camera poses too, with interpolated values)
+        self._imu_t: list[int] = []
+        self._imu_g: list[Array] = []
+        self._imu_a: list[Array] = []
         #: counters for diagnostics and the bench
         self.imu_updates = 0        # IMU propagations, replays included
         self.rollbacks = 0
@@ -173,6 +183,9 @@ class RollbackFusion:
         self._times.clear()
         self._pending.clear()
         self._rejections = 0
+        self._imu_t.clear()
+        self._imu_g.clear()
+        self._imu_a.clear()
 
     @property
     def state(self) -> FusionState | None:
@@ -195,8 +208,17 @@ class RollbackFusion:
         prev = self._events[-1].state if self._events else None
         self._events.append(ev)
         self._times.append(ev.t_ns)
+        self._imu_t.append(ev.t_ns)
+        self._imu_g.append(gyro)
+        self._imu_a.append(accel)
         self.last_gap = Verdict.OK
-        ev.state = self._advance(prev, self._events[-2] if len(self._events) > 1 else None, ev)
+        if self.config.sampling_model and len(self._imu_t) >= 3:
+            # the new sample is the look-ahead the interval before the previous sample needed:
+            # integrate again from the sample before the previous one
+            j = bisect.bisect_left(self._times, self._imu_t[-3])
+            self._replay(j + 1)
+        else:
+            ev.state = self._advance(prev, self._events[-2] if len(self._events) > 1 else None, ev)
         verdict = self.last_gap
         if self._pending:
             ready = [m for m in self._pending if m.t_ns <= t_ns]
@@ -285,6 +307,10 @@ class RollbackFusion:
         if k > 64:  # trim in chunks: list deletion at the front is O(n)
             del self._events[:k - 1]
             del self._times[:k - 1]
+            m = max(bisect.bisect_left(self._imu_t, self._times[0]) - 3, 0)
+            del self._imu_t[:m]
+            del self._imu_g[:m]
+            del self._imu_a[:m]
 
     def _replay(self, idx: int) -> None:
         prev_state = self._events[idx - 1].state if idx > 0 else None
@@ -323,6 +349,29 @@ class RollbackFusion:
         Ro = R_w_imu.T @ m.cov[3:, 3:] @ R_w_imu + np.eye(3) * so2
         return Rp, Ro
 
+    def _interval(self, t_a: int, t_b: int) -> tuple[Any, int] | None:
+        """The :func:`.sampling.interval_model` of the IMU interval holding [t_a, t_b], and its
+        start time; None when [t_a, t_b] is not inside one interval of known samples."""
+        ts = self._imu_t
+        i1 = bisect.bisect_left(ts, t_b)
+        i0 = i1 - 1
+        if i0 < 0 or i1 >= len(ts) or ts[i0] > t_a:
+            return None
+        span = ts[i1] - ts[i0]
+        if span <= 0:
+            return None
+
+        def near(i: int) -> bool:  # an outer sample counts only at the same spacing
+            return 0 <= i < len(ts) and 0 <= i + 1 < len(ts) and abs((ts[i + 1] - ts[i]) - span) <= span // 5
+
+        wm2 = self._imu_g[i0 - 1] if near(i0 - 1) else None
+        am2 = self._imu_a[i0 - 1] if near(i0 - 1) else None
+        wp1 = self._imu_g[i1 + 1] if near(i1) else None
+        ap1 = self._imu_a[i1 + 1] if near(i1) else None
+        model = interval_model(span * 1e-9, (wm2, self._imu_g[i0], self._imu_g[i1], wp1),
+                               (am2, self._imu_a[i0], self._imu_a[i1], ap1), self.config.noise.gyro_noise_rad_s)
+        return model, ts[i0]
+
     def _meas_cov_world(self, m: PoseMeasurement) -> Array:
         """The pose's full 6x6 covariance (position, rotation about the world axes) with the
         configured floors added to its diagonal (the configured sigmas alone without one)."""
@@ -351,16 +400,23 @@ class RollbackFusion:
                 ev.verdict = Verdict.INITIALISED
                 return self._init_state(ev)
             return None
+        kinked = False
         if dt > cfg.max_imu_gap_s:
             self.last_gap = Verdict.GAP
             gyro, accel = ev.gyro, ev.accel
+        elif cfg.sampling_model and dt > 0:
+            model = self._interval(prev.t_ns, ev.t_ns)
+            if model is not None:
+                m, t0 = model
+                gyro, accel = m.means((prev.t_ns - t0) * 1e-9, (ev.t_ns - t0) * 1e-9)
+                kinked = m.tau is not None
         s = prev.copy()
         s.t_ns = ev.t_ns
         s.gyro, s.accel = ev.gyro, ev.accel
         if dt > 0:
             q_prev = s.ori.quat_wxyz
             step_cov = None
-            if cfg.sampling_error_scale > 0:
+            if cfg.sampling_error_scale > 0 and not kinked:
                 step_cov = cfg.sampling_error_scale * sampling_error_cov(
                     quat_to_matrix(q_prev) @ (ev.accel - prev_ev.accel))
             if cfg.joint:
