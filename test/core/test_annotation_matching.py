@@ -5,6 +5,7 @@ import math
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -532,3 +533,41 @@ def test_isolated_match_is_only_approximate_with_local_support_matched():
         al = _run(ReDetector(case.patches, case.dirs, ['p'] * 10, cfg, landmark=flags), case, tiles)
         assert al.supported and len(al.placements) == 1 and al.placements[0].status == 'matched'
         assert al.placements[0].supported is (not strict)
+
+
+def test_lookalike_test_places_an_ambiguous_match_at_its_prediction():
+    """A copy of annotation 2's surroundings 16 px to the right of its true position (a facade
+    repetition) matches clearly (NCC 0.99) while the true position, under noise, matches 0.81:
+    inside a 25 px gate the copy wins the placement. With a look-alike margin wider than the
+    gap the match is ambiguous and the annotation goes to the position the other matches
+    predict (inferred), the truth here; the other, unambiguous matches stay matched."""
+    case = make_case(seed=7)
+    k = 2
+    tu, tv = case.truth_uv[k]
+    x, y = int(round(tu - 7.5)), int(round(tv - 7.5))
+    rng = np.random.default_rng(5)
+    target = case.target.copy()
+    window = target[y:y + 16, x:x + 16].copy()
+    target[y:y + 16, x + 16:x + 32] = window + rng.normal(0, 4.0, window.shape)
+    target[y:y + 16, x:x + 16] += rng.normal(0, 26.0, window.shape)
+    patch = case.patches[k].astype(np.float32)
+    ncc = [float(cv2.matchTemplate(target[y:y + 16, x + dx:x + dx + 16], patch, cv2.TM_CCOEFF_NORMED).max())
+           for dx in (0, 16)]
+    assert 0.13 < ncc[1] - ncc[0] < 0.2  # the copy beats the truth's penalty (0.2 x 16 / 25)
+
+    def placed(margin: float):
+        det = ReDetector(case.patches, case.dirs, ['p'] * 6,
+                         MatchConfig(lookalike_margin=margin, parallax_gate_sigmas=0.0),
+                         R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * 6)
+        det.set_orientation(M_ENU_PANO)
+        det.add_finished_tiles(tiles_of(case.mapped))
+        det.step(target, case.mapped)
+        al = det.result()[1]
+        assert al.parallax is not None
+        return {p.index: p for p in al.placements}
+
+    off = placed(0.0)[k]
+    assert off.status == 'matched' and off.u - tu == pytest.approx(16.0, abs=0.5)
+    on = placed(0.2)
+    assert on[k].status == 'inferred' and abs(on[k].u - tu) < 0.5 and abs(on[k].v - tv) < 0.5
+    assert all(p.status == 'matched' for i, p in on.items() if i != k)

@@ -180,6 +180,17 @@ class MatchConfig:
     #: Matched labels too need ``local_support_matches`` other matches within ``local_support_px``
     #: (an isolated look-alike is then only approximate).
     local_support_matched: bool = True
+    #: Look-alike test of a matched annotation after the parallax model (0: off): when another
+    #: local NCC maximum at least ``lookalike_sep_px`` from its match, inside the placement gate
+    #: around its leave-one-out prediction, has an NCC within ``lookalike_margin`` of the
+    #: match's, NCC cannot tell which is the anchor (a sign whose letters repeat, a facade
+    #: repetition under changed lighting: the true position often matches worse). The
+    #: annotation is then placed at the prediction, as inferred (fitted on the other matches,
+    #: it is within a pixel or two where they surround it, and the local support rule decides
+    #: whether it is shown). ``lookalike_sep_px`` ~ 1 deg: a runner-up closer than that does not
+    #: make the label wrong.
+    lookalike_margin: float = 0.1
+    lookalike_sep_px: float = 6.0
     seed: int = 0
 
 
@@ -915,25 +926,50 @@ class ReDetector:
         ``guided_penalty`` x distance / ``placement_px``; the best position with an NCC of at
         least ``guided_min_ncc`` becomes the placement when its penalised score beats that of
         the current match (an inferred placement has none)."""
-        if self._map is None:
-            return
-        gray, mapped = self._map
         cfg, geo = config or self.config, self.geometry
+        cu, cv_ = predicted if predicted is not None else (p.u, p.v)
+        win = self._window_ncc(p.index, cu, cv_, cfg.placement_px, v_tol)
+        if win is None:
+            return
+        res, xs, ys, inside = win
+        dist = np.hypot(xs[None, :], ys[:, None])
+        score = np.where(inside, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
+        y, x = np.unravel_index(int(np.argmax(score)), score.shape)
+        if res[y, x] < cfg.guided_min_ncc:
+            return
+        if p.status == 'matched':
+            d_now = float(geo.map_distance(np.array(p.u), np.array(p.v), cu, cv_))
+            if score[y, x] <= p.score - cfg.guided_penalty * d_now / cfg.placement_px + 1e-6:
+                return
+        p.u = float((cu + xs[x]) % geo.width)
+        p.v = float(cv_ + ys[y])
+        p.direction = geo.unproject(np.array(p.u), np.array(p.v))
+        p.status = 'matched'
+        p.score = float(res[y, x])
+
+    def _window_ncc(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
+                    ) -> tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]] | None:
+        """NCC (TM_CCOEFF_NORMED) of patch ``index`` at every position within ``radius_px`` of
+        (cu, cv_) (and ``v_tol`` above or below): (ncc, column offsets, row offsets from (cu, cv_),
+        inside mask); positions not fully mapped get -1. None without a map, outside the rows or
+        for an unknown index."""
+        if self._map is None:
+            return None
+        gray, mapped = self._map
         patch = None
         for matcher, ids in self.matchers:
-            if p.index in ids:
-                patch = matcher.patches[ids.index(p.index)]
+            if index in ids:
+                patch = matcher.patches[ids.index(index)]
         if patch is None:
-            return
-        cu, cv_ = predicted if predicted is not None else (p.u, p.v)
+            return None
         P = patch.shape[0]
-        r = int(math.ceil(cfg.placement_px))
-        rv = r if v_tol is None else int(math.ceil(min(v_tol, cfg.placement_px)))
+        r = int(math.ceil(radius_px))
+        rv = r if v_tol is None else int(math.ceil(min(v_tol, radius_px)))
         x0 = int(round(cu - (P - 1) / 2)) - r
         y0 = int(round(cv_ - (P - 1) / 2)) - rv
         if y0 < 0 or y0 + P + 2 * rv > gray.shape[0]:
-            return
-        cols = np.arange(x0, x0 + P + 2 * r) % geo.width
+            return None
+        cols = np.arange(x0, x0 + P + 2 * r) % self.geometry.width
         reg = gray[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
         if mapped is not None:
             m = mapped[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
@@ -947,21 +983,34 @@ class ReDetector:
         c = (P - 1) / 2.0
         xs = x0 + c + np.arange(2 * r + 1) - cu
         ys = y0 + c + np.arange(2 * rv + 1) - cv_
-        dist = np.hypot(xs[None, :], ys[:, None])
-        inside = (dist <= cfg.placement_px) & (np.abs(ys)[:, None] <= (v_tol if v_tol is not None else np.inf))
-        score = np.where(inside, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
-        y, x = np.unravel_index(int(np.argmax(score)), score.shape)
-        if res[y, x] < cfg.guided_min_ncc:
+        inside = (np.hypot(xs[None, :], ys[:, None]) <= radius_px) & (
+            np.abs(ys)[:, None] <= (v_tol if v_tol is not None else np.inf))
+        return res, xs, ys, inside
+
+    def _lookalike(self, p: Placement, predicted: Array, v_tol: float | None, gate_px: float) -> None:
+        """The look-alike test of a matched placement (:attr:`MatchConfig.lookalike_margin`):
+        another local NCC maximum (3 x 3) inside the gate around its prediction, at least
+        ``lookalike_sep_px`` from the match, with an NCC within the margin of the match's makes
+        the placement the prediction itself (inferred)."""
+        cfg, geo = self.config, self.geometry
+        cu, cv_ = (float(x) for x in geo.project(predicted))
+        win = self._window_ncc(p.index, cu, cv_, gate_px, v_tol)
+        if win is None:
             return
-        if p.status == 'matched':
-            d_now = float(geo.map_distance(np.array(p.u), np.array(p.v), cu, cv_))
-            if score[y, x] <= p.score - cfg.guided_penalty * d_now / cfg.placement_px + 1e-6:
-                return
-        p.u = float((x0 + x + c) % geo.width)
-        p.v = float(y0 + y + c)
-        p.direction = geo.unproject(np.array(p.u), np.array(p.v))
-        p.status = 'matched'
-        p.score = float(res[y, x])
+        res, xs, ys, inside = win
+        peak = (res >= cv2.dilate(res, np.ones((3, 3), np.uint8))) & inside & (res > -1.0)
+        du = np.abs((cu + xs[None, :] - p.u + geo.width / 2) % geo.width - geo.width / 2)
+        far = np.hypot(du, cv_ + ys[:, None] - p.v) >= cfg.lookalike_sep_px
+        rivals = res[peak & far]
+        # The match's own NCC on the current map (the candidate's may be from an earlier map).
+        own = res[inside & ~far]
+        score = float(own.max()) if own.size else p.score
+        if rivals.size == 0 or float(rivals.max()) < score - cfg.lookalike_margin:
+            return
+        p.u, p.v = cu, cv_
+        p.direction = np.asarray(predicted, float).copy()
+        p.status = 'inferred'
+        p.score = float('nan')
 
     def _finish(self, al: Alignment, ids: list[int], cands: list[list[Candidate]]) -> None:
         """Make the placements' indices global and re-detect them guided; with a gravity-
@@ -997,6 +1046,11 @@ class ReDetector:
         al.placements = place_annotations(R, src, cands, post, geo, al.v_tol, predicted=corrected)
         al.parallax = model
         self._guide_all(al.placements, ids, corrected, al.v_tol, post)
+        if cfg.lookalike_margin > 0:
+            local = {i: k for k, i in enumerate(ids)}
+            for p in al.placements:
+                if p.status == 'matched' and not self.landmark[p.index]:
+                    self._lookalike(p, corrected[local[p.index]], al.v_tol, post.placement_px)
 
     def _parallax_gate(self, predicted: Array, observed: Array) -> float:
         """Placement gate after the parallax model (``parallax_gate_sigmas``): that many robust
