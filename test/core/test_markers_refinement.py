@@ -161,3 +161,42 @@ def test_blurred_side_is_located_at_its_mid_exposure_position():
         half_err = float(np.mean(moved[:, 0]) - x_mid)
         assert abs(half_err) < 0.05, (x_mid, half_err)
         assert abs(peak_err) > 0.2, (x_mid, peak_err)
+
+
+def test_a_marker_that_misses_the_others_pose_is_left_out():
+    """Four markers with 0.02 px corner noise; one has a side bent by an occluder (two corners
+    0.5 px off): the pose leaves it out (and is as good as without it). Sigmas too small for
+    every marker alike drop none."""
+    from ar_tracking.core.markers.detection import MarkerObservation
+
+    cam = ra.Camera()
+    lens = LensModel(cam.K)
+    mm = _map()
+    sched = ra.ArcSchedule.make(5.0)
+    tr = ra.truth_at(sched, np.array([2.0]))
+    R, p = tr.R_enu_cam[0], tr.position[0]
+    rng = np.random.default_rng(11)
+
+    def observations(bent: bool, sigma: float) -> list:
+        out = []
+        for mid, m in sorted(mm.markers.items()):
+            uv, _ = ra.project(cam.K, R, p, m.corners_map())
+            uv = uv + rng.normal(scale=0.02, size=uv.shape)
+            if bent and mid == 3:
+                uv[[0, 3], 0] += np.array([-0.15, 0.5])
+            out.append(MarkerObservation(mid, uv, lens.undistort(uv), uv, np.full(4, sigma)))
+        return out
+
+    err_gated, err_kept = [], []
+    for _ in range(30):
+        bent = observations(True, 0.06)
+        est = estimate_camera_pose(bent, mm, lens.focal_px, 0.06)
+        assert est.ids == (0, 1, 2)
+        kept = estimate_camera_pose(bent, mm, lens.focal_px, 0.06, marker_gate_chi2=0.0)
+        assert kept.ids == (0, 1, 2, 3)
+        err_gated.append(np.linalg.norm(est.p_map_cam - p))
+        err_kept.append(np.linalg.norm(kept.p_map_cam - p))
+    assert np.sqrt(np.mean(np.square(err_gated))) < 0.7 * np.sqrt(np.mean(np.square(err_kept)))
+    # every marker 10x worse than its sigma: nobody is singled out
+    tight = observations(False, 0.002)
+    assert estimate_camera_pose(tight, mm, lens.focal_px, 0.002).ids == (0, 1, 2, 3)
