@@ -74,8 +74,9 @@ def bench_detect(frames: int = 20, seed: int = 0) -> dict[str, Any]:
     return {'detect_ms_640x480': out['caarls'], 'detect_ms_640x480_by_refinement': out}
 
 
-#: Fresh seeds of the accuracy bench (not used by any test) and their length, s.
-BENCH_SEEDS: tuple[int, ...] = (301, 302)
+#: Fresh seeds of the accuracy bench (not used by any test) and their length, s. Six, so that
+#: the spread says whether a target is met by the method or by the draw.
+BENCH_SEEDS: tuple[int, ...] = (301, 302, 303, 304, 305, 306)
 BENCH_DURATION_S = 20.0
 
 

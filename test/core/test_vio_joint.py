@@ -134,3 +134,24 @@ def test_sampling_error_covariance_is_the_trapezoid_error_of_a_step():
     s = PositionState(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros((9, 9)))
     predict_position(s, np.eye(3), np.array([0, 0, 9.80665]), dt, FilterNoise(0, 0, 0, 1e-9, 0, 0), accel_step_cov=sampling_error_cov(delta))
     assert np.allclose(s.P[3:6, 3:6], sampling_error_cov(delta) * dt ** 2, rtol=1e-3)
+
+
+def test_camera_covariance_is_the_observation_jacobian_times_p():
+    """The published camera pose covariance of the joint filter: position uncertainty grows with
+    orientation uncertainty through the lever arm, and the two blocks correlate."""
+    from ar_tracking.core.vio.rollback import FusionConfig, FusionState, RollbackFusion
+
+    rng = np.random.default_rng(9)
+    ori, pos = _states(rng)
+    ori.P = np.diag([1e-4] * 3 + [1e-6] * 3)
+    pos.P = np.diag([1e-6] * 3 + [1e-4] * 3 + [1e-4] * 3)
+    f = RollbackFusion(FusionConfig(R_imu_cam=R_IC, t_imu_cam=T_IC))
+    st = FusionState(0, ori, pos, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+    C = f.camera_covariance(st)
+    _, H = pose_observation(ori, pos, R_IC, T_IC, ori.R @ R_IC, pos.p + ori.R @ T_IC)
+    P = np.zeros((15, 15))
+    P[:6, :6], P[6:, 6:] = ori.P, pos.P
+    assert np.allclose(C, H @ P @ H.T)
+    assert np.trace(C[:3, :3]) > np.trace(pos.P[:3, :3]) * 1.05
+    assert np.abs(C[:3, 3:]).max() > 0
+    assert np.all(np.linalg.eigvalsh(C) > 0)

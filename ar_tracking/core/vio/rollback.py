@@ -52,7 +52,7 @@ from .eskf import (
     predict_position,
     sampling_error_cov,
 )
-from .joint import predict_joint, update_joint
+from .joint import joint_covariance, predict_joint, skew, update_joint
 from .sampling import interval_model
 
 logger = logging.getLogger(__name__)
@@ -278,8 +278,18 @@ class RollbackFusion:
         return R_w_imu @ self.config.R_imu_cam, state.pos.p + R_w_imu @ self.config.t_imu_cam
 
     def camera_covariance(self, state: FusionState) -> Array:
-        """6x6 covariance of the camera pose, ROS order (x, y, z, rot x, y, z in the world)."""
+        """6x6 covariance of the camera pose, ROS order (x, y, z, rot x, y, z in the world): with
+        the joint filter H P H^T (H of :func:`.joint.pose_observation`: the lever arm turns
+        orientation uncertainty into camera position uncertainty, and the two correlate)."""
         R = state.ori.R
+        if self.config.joint:
+            H = np.zeros((6, 15))
+            H[:3, :3] = -R @ skew(self.config.t_imu_cam)
+            H[:3, 6:9] = np.eye(3)
+            H[3:, :3] = R
+            P = joint_covariance(state.ori, state.pos, state.cross)
+            cov_j = H @ P @ H.T
+            return 0.5 * (cov_j + cov_j.T)
         cov = np.zeros((6, 6))
         cov[:3, :3] = state.pos.P[:3, :3]
         cov[3:, 3:] = R @ state.ori.P[:3, :3] @ R.T
