@@ -137,14 +137,15 @@ def estimate_camera_pose(observations: Sequence[MarkerObservation], marker_map: 
     With three or more markers, one whose corners do not fit the pose of the others - its
     squared reprojection residuals, in its corners' own sigmas, above ``marker_gate_chi2``
     (8 degrees of freedom) times the others' median chi-square per 8 when that is above 1 - is
-    left out and the pose solved again, one marker at a time while at least three remain (0
-    disables it). Why: a marker partly hidden by an occluder as
+    left out and the pose solved again, one marker at a time as long as three remain after it
+    (with three, two markers cannot outvote one reliably: in blurred pan frames that dropped
+    good markers; 0 disables it). Why: a marker partly hidden by an occluder as
     dark as its border gives a side line that follows the occluder's edge where it covers the
     border (the detector's quad already bends there); its corners are then off by half a pixel
     with sigmas that claim a tenth of that, enough to move a 4-marker pose by 0.3-0.4 cm,
     always the same way while the camera looks past the occluder. The others tell."""
     est = _solve_pose(observations, marker_map, focal_px, corner_sigma_px)
-    while est is not None and marker_gate_chi2 > 0 and len(est[1]) >= 3:
+    while est is not None and marker_gate_chi2 > 0 and len(est[1]) >= 4:
         pose, chi2 = est
         worst = max(chi2, key=lambda k: chi2[k])
         # judged against the others: when every marker misses by more than its sigmas say
