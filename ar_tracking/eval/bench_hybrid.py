@@ -461,9 +461,10 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
         GraphRunner(bag, out, params_files=[sidecar] if sidecar.exists() else [],
                     nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter']).run()
         m = evaluate_all(out)['orientation']
-        pick = lambda key: {k: m.get(key, {}).get(k) for k in ('heading_rmse_deg', 'tilt_rmse_deg', 'max_deg', 'n')}  # noqa: E731
-        row = {'hybrid': pick('orientation/global'), 'sensor_only': pick('imu/data'), 'vqf': pick('reference/vqf'),
-               'hybrid_nees_mean': _nees(out)}
+        keys = ('heading_rmse_deg', 'tilt_rmse_deg', 'max_deg', 'n')
+        row = {name: {k: m.get(topic, {}).get(k) for k in keys}
+               for name, topic in (('hybrid', 'orientation/global'), ('sensor_only', 'imu/data'), ('vqf', 'reference/vqf'))}
+        row['hybrid_nees_mean'] = _nees(out)
         h, v = row['hybrid']['heading_rmse_deg'], row['vqf']['heading_rmse_deg']
         row['hybrid_over_vqf_heading'] = round(h / v, 4) if h is not None and v else None
         rows[str(seed)] = row

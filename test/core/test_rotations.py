@@ -257,7 +257,9 @@ def test_align_about_axis_recovers_the_angle_and_is_the_constrained_least_square
     # solution fits at least as well.
     dst = src @ R.T + rng.normal(0, 0.05, (n, 3))
     psi = align_about_axis(src, dst, axis)
-    cost = lambda Q: float(np.sum((dst - src @ Q.T) ** 2))
+    def cost(Q):
+        return float(np.sum((dst - src @ Q.T) ** 2))
+
     best = cost(rotations_about_axis(axis, [psi])[0])
     for d in (-0.01, 0.01):
         assert best < cost(rotations_about_axis(axis, [psi + d])[0])

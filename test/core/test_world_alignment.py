@@ -21,7 +21,8 @@ def sweep(t: float, turns: float = 1.0, duration: float = 20.0) -> np.ndarray:
 
 
 def run(duration=20.0, turns=1.0, hand=lambda t: np.zeros(3), field_turn=lambda t: 0.0,
-        hard_iron=np.zeros(3), seed=0, rate=100.0):
+        hard_iron=None, seed=0, rate=100.0):
+    hard_iron = np.zeros(3) if hard_iron is None else hard_iron
     rng = np.random.default_rng(seed)
     wa = WorldAlignment()
     for k in range(int(duration * rate)):

@@ -306,7 +306,7 @@ def test_deserialize_errors_are_bag_errors():
 def test_reader_not_open(tmp_path):
     bag = BagReader(tmp_path / 'x.mcap')
     with pytest.raises(BagError):
-        bag.topics
+        _ = bag.topics
 
 
 def test_stamp_helpers_keep_integer_nanoseconds():

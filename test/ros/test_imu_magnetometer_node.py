@@ -115,7 +115,7 @@ def _turning(h, n, rate_rad_s=0.5, field_for=lambda i: FIELD_ENU, mag_every=1, t
         # Without a field sample of its stamp the node holds the IMU sample until the next one
         # shows none is coming (one sample of delay, never more): wait for what is due.
         due = i + 1 if field is not None else i
-        assert spin_until(h.ex, lambda: len(h.out) >= due, 2.0), f"sample {i}: {len(h.out)} published, {due} due"
+        assert spin_until(h.ex, lambda due=due: len(h.out) >= due, 2.0), f"sample {i}: {len(h.out)} published, {due} due"
     return truths
 
 
@@ -265,9 +265,9 @@ def test_clock_jump_back_resets_and_goes_on(ros_context, capfd):
 
 
 def test_rejects_bad_parameter_values(ros_context):
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match='world_frame'):
         ImuMagnetometerNode(context=ros_context, parameter_overrides=[Parameter('world_frame', value='xyz')])
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match='soft_iron_matrix'):
         ImuMagnetometerNode(context=ros_context, parameter_overrides=[Parameter('soft_iron_matrix', value=[0.0] * 9)])
     node = ImuMagnetometerNode(context=ros_context)
     try:

@@ -162,7 +162,7 @@ def test_bad_input_is_dropped_and_the_map_survives(ros_context, desk_frames):
         points_before = len(h.node.system.map.points)
         t = _stamp(desk_frames[-1])
         # Textureless frames (a white wall): no pose, no keyframe, the map keeps its points.
-        for k in range(5):
+        for _ in range(5):
             t += 50_000_000
             h.frame(np.full((H, W), 255, np.uint8), t)
         h.settle()

@@ -165,8 +165,10 @@ def rotvec(w: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))[0]
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0, 1.0, 0])) -> tuple[np.ndarray, np.ndarray]:
-    """Pose (R_c_w, t_c_w) of a camera at ``eye`` looking at ``target`` (optical z forward)."""
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pose (R_c_w, t_c_w) of a camera at ``eye`` looking at ``target`` (optical z forward;
+    ``up`` default +y)."""
+    up = np.array([0, 1.0, 0]) if up is None else up
     z = np.asarray(target, float) - np.asarray(eye, float)
     z /= np.linalg.norm(z)
     x = np.cross(z, up)

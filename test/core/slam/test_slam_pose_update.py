@@ -62,5 +62,7 @@ def test_rolling_shutter_prediction() -> None:
         uv, _, _ = project_with_jacobian(X, cam, R, t, vel, dt)
     plain = refine_pose(X, uv, np.zeros(len(X)), cam, R, t)
     rs = refine_pose(X, uv, np.zeros(len(X)), cam, R, t, velocity=vel)
-    err = lambda r: np.linalg.norm(r.t_c_w - t) + np.linalg.norm(r.R_c_w - R)
+    def err(r):
+        return np.linalg.norm(r.t_c_w - t) + np.linalg.norm(r.R_c_w - R)
+
     assert err(rs) < 1e-3 < err(plain)
