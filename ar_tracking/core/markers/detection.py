@@ -169,7 +169,7 @@ class MarkerDetector:
         lin = linearize(gray, gamma)
         refined_all = [(mid, q, self._refine(lin, q, lens)) for mid, q in candidates]
         if self.response_gamma == 0.0 and not self.gamma_estimator.settled:
-            for mid, q, refined in refined_all:
+            for _mid, _q, refined in refined_all:
                 if refined is not None and float(np.max(refined.side_blur_px)) < SHARP_BLUR_PX:
                     self.gamma_estimator.add(estimate_gamma(gray, refined.corners_norm, lens, self.print_contrast))
             if abs(self.gamma - gamma) > 0.01 * gamma:  # the estimate moved: refine this frame again

@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 
 from .eskf import Array
 
@@ -69,7 +68,7 @@ class IntervalModel:
                 _mean(u0, u1, self.dt, self.a0, self.a1, self.tau, self.jerk_before, self.jerk_after))
 
 
-def interval_model(dt: float, w: tuple[Array, Array, Array, Array] | tuple[None, Array, Array, None],
+def interval_model(dt: float, w: tuple[Array | None, Array, Array, Array | None],
                    a: tuple[Array | None, Array, Array, Array | None], gyro_noise_rad_s: float,
                    kink_sigmas: float = KINK_SIGMAS) -> IntervalModel:
     """The model of the interval between samples k-1 and k from the samples k-2 .. k+1 (``w``
