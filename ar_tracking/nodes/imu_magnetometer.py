@@ -49,7 +49,7 @@ from ..ros.conversions import (
     stamp_ns,
 )
 from ..ros.frames import WORLD_FROM_ENU, check_world_frame
-from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.node_base import RELIABLE_QOS, STREAM_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster
 
@@ -142,8 +142,8 @@ class ImuMagnetometerNode(TrackingNode):
             self.pub_mag = self.advertise(MagneticField, 'imu/mag', RELIABLE_QOS)
             self._start_replay(bag_path, ReplayOptions(rate=rate, loop=loop, topics=[]))
         else:
-            self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
-            self.subscribe(MagneticField, 'imu/mag', self.on_mag, SENSOR_QOS)
+            self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS)
+            self.subscribe(MagneticField, 'imu/mag', self.on_mag, STREAM_QOS)
         self.get_logger().info(
             f'imu_magnetometer ({self.method}{"" if self.use_mag else ", 6D"}): '
             f'{"replaying " + bag_path if bag_path else "listening on imu/data_raw, imu/mag"}'

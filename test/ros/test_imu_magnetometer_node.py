@@ -331,3 +331,26 @@ def test_live_parameters_change_the_output_and_read_only_ones_refuse(ros_context
         assert h.node.method == 'compass'
     finally:
         h.close()
+
+
+def test_a_burst_of_a_second_of_samples_is_taken_whole(ros_context):
+    """The node's process stalls (here: nobody spins) while a second of 100 Hz samples arrives:
+    every one is still taken (STREAM_QOS keeps 200; the sensor-data default kept 5)."""
+    h = Harness(ros_context)
+    try:
+        R = np.eye(3)
+        for i in range(100):
+            accel, field = sample(R)
+            imu = Imu()
+            imu.header.stamp = to_stamp(T0 + i * 10_000_000)
+            imu.header.frame_id = 'imu'
+            imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z = map(float, accel)
+            mag = MagneticField()
+            mag.header = imu.header
+            mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z = map(float, field)
+            h.pub_imu.publish(imu)
+            h.pub_mag.publish(mag)
+        taken = lambda: [len(h.node.callback_stats[t].durations_ms) for t in ('imu/data_raw', 'imu/mag')]  # noqa: E731
+        assert spin_until(h.ex, lambda: taken() == [100, 100], 5.0), taken()
+    finally:
+        h.close()
