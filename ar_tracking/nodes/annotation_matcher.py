@@ -101,6 +101,7 @@ class AnnotationMatcherNode(TrackingNode):
         self.marker_height_m = p('marker_height_m', 0.5, 'Text height of the markers, m', min_value=0.01, max_value=100.0)
         local_n = p('local_support_matches', 2, 'An inferred label (no match of its own) is shown as placed only with this many matches within local_support_deg of it', min_value=0, max_value=1000)
         local_deg = p('local_support_deg', 30.0, 'Azimuth range of the local support of an inferred label, degrees', min_value=0.0, max_value=180.0)
+        bracket_deg = p('bracket_support_deg', 90.0, 'An inferred label with fewer local matches is shown as placed when matches lie on both sides of it within this azimuth (interpolated, not extrapolated), degrees; 0: off', min_value=0.0, max_value=180.0)
         local_matched = p('local_support_matched', True, 'Matched labels too need local_support_matches other matches within local_support_deg (an isolated match is only approximate)')
         lookalike = p('lookalike_margin', 0.1, 'Look-alike test after the parallax model: a match with another NCC peak in its gate (at least lookalike_sep_px away) within this NCC of its own is placed at its prediction instead (inferred); 0: off', min_value=0.0, max_value=2.0)
         lookalike_sep = p('lookalike_sep_px', 6.0, 'Least distance of a rival peak in the look-alike test (about 1 deg), map pixels', min_value=0.0, max_value=100.0)
@@ -122,7 +123,8 @@ class AnnotationMatcherNode(TrackingNode):
             min_support_matches=min_support, support_prior_sigmas=support_sigmas,
             strong_support_matches=strong_support, local_support_matches=local_n,
             local_support_px=math.radians(local_deg) * CylinderGeometry().f, local_support_matched=local_matched,
-            lookalike_margin=lookalike, lookalike_sep_px=lookalike_sep)
+            lookalike_margin=lookalike, lookalike_sep_px=lookalike_sep,
+            bracket_support_px=math.radians(bracket_deg) * CylinderGeometry().f)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []

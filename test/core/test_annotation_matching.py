@@ -508,7 +508,8 @@ def test_inferred_label_far_from_every_match_is_not_supported():
     tiles[:, 8:14] = 0  # columns 512-895 of the browsing map not finished
     flags, _ = _flags(case, (690.0, 1004.0))
     det = ReDetector(case.patches, case.dirs, ['p'] * 10,
-                     MatchConfig(sensor_prior=False, guided_search=False, local_support_matched=False), landmark=flags)
+                     MatchConfig(sensor_prior=False, guided_search=False, local_support_matched=False,
+                                 bracket_support_px=0.0), landmark=flags)
     al = _run(det, case, tiles)
     assert al.supported and len(al.placements) == 2
     far = [p for p in al.placements if abs(p.u - 690) < 20]
@@ -571,3 +572,20 @@ def test_lookalike_test_places_an_ambiguous_match_at_its_prediction():
     on = placed(0.2)
     assert on[k].status == 'inferred' and abs(on[k].u - tu) < 0.5 and abs(on[k].v - tv) < 0.5
     assert all(p.status == 'matched' for i, p in on.items() if i != k)
+
+
+def test_inferred_label_between_matches_is_supported_and_beyond_them_is_not():
+    """Bracket rule: the anchor at u = 690 has no match within 30 deg (columns 512-895 not
+    finished) but matches on both sides within 90 deg (512 px; its neighbours at 368 and 1004):
+    interpolated, it is shown. With columns 128-895 unfinished too, every match left of it is
+    more than 90 deg away: extrapolated, it stays approximate."""
+    case = make_case(seed=3, n=10)
+    flags, _ = _flags(case, (690.0, 1004.0))
+    cfg = MatchConfig(sensor_prior=False, guided_search=False, local_support_matched=False)
+    assert cfg.bracket_support_px == pytest.approx(512.0)
+    for first_unfinished, shown in ((8, True), (2, False)):
+        tiles = tiles_of(case.mapped)
+        tiles[:, first_unfinished:14] = 0
+        al = _run(ReDetector(case.patches, case.dirs, ['p'] * 10, cfg, landmark=flags), case, tiles)
+        far = next(p for p in al.placements if abs(p.u - 690) < 20)
+        assert al.supported and far.status == 'inferred' and far.supported is shown

@@ -180,6 +180,13 @@ class MatchConfig:
     #: Matched labels too need ``local_support_matches`` other matches within ``local_support_px``
     #: (an isolated look-alike is then only approximate).
     local_support_matched: bool = True
+    #: An inferred placement with fewer local matches is supported too when it is bracketed:
+    #: a match on either side of it within ``bracket_support_px`` columns (0: off). Between
+    #: matches the heading and the parallax are interpolated, not extrapolated as they are on the
+    #: far side of the first finished tiles; late in a sweep a facade whose own anchor and
+    #: supports do not match under the changed lighting lies between matched ones. 512 px = 90
+    #: deg: the heading and the sinusoid of the parallax model are then pinned on both sides.
+    bracket_support_px: float = 512.0
     #: Look-alike test of a matched annotation after the parallax model (0: off): when another
     #: local NCC maximum at least ``lookalike_sep_px`` from its match, inside the placement gate
     #: around its leave-one-out prediction, has an NCC within ``lookalike_margin`` of the
@@ -1104,6 +1111,7 @@ class ReDetector:
         matched = [p for p in al.placements + al.landmarks if p.status == 'matched']
         mu = np.array([p.u for p in matched])
         local = bool(self.landmark[ids].any())  # the local tests need landmarks' density
+        W = self.geometry.width
         for p in al.placements:
             near = int(np.sum(self.geometry.column_distance(mu, p.u) <= cfg.local_support_px)) if len(mu) else 0
             if not local:
@@ -1112,6 +1120,10 @@ class ReDetector:
                 p.supported = not cfg.local_support_matched or near - 1 >= cfg.local_support_matches
             else:
                 p.supported = near >= cfg.local_support_matches
+                if not p.supported and cfg.bracket_support_px > 0 and len(mu):
+                    du = (mu - p.u + W / 2) % W - W / 2  # signed column offsets of the matches
+                    p.supported = bool(((du < 0) & (du >= -cfg.bracket_support_px)).any()
+                                       and ((du > 0) & (du <= cfg.bracket_support_px)).any())
 
     def _up(self) -> Array | None:
         """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
