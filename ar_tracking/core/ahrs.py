@@ -213,10 +213,9 @@ class Ahrs:
             probe, self._probe = self._probe, []
             self._restart_state()
             self._make_filter(float(np.median(gaps)))
-            out: AhrsEstimate | str | None = None
-            for args in probe:
-                out = self._step(*args)
-            return out
+            for args in probe[:-1]:
+                self._step(*args)
+            return self._step(*probe[-1])  # the probe holds _RATE_PROBE + 1 samples: never empty
         return self._step(t_ns, g, a, m, mag_t_ns)
 
     def _step(self, t_ns: int, g: Array, a: Array, m: Array | None, mag_t_ns: int | None) -> AhrsEstimate:

@@ -124,7 +124,7 @@ class PanoramaMap:
         self.frames_mapped = 0
         self._col_sin, self._col_cos = self.geometry.column_terms(np.arange(W, dtype=float))
         self._row_h = self.geometry.row_terms(np.arange(H, dtype=float))
-        self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
+        self._fast = cv2.FastFeatureDetector.create(cfg.fast_threshold, True)  # = FastFeatureDetector_create
         self._footprint: tuple[tuple[bytes, bytes, tuple[int, ...]],
                                tuple[tuple[int, int, int, int], NDArray[np.int32] | None]] | None = None
         self._mask: tuple[object, NDArray[np.bool_]] | None = None
@@ -319,9 +319,12 @@ class PanoramaMap:
         given); ``pixels`` the frame's :meth:`new_pixels` when the caller has them already.
         """
         cfg = self.config
-        if frame.ndim == 3 and frame_gray is None:
-            frame_gray = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
-        gray_src = frame if frame.ndim == 2 else frame_gray
+        if frame.ndim == 2:
+            gray_src = frame
+        elif frame_gray is None:
+            gray_src = np.asarray(cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY), dtype=np.uint8)  # uint8: no copy
+        else:
+            gray_src = frame_gray
         if pixels is None:
             pixels = self.new_pixels(K, R_pano_cam, frame.shape[:2])
         if pixels is None:

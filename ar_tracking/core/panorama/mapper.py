@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -108,12 +109,12 @@ def _grey_std(gray: NDArray[np.uint8]) -> float:
 
 def _log_rotation(R: Array) -> Array:
     rvec, _ = cv2.Rodrigues(R)
-    return rvec.reshape(3)
+    return np.asarray(rvec, dtype=np.float64).reshape(3)  # float64 in, float64 out: no copy
 
 
 def _exp_rotation(w: Array) -> Array:
     R, _ = cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))
-    return R
+    return np.asarray(R, dtype=np.float64)  # float64 in, float64 out: no copy
 
 
 class PanoramaMapper:
@@ -171,11 +172,12 @@ class PanoramaMapper:
         K = np.asarray(K, float)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise PanoramaError('camera matrix K is not a valid 3x3 intrinsic matrix')
+        # OpenCV's colour conversions keep uint8; np.asarray only narrows their MatLike type.
         if gray is None:
-            gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+            gray = frame if frame.ndim == 2 else np.asarray(cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
         to_map = frame if self.config.map.channels == 3 else gray
         if to_map.ndim == 2 and self.config.map.channels == 3:
-            to_map = cv2.cvtColor(gray, cv2.COLOR_GRAY2RGB)
+            to_map = np.asarray(cv2.cvtColor(gray, cv2.COLOR_GRAY2RGB), dtype=np.uint8)
         self.frame_index += 1
         idx = self.frame_index
         was_tracking = self._tracking
@@ -188,6 +190,8 @@ class PanoramaMapper:
             self._accept(R, stamp_ns)
             self.frame_size = gray.shape
             return FrameResult(R, 'initialised', mapped_pixels=n)
+        last_R = self._last_R
+        assert last_R is not None  # initialised (above) means a last pose
         texture = _grey_std(gray)
         if texture < self.config.min_texture_std:
             return self._lose(f'frame has no texture (std {texture:.1f})')
@@ -200,7 +204,7 @@ class PanoramaMapper:
                 res = self.tracker.track(gray, K, R_pred, self.map, self.config.wide_radius_px)
         if res is None or not res.ok:
             status = 'relocalised'
-            hint = self._last_R if prior is None else np.asarray(prior, float)
+            hint = last_R if prior is None else np.asarray(prior, float)
             for R_hyp in self.relocaliser.hypotheses(gray, K, hint, self.map):
                 res = self.tracker.track(gray, K, R_hyp, self.map, self.config.wide_radius_px)
                 if res.ok:
@@ -212,7 +216,7 @@ class PanoramaMapper:
             return self._lose(res.reason if res is not None else 'no relocalisation hypothesis', res)
         R = res.R_pano_cam
         if status == 'tracked':
-            step = np.degrees(np.linalg.norm(_log_rotation(self._last_R.T @ R)))
+            step = np.degrees(np.linalg.norm(_log_rotation(last_R.T @ R)))
             if step > self.config.max_step_deg:
                 return self._lose(f'rotation step of {step:.0f} deg between frames', res)
         pixels = self.map.new_pixels(K, R, gray.shape)
@@ -265,7 +269,7 @@ class PanoramaMapper:
         self._velocity = None
         return FrameResult(None, 'lost', res, reason=reason)
 
-    def seam_error(self, min_gap: int = 1, **kwargs: float) -> dict[str, float]:
+    def seam_error(self, min_gap: int = 1, **kwargs: Any) -> dict[str, float]:
         """Seam measure of the current grey map (see :func:`map.seam_error`; ``kwargs`` go there)."""
         vals = self.map.gray.astype(np.float64)
         vals[~self.map.mapped] = np.nan

@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import gtsam
 import numpy as np
@@ -390,8 +390,9 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
 
 def bundle_adjust_one_iteration(keyframes: Sequence[Keyframe],
                                 points: Mapping[int, Array] | Iterable[MapPoint], camera: Camera,
-                                fixed_kf_ids: Iterable[int] = (), **kwargs: object) -> BAResult:
-    """Exactly one Levenberg-Marquardt iteration (the sec. 7 cost figure), Tukey kernel."""
+                                fixed_kf_ids: Iterable[int] = (), **kwargs: Any) -> BAResult:
+    """Exactly one Levenberg-Marquardt iteration (the sec. 7 cost figure), Tukey kernel;
+    ``kwargs`` go to :func:`bundle_adjust`."""
     kwargs.setdefault('max_stages', 1)
     return bundle_adjust(keyframes, points, camera, fixed_kf_ids, iterations=1, **kwargs)
 
@@ -428,7 +429,7 @@ def look_at(position: Array, target: Array, up: Array = np.array([0.0, -1.0, 0.0
 def _small_rotation(rng: np.random.Generator, sigma: float) -> Array:
     import cv2
     R, _ = cv2.Rodrigues(rng.normal(0.0, sigma, 3))
-    return R
+    return np.asarray(R, dtype=np.float64)  # float64 in, float64 out: no copy
 
 
 def make_synthetic_ba_problem(n_keyframes: int = 35, n_points: int = 300, seed: int = 0, *,
@@ -460,8 +461,8 @@ def make_synthetic_ba_problem(n_keyframes: int = 35, n_points: int = 300, seed: 
         true_poses[k] = (R, t)
         uv, z = project_world(cam, R, t, P)
         ok = (z > 0.1) & cam.in_image(uv, border=4.0)
-        for i in np.nonzero(ok)[0]:
-            vis[i].append(k)
+        for i_vis in np.nonzero(ok)[0]:
+            vis[i_vis].append(k)
     meas: dict[int, dict[int, Measurement]] = {k: {} for k in range(n_keyframes)}
     for i in range(n_points):
         if len(vis[i]) < 2:

@@ -88,7 +88,8 @@ class Rectifier:
         D = np.asarray(D, dtype=float)
         Kn, maps = K, None
         if np.any(D != 0):
-            Kn, _ = cv2.getOptimalNewCameraMatrix(K, D, (width, height), 0.0)
+            # float64 K in, float64 out (np.asarray only narrows OpenCV's MatLike, no copy).
+            Kn = np.asarray(cv2.getOptimalNewCameraMatrix(K, D, (width, height), 0.0)[0], dtype=float)
             maps = cv2.initUndistortRectifyMap(K, D, None, Kn, (width, height), cv2.CV_16SC2)
         camera = Camera(float(Kn[0, 0]), float(Kn[1, 1]), float(Kn[0, 2]), float(Kn[1, 2]), width, height, readout_s)
         return Rectifier(camera, maps)
@@ -98,7 +99,7 @@ class Rectifier:
             return gray
         import cv2
 
-        return cv2.remap(gray, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
+        return np.asarray(cv2.remap(gray, self.maps[0], self.maps[1], cv2.INTER_LINEAR), dtype=np.uint8)
 
 
 def level_to_level0(uv: Array, level: int) -> Array:

@@ -98,13 +98,26 @@ class InitStatus:
 
 @dataclass
 class _Hypothesis:
+    """One decomposition (R, t, n) of H; in stage 2 also its map and its tracked pose."""
+
     R: Array
     t: Array
     n: Array
-    xyz: Array | None = None  # (N, 3) triangulated (NaN where not)
-    R_cur: Array | None = None
-    t_cur: Array | None = None
+    #: (N, 3) points triangulated for this hypothesis (NaN where not); empty until stage 1
+    #: finds the decomposition constrained and triangulates.
+    xyz: Array = field(default_factory=lambda: np.zeros((0, 3)))
+    #: Pose tracked in stage 2, starting from the decomposition's (R, t) (the second keyframe).
+    R_cur: Array = field(init=False)
+    t_cur: Array = field(init=False)
     objective: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.R_cur, self.t_cur = self.R.copy(), self.t.copy()
+
+
+#: What stage 1 keeps of the frame that becomes the second keyframe: pyramid, small blurry
+#: image, stamp, pixels of the first keyframe's corners in it (NaN where not found), measured mask.
+_SecondView = tuple[list[Image], NDArray[np.float32], int, Array, NDArray[np.bool_]]
 
 
 def _proj(K: Array, Y: Array) -> Array:
@@ -187,7 +200,9 @@ def decompose(H: Array, rays: Array) -> list[_Hypothesis]:
         Xc = X @ R.T + t
         if np.mean(Xc[:, 2] > 0) < 0.9:
             continue
-        out.append(_Hypothesis(R.copy(), t.copy(), nrm.copy()))
+        # float64 in (H), float64 out; np.array copies as .copy() did.
+        out.append(_Hypothesis(np.array(R, dtype=np.float64), np.array(t, dtype=np.float64),
+                               np.array(nrm, dtype=np.float64)))
     return out
 
 
@@ -246,15 +261,21 @@ class Initialiser:
     def reset(self) -> None:
         self.stage = 0
         self.pyr0: list[Image] | None = None
-        self.sbi0 = None
+        self.sbi0: NDArray[np.float32] | None = None
         self.stamp0 = 0
         self.uv0 = np.zeros((0, 2))
         self.rays = np.zeros((0, 3))
         self.H = np.eye(3)
-        self.sbi_prev = None
+        self.sbi_prev: NDArray[np.float32] | None = None
         self.hyps: list[_Hypothesis] = []
-        self.kf1_data: tuple | None = None
+        self.kf1_data: _SecondView | None = None
         self.stage2_frames = 0
+
+    def _first_keyframe(self) -> tuple[list[Image], NDArray[np.float32]]:
+        """Pyramid and small blurry image of the first keyframe; :meth:`_start` sets both
+        before stage 1, and stages 1 and 2 are the only callers."""
+        assert self.pyr0 is not None and self.sbi0 is not None, 'initialiser: no first keyframe'
+        return self.pyr0, self.sbi0
 
     # ------------------------------------------------------------------------------------------
     def _rotation(self, sbi: NDArray[np.float32], n_levels: int) -> Array:
@@ -298,8 +319,9 @@ class Initialiser:
         uv = np.full((len(self.rays), 2), np.nan)
         idx = np.nonzero(inside)[0]
         if len(idx):
+            pyr0, _ = self._first_keyframe()
             res = search_points(pyr, self.camera, np.eye(3), np.zeros(3), np.zeros((len(idx), 3)),
-                                {0: self.pyr0}, np.zeros(len(idx), np.int64), self.uv0[idx],
+                                {0: pyr0}, np.zeros(len(idx), np.int64), self.uv0[idx],
                                 np.repeat(np.eye(3)[None], len(idx), 0), np.zeros((len(idx), 3)),
                                 1, self.cfg.search, uv_pred0=uv_pred[idx], A=A[idx])
             found[idx] = res.found
@@ -330,7 +352,7 @@ class Initialiser:
                 # Degenerate decomposition (no translation): the rotation is H's polar part.
                 U, S, Vt = np.linalg.svd(H / np.median(np.linalg.svd(H, compute_uv=False)))
                 R_rep = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-            rot_deg = np.degrees(trace_angle(R_rep))
+            rot_deg = float(np.degrees(trace_angle(R_rep)))
             if rot_deg > self.cfg.rotation_wait_deg and tnorm < max(self.cfg.translation_wait,
                                                                    0.15 * np.radians(rot_deg)):
                 return InitStatus('waiting', WAIT_ROTATION_MSG, None, None, nf, int(meas.sum()), cond)
@@ -341,8 +363,7 @@ class Initialiser:
         for h in hyps:
             X = np.full((len(self.rays), 3), np.nan)
             X[meas] = triangulate(self.rays[meas], uv[meas], self.K, h.R, h.t)
-            h.xyz = X
-            h.R_cur, h.t_cur = h.R.copy(), h.t.copy()
+            h.xyz = X  # h.R_cur, h.t_cur start at (h.R, h.t) (_Hypothesis.__post_init__)
             self.hyps.append(h)
         self.kf1_data = (pyr, sbi, stamp_ns, uv.copy(), meas.copy())
         log.info('initialiser: decomposition constrained (%.2e), %d hypotheses, %d points',
@@ -370,7 +391,7 @@ class Initialiser:
                 nf_all.append(0)
                 continue
             n = len(idx)
-            res = search_points(pyr, self.camera, R_pred, t_pred, h.xyz[idx], {0: self.pyr0},
+            res = search_points(pyr, self.camera, R_pred, t_pred, h.xyz[idx], {0: self._first_keyframe()[0]},
                                 np.zeros(n, np.int64), self.uv0[idx], np.repeat(np.eye(3)[None], n, 0),
                                 np.zeros((n, 3)), 1, self.cfg.search)
             f = res.found
@@ -402,10 +423,13 @@ class Initialiser:
                           None, None, max(nf_all), max(nf_all))
 
     def _finish(self, h: _Hypothesis, nf: int) -> InitStatus:
+        # Stage 1 stores the second view before any hypothesis can finish.
+        assert self.kf1_data is not None, 'initialiser: no second keyframe'
         pyr1, sbi1, stamp1, uv1, meas = self.kf1_data
+        pyr0, sbi0 = self._first_keyframe()
         ok = meas & np.isfinite(h.xyz).all(1)
-        kf0 = Keyframe(id=-1, stamp_ns=self.stamp0, R_c_w=np.eye(3), t_c_w=np.zeros(3), pyramid=self.pyr0,
-                       sbi=self.sbi0, fixed=True)
+        kf0 = Keyframe(id=-1, stamp_ns=self.stamp0, R_c_w=np.eye(3), t_c_w=np.zeros(3), pyramid=pyr0,
+                       sbi=sbi0, fixed=True)
         kf1 = Keyframe(id=-1, stamp_ns=stamp1, R_c_w=h.R.copy(), t_c_w=h.t.copy(), pyramid=pyr1, sbi=sbi1)
         st = InitStatus('done', 'initialised', h.R_cur.copy(), h.t_cur.copy(), nf, int(ok.sum()))
         st.kf0, st.kf1 = kf0, kf1

@@ -393,9 +393,9 @@ class MapMaker:
         results = []
         for ppid, suv, slev, R0, t0, sid, m in jobs:
             max_err = cfg.promote_max_error_sigma * max(2.0 ** slev, m.sigma_px)
-            xyz, good = triangulate_two_view(R0, t0, suv, R1, t1, m.uv, self.camera,
-                                             cfg.min_parallax_deg, max(max_err, 2.0))
-            results.append((ppid, suv, slev, R0, t0, sid, m, xyz[0], bool(good[0])))
+            xyz_1, good_1 = triangulate_two_view(R0, t0, suv, R1, t1, m.uv, self.camera,
+                                                 cfg.min_parallax_deg, max(max_err, 2.0))
+            results.append((ppid, suv, slev, R0, t0, sid, m, xyz_1[0], bool(good_1[0])))
         with self.map.lock:
             for ppid, suv, slev, R0, t0, sid, m, xyz, good in results:
                 pp = self.map.partial_points.get(ppid)

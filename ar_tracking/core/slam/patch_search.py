@@ -238,8 +238,9 @@ def search(image: Image, templates: NDArray[np.float32], uv_pred: Array, config:
         cross += R[:, i:i + k, :, i]
     # Window sums and sums of squares: one integral image of all windows stacked vertically.
     ii, ii2 = cv2.integral2(win.reshape(m * W, W), sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-    s1 = _box_sums(ii, m, W, P, k)
-    s2 = _box_sums(ii2, m, W, P, k)
+    # CV_64F integrals: np.asarray only narrows OpenCV's MatLike type (no copy).
+    s1 = _box_sums(np.asarray(ii, dtype=np.float64), m, W, P, k)
+    s2 = _box_sums(np.asarray(ii2, dtype=np.float64), m, W, P, k)
     zssd = s2 - s1 * s1 / (P * P) - 2.0 * cross + (Tzi.astype(np.float64) ** 2).sum(1)[:, None, None]
     zssd = np.where(circle[None], zssd, np.inf)
     flat = zssd.reshape(m, -1).argmin(1)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .camera import Camera
 from .slam_map import Keyframe, PartialPoint
@@ -107,7 +107,7 @@ def partial_point_world(pp: PartialPoint, kf_src: Keyframe) -> Array:
     return np.asarray(kf_src.R_c_w, float).T @ (X_s - np.asarray(kf_src.t_c_w, float))
 
 
-def predict_partial_uvs(rays: Array, q_hat: Array, info: Array, R_src_w: Array, t_src_w: Array,
+def predict_partial_uvs(rays: Array, q_hat: ArrayLike, info: ArrayLike, R_src_w: Array, t_src_w: Array,
                         R_c_w: Array, t_c_w: Array, camera: Camera, n_sigma: float = 2.0,
                         min_radius_px: float = 4.0, max_radius_px: float = 48.0,
                         prior_depth_factor: float = 3.0) -> tuple[Array, Array]:

@@ -16,6 +16,7 @@ compares them.
 from __future__ import annotations
 
 import logging
+from typing import Literal, overload
 
 import cv2
 import numpy as np
@@ -46,13 +47,14 @@ def build_pyramid(gray: Image, levels: int = PYRAMID_LEVELS) -> list[Image]:
     img = np.ascontiguousarray(gray, dtype=np.uint8)
     pyr = [img]
     for _ in range(1, levels):
-        pyr.append(cv2.pyrDown(pyr[-1]))
+        # OpenCV's stubs type every result as MatLike; pyrDown keeps uint8 (no copy here).
+        pyr.append(np.asarray(cv2.pyrDown(pyr[-1]), dtype=np.uint8))
     return pyr
 
 
 def shi_tomasi_score(img: Image) -> NDArray[np.float32]:
     """Per-pixel Shi-Tomasi score (minimum eigenvalue of the structure tensor), float32."""
-    return cv2.cornerMinEigenVal(img, blockSize=3, ksize=3)
+    return np.asarray(cv2.cornerMinEigenVal(img, blockSize=3, ksize=3), dtype=np.float32)  # CV_32F: no copy
 
 
 def _ascend(score: NDArray[np.float32], xy: NDArray[np.int64], border: int,
@@ -82,11 +84,26 @@ def _ascend(score: NDArray[np.float32], xy: NDArray[np.int64], border: int,
     return xy, score[xy[:, 1], xy[:, 0]]
 
 
+Corners = tuple[Array, NDArray[np.int64]]
+CornersWithScores = tuple[Array, NDArray[np.int64], Array]
+
+
+@overload
+def multiscale_corners(pyramid: list[Image], max_corners: int = ..., min_score: float = ...,
+                       border: int = ..., exclude_uv: Array | None = ..., exclude_radius_px: float = ...,
+                       return_scores: Literal[False] = ...) -> Corners: ...
+
+
+@overload
+def multiscale_corners(pyramid: list[Image], max_corners: int = ..., min_score: float = ...,
+                       border: int = ..., exclude_uv: Array | None = ..., exclude_radius_px: float = ...,
+                       *, return_scores: Literal[True]) -> CornersWithScores: ...
+
+
 def multiscale_corners(pyramid: list[Image], max_corners: int = 200,
                        min_score: float = DEFAULT_MIN_SCORE, border: int = 8,
                        exclude_uv: Array | None = None, exclude_radius_px: float = 10.0,
-                       return_scores: bool = False
-                       ) -> tuple[Array, NDArray[np.int64]] | tuple[Array, NDArray[np.int64], Array]:
+                       return_scores: bool = False) -> Corners | CornersWithScores:
     """Corners that are good ST corners in L0, L1 and L2 (sec. 3.1), strongest first.
 
     Exhaustive ST maxima (3x3 non-maximum suppression, score >= ``min_score``) on L2 are projected
@@ -99,9 +116,8 @@ def multiscale_corners(pyramid: list[Image], max_corners: int = 200,
     score; ``levels`` is the level the position was localised on (always 0 here, kept so callers
     can use it as the measurement level). With ``return_scores`` a third array, the L0 ST scores.
     """
-    empty = (np.zeros((0, 2)), np.zeros(0, dtype=np.int64))
-    if return_scores:
-        empty = empty + (np.zeros(0),)
+    empty2: Corners = (np.zeros((0, 2)), np.zeros(0, dtype=np.int64))
+    empty: Corners | CornersWithScores = empty2 + (np.zeros(0),) if return_scores else empty2
     if len(pyramid) < CORNER_LEVELS:
         return empty
     l2 = pyramid[2]
@@ -158,9 +174,9 @@ def multiscale_corners(pyramid: list[Image], max_corners: int = 200,
         if len(keep) >= max_corners:
             break
     idx = np.array(keep, dtype=np.int64)
-    out = (uv[idx].reshape(-1, 2), np.zeros(len(idx), dtype=np.int64))
+    out: Corners = (uv[idx].reshape(-1, 2), np.zeros(len(idx), dtype=np.int64))
     if return_scores:
-        out = out + (sc[idx].astype(float),)
+        return out + (sc[idx].astype(float),)
     return out
 
 
@@ -171,7 +187,8 @@ def small_blurry_image(pyramid: list[Image], sigma: float = 0.75) -> NDArray[np.
     """
     img = pyramid[-1].astype(np.float32)
     if sigma > 0:
-        img = cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+        img = np.asarray(cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE),
+                         dtype=np.float32)  # float32 in, float32 out: no copy
     return (img - float(img.mean())).astype(np.float32)
 
 

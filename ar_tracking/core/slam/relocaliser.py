@@ -52,20 +52,20 @@ def relocalise(sbi: NDArray[np.float32], keyframes: Sequence[Keyframe], camera: 
     ``camera`` is the level-0 camera; the coarsest level is inferred from the SBI size. Keyframes in
     ``exclude`` (e.g. already tried) are skipped; ``max_ssd`` rejects poor matches.
     """
-    best: tuple[float, Keyframe] | None = None
+    best: tuple[float, Keyframe, NDArray[np.float32]] | None = None  # (distance, keyframe, its SBI)
     for kf in keyframes:
         if kf.sbi is None or (exclude and kf.id in exclude):
             continue
         d = sbi_distance(sbi, kf.sbi)
         if best is None or d < best[0]:
-            best = (d, kf)
+            best = (d, kf, kf.sbi)
     if best is None:
         return None
-    d, kf = best
+    d, kf, kf_sbi = best
     if max_ssd is not None and d > max_ssd:
         return None
     level = int(round(np.log2(camera.width / sbi.shape[1])))
-    est = estimate_rotation(kf.sbi, sbi, camera.at_level(level), iterations=10)
+    est = estimate_rotation(kf_sbi, sbi, camera.at_level(level), iterations=10)
     R = est.R_cur_prev
     if not np.isfinite(est.residual) or est.residual > est.residual0 or trace_angle(R) > 0.6:
         R = np.eye(3)

@@ -75,7 +75,8 @@ class _Grid:
 def _gradients(img: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
-    return gx, gy
+    # CV_32F output: np.asarray only narrows OpenCV's MatLike type (no copy).
+    return np.asarray(gx, dtype=np.float32), np.asarray(gy, dtype=np.float32)
 
 
 def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32], camera: Camera,
@@ -95,7 +96,8 @@ def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32],
     ones = np.ones((h, w), np.float32)
     if H0 is not None:
         # Move the template into the pre-warped frame: T(y) = T0(H0^-1 y).
-        T = cv2.warpPerspective(T0, H0, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        T = np.asarray(cv2.warpPerspective(T0, H0, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+                       dtype=np.float32)  # float32 in, float32 out: no copy
         tmask = cv2.warpPerspective(ones, H0, (w, h), flags=cv2.INTER_LINEAR, borderValue=0) > 0.999
     else:
         T = T0
@@ -114,8 +116,8 @@ def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32],
     overlap = 0.0
     for it in range(1, iterations + 1):
         H = K @ R @ Kinv  # template pixel -> image pixel
-        Iw = cv2.warpPerspective(I, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                 borderMode=cv2.BORDER_REPLICATE)
+        Iw = np.asarray(cv2.warpPerspective(I, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                            borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
         vmask = cv2.warpPerspective(ones, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                     borderValue=0) > 0.999
         m = (vmask & tmask).reshape(-1)
@@ -134,7 +136,8 @@ def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32],
         J[:, 3] = 1.0
         JtJ = J.T @ J + 1e-6 * np.eye(4)
         try:
-            delta = -np.linalg.solve(JtJ, J.T @ r)
+            # float64 system: np.asarray narrows numpy's floating[Any] solve type (no copy).
+            delta = np.asarray(-np.linalg.solve(JtJ, J.T @ r), dtype=np.float64)
         except np.linalg.LinAlgError:
             break
         R = R @ so3_exp(delta[:3])
@@ -144,14 +147,14 @@ def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32],
             break
     # Final residual at the returned rotation.
     H = K @ R @ Kinv
-    Iw = cv2.warpPerspective(I, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                             borderMode=cv2.BORDER_REPLICATE)
+    Iw = np.asarray(cv2.warpPerspective(I, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                        borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
     vmask = cv2.warpPerspective(ones, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                 borderValue=0) > 0.999
     m = vmask & tmask
     if m.sum() >= 12:
-        r = (Iw + b - T)[m]
-        rms = float(np.sqrt(np.mean(r.astype(np.float64) ** 2)))
+        r_final = (Iw + b - T)[m]
+        rms = float(np.sqrt(np.mean(r_final.astype(np.float64) ** 2)))
         overlap = float(m.mean())
     if np.isnan(res0):
         res0 = rms

@@ -59,7 +59,7 @@ class SlamSystem:
     def process(self, gray: NDArray[np.uint8], stamp_ns: int) -> TrackResult:
         """Tracks one frame (never raises on bad input; see :class:`TrackResult`)."""
         res = self.tracker.track(gray, int(stamp_ns))
-        if res.R_c_w is not None and res.state in ('tracking', 'relocalised'):
+        if res.R_c_w is not None and res.t_c_w is not None and res.state in ('tracking', 'relocalised'):
             R_w_c, p_w_c = camera_in_world(res.R_c_w, res.t_c_w)
             self.path.append((int(stamp_ns), R_w_c, p_w_c))
             if len(self.path) > self.config.max_path:

@@ -204,10 +204,15 @@ class Tracker:
         if st.state != 'done':
             state = 'waiting' if st.state == 'waiting' else 'initialising'
             return self._result(state, st.message, stamp, t0, n_measured=st.n_measured, n_inliers=st.n_inliers)
-        st.kf0.id = self.map.new_keyframe_id()
-        st.kf1.id = self.map.new_keyframe_id()
-        self.mapper.initialise_map(st.kf0, st.kf1, st.xyz, st.uv0, st.uv1, st.levels)
-        self.R, self.t = st.R_c_w, st.t_c_w
+        kf0, kf1, xyz0, uv0, uv1, levels = st.kf0, st.kf1, st.xyz, st.uv0, st.uv1, st.levels
+        R0, t0_c_w = st.R_c_w, st.t_c_w
+        # A 'done' status carries the pose and the initial map (Initialiser._finish sets them all).
+        assert (kf0 is not None and kf1 is not None and xyz0 is not None and uv0 is not None
+                and uv1 is not None and levels is not None and R0 is not None and t0_c_w is not None)
+        kf0.id = self.map.new_keyframe_id()
+        kf1.id = self.map.new_keyframe_id()
+        self.mapper.initialise_map(kf0, kf1, xyz0, uv0, uv1, levels)
+        self.R, self.t = R0, t0_c_w
         self.velocity = np.zeros(6)
         self.last_stamp = stamp
         self.frames_since_kf = 0
@@ -244,10 +249,18 @@ class Tracker:
         return dict(ids=ids, xyz=xyz, src_kf=src_kf, src_uv=src_uv, kfs=kfs, kf_objs=kf_objs, partial=partial)
 
     # ---- tracking (sec. 4) ----------------------------------------------------------------------
+    def _pose(self) -> tuple[Array, Array]:
+        """The current pose (R_c_w, t_c_w). Set together by :meth:`_initialise` and at the start
+        of :meth:`_track_map` (identity if a frame comes before either), so every step of
+        tracking against the map has one."""
+        assert self.R is not None and self.t is not None, 'tracker: no pose before tracking the map'
+        return self.R, self.t
+
     def _predict(self, sbi: NDArray[np.float32], stamp: int) -> tuple[Array, Array, bool]:
+        R_cur, t_cur = self._pose()
         dt = 0.0 if self.last_stamp is None else max(0.0, (stamp - self.last_stamp) * 1e-9)
         dR, dtv = se3_exp(self.velocity * dt)
-        R_pred, t_pred = dR @ self.R, dR @ self.t + dtv
+        R_pred, t_pred = dR @ R_cur, dR @ t_cur + dtv
         total_rot = dR
         if self.cfg.use_rotation_prior and self.last_sbi is not None and self.last_sbi.shape == sbi.shape:
             H0 = rotation_homography(self._coarse_cam, dR, dtv, self.mean_depth)
@@ -257,7 +270,7 @@ class Tracker:
                 dRp = est.R_cur_prev
                 R_pred, t_pred = dRp @ R_pred, dRp @ t_pred
                 total_rot = dRp @ dR
-        fast = trace_angle(total_rot) * self.camera.fx > self.cfg.fast_rotation_px
+        fast = bool(trace_angle(total_rot) * self.camera.fx > self.cfg.fast_rotation_px)
         return R_pred, t_pred, fast
 
     def _measure(self, pyr: list[Image], snap: dict[str, Any], R: Array, t: Array, coarse: bool,
@@ -395,7 +408,8 @@ class Tracker:
         srct = np.array([kfs[k][1] for k in src_kf])
         src_uv = np.array([pp.source_uv for pp in pps], float)
         radius = float(np.clip(max(rad) / 2 ** self.cfg.search_level, self.cfg.search.radius, self.cfg.partial_max_radius_l1))
-        res = search_points(pyr, self.camera, self.R, self.t, X, {k: v[2] for k, v in kfs.items()}, src_kf, src_uv,
+        R_cur, t_cur = self._pose()
+        res = search_points(pyr, self.camera, R_cur, t_cur, X, {k: v[2] for k, v in kfs.items()}, src_kf, src_uv,
                             srcR, srct, self.cfg.search_level, self.cfg.search, radius=radius, uv_pred0=uvp)
         out: dict[int, Measurement] = {}
         sigma = float(2 ** self.cfg.search_level)
@@ -411,7 +425,7 @@ class Tracker:
                 if np.linalg.norm(res.uv0[i] - uvp[i]) > rad[i] + 2.0:
                     continue
                 Rs, ts = kfs[pp.source_kf][0], kfs[pp.source_kf][1]
-                update_inverse_depth(pp, self.R, self.t, Rs, ts, res.uv0[i], sigma, self.camera)
+                update_inverse_depth(pp, R_cur, t_cur, Rs, ts, res.uv0[i], sigma, self.camera)
                 out[pp.id] = Measurement(-1, pp.id, res.uv0[i], self.cfg.search_level)
         return out
 
@@ -423,8 +437,9 @@ class Tracker:
         ts = np.array([kfs[pp.source_kf][1] for pp in pps])
         ray = np.array([pp.ray for pp in pps], float)
         q = np.array([pp.q_hat for pp in pps], float)
+        R_cur, t_cur = self._pose()
         uv, r = predict_partial_uvs(ray, q, np.array([pp.info for pp in pps], float), Rs, ts,
-                                    self.R, self.t, self.camera)
+                                    R_cur, t_cur, self.camera)
         Xs = ray / np.maximum(q, 1e-6)[:, None]
         X = np.einsum('nji,nj->ni', Rs, Xs - ts)
         return uv, r, X
@@ -435,7 +450,8 @@ class Tracker:
             return False
         if self.mapper.queue_length() > self.cfg.kf_max_mapper_queue:
             return False
-        _, p_w = camera_in_world(self.R, self.t)
+        R_cur, t_cur = self._pose()
+        _, p_w = camera_in_world(R_cur, t_cur)
         pos = np.array([-(v[0].T @ v[1]) for v in snap['kfs'].values()])
         dmin = float(np.min(np.linalg.norm(pos - p_w, axis=1))) if len(pos) else np.inf
         need = self.cfg.kf_min_dist_frac * self.mean_depth
@@ -444,7 +460,7 @@ class Tracker:
         if dmin < need:
             return False
         kf_id = self.map.new_keyframe_id()
-        kf = Keyframe(id=kf_id, stamp_ns=stamp, R_c_w=self.R.copy(), t_c_w=self.t.copy(), pyramid=pyr, sbi=sbi)
+        kf = Keyframe(id=kf_id, stamp_ns=stamp, R_c_w=R_cur.copy(), t_c_w=t_cur.copy(), pyramid=pyr, sbi=sbi)
         for pid, uv in meas_now.items():
             kf.measurements[pid] = Measurement(kf_id, pid, uv, level)
         # Image velocities from the previous frame (sec. 6), level-0 px/s.
