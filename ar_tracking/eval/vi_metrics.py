@@ -207,7 +207,7 @@ def _run_events(data: ViData, fusion: RollbackFusion) -> PoseSeries:
     events = sorted([(int(t), 0, i) for i, t in enumerate(data.imu_t)]
                     + [(int(t), -1, i) for i, t in enumerate(cam.log_ns)])
     t_out, p_out, R_out = [], [], []
-    for t, kind, i in events:
+    for _t, kind, i in events:
         if kind == -1:
             cov = cam.cov[i] if cam.cov[i][0, 0] != -1 else None
             fusion.add_pose(PoseMeasurement(int(cam.t_ns[i]), cam.R[i], cam.p[i], cov))

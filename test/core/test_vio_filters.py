@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from ar_tracking.core.vio.eskf import (FilterNoise, OrientationState, PositionState, matrix_to_quat,
                                        predict_orientation, predict_position, quat_exp, quat_log,

@@ -149,9 +149,9 @@ class MarkerDetector:
         if ids is None:
             return accepted, rejected
         candidates = []
-        for quad, mid in zip(corners, ids.ravel()):
+        for quad, raw_id in zip(corners, ids.ravel()):
             q = quad.reshape(4, 2).astype(np.float64)
-            mid = int(mid)
+            mid = int(raw_id)
             if known_ids is not None and mid not in known_ids:
                 rejected.append(MarkerRejection(mid, q, 'ID not in the marker map'))
                 continue

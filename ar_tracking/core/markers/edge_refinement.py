@@ -49,7 +49,7 @@ def gaussian_gradient(gray: NDArray, sigma: float = 1.0) -> tuple[NDArray[np.flo
     img = np.asarray(gray, dtype=np.float32)
     gx = cv2.sepFilter2D(img, cv2.CV_32F, dg[::-1].copy(), g, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.sepFilter2D(img, cv2.CV_32F, g, dg[::-1].copy(), borderType=cv2.BORDER_REPLICATE)
-    return gx, gy
+    return np.asarray(gx, dtype=np.float32), np.asarray(gy, dtype=np.float32)
 
 
 def log_parabola_offset(m_minus: Array, m0: Array, m_plus: Array) -> Array:
@@ -79,7 +79,7 @@ class RefinedQuad:
     side_rms_px: Array = field(default_factory=lambda: np.zeros(4))
 
 
-def edge_points_along_side(gx: Array, gy: Array, mag: Array, a: Array, b: Array,
+def edge_points_along_side(gx: NDArray[np.floating], gy: NDArray[np.floating], mag: NDArray[np.floating], a: Array, b: Array,
                            margin_px: float = 3.0, search_px: int = 2) -> Array:
     """Sub-pixel edge points (N, 3: x, y, profile width along the scan in px) along the side
     a->b of a quad (pixel coordinates in the arrays' frame): for every row (or column) the side
@@ -105,7 +105,7 @@ def edge_points_along_side(gx: Array, gy: Array, mag: Array, a: Array, b: Array,
 MIN_GRADIENT_ALIGNMENT = 0.8
 
 
-def _scan_rows(mag: Array, a: Array, b: Array, length: float, margin_px: float, search_px: int,
+def _scan_rows(mag: NDArray[np.floating], a: Array, b: Array, length: float, margin_px: float, search_px: int,
                along: Array | None = None) -> Array:
     """Edge points (x, y) of the side a->b, one per image row it crosses (see above)."""
     h, w = mag.shape

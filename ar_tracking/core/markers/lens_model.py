@@ -80,8 +80,9 @@ class LensModel:
             if not np.any(self.dist):
                 K = self.K
                 return np.stack([(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1]], -1)
-            return cv2.undistortPoints(px.reshape(-1, 1, 2), self.K, np.asarray(self.dist, float),
-                                       criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)).reshape(-1, 2)
+            out = cv2.undistortPoints(px.reshape(-1, 1, 2), self.K, np.asarray(self.dist, float),
+                                      criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10))
+            return np.asarray(out, dtype=np.float64).reshape(-1, 2)
         K = self.K
         p_d = np.stack([(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1]], -1)
         return eq2_undistort(p_d, self.eq2_k)
@@ -95,7 +96,7 @@ class LensModel:
             else:
                 pts = np.hstack([norm, np.ones((len(norm), 1))])
                 uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), np.eye(3), np.asarray(self.dist, float))
-                p = uv.reshape(-1, 2)
+                p = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         else:
             p = eq2_distort(norm, self.eq2_k)
         return np.stack([p[:, 0] * self.K[0, 0] + self.K[0, 2], p[:, 1] * self.K[1, 1] + self.K[1, 2]], -1)

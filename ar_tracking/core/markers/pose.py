@@ -119,8 +119,9 @@ class CameraPoseEstimate:
 
 
 def _camera_from_rt(rvec: Array, tvec: Array) -> tuple[Array, Array]:
-    R_cam_map, _ = cv2.Rodrigues(rvec)
-    return R_cam_map.T, -R_cam_map.T @ tvec.reshape(3)
+    R, _ = cv2.Rodrigues(rvec)
+    R_cam_map = np.asarray(R, dtype=np.float64)
+    return R_cam_map.T, -R_cam_map.T @ np.asarray(tvec, dtype=np.float64).reshape(3)
 
 
 #: chi-square 99.9 % quantile for 8 degrees of freedom (one marker's four corners): a marker
@@ -189,16 +190,17 @@ def _solve_pose(observations: Sequence[MarkerObservation], marker_map: MarkerMap
         if n == 0:
             return None
         best = int(np.argmin(np.asarray(errs).ravel()))
-        R_cam_marker, _ = cv2.Rodrigues(rvecs[best])
-        R_cam_map = R_cam_marker @ m.R_map_marker.T
+        R_cm, _ = cv2.Rodrigues(rvecs[best])
+        R_cam_map = np.asarray(R_cm, dtype=np.float64) @ m.R_map_marker.T
         t = tvecs[best].reshape(3) - R_cam_map @ m.position
-        rvec, _ = cv2.Rodrigues(R_cam_map)
-        tvec = t.reshape(3, 1)
+        r0, _ = cv2.Rodrigues(R_cam_map)
+        rvec0, tvec0 = np.asarray(r0, dtype=np.float64), t.reshape(3, 1)
     else:
-        ok, rvec, tvec = cv2.solvePnP(X, x, K, None, flags=cv2.SOLVEPNP_SQPNP)
+        ok, r0, t0 = cv2.solvePnP(X, x, K, None, flags=cv2.SOLVEPNP_SQPNP)
         if not ok:
             return None
-    rvec_lm, tvec_lm = cv2.solvePnPRefineLM(X, x, K, None, rvec.copy(), tvec.copy(),
+        rvec0, tvec0 = np.asarray(r0, dtype=np.float64), np.asarray(t0, dtype=np.float64)
+    rvec_lm, tvec_lm = cv2.solvePnPRefineLM(X, x, K, None, rvec0.copy(), tvec0.copy(),
                                             (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-12))
     rvec = np.asarray(rvec_lm, dtype=np.float64).reshape(3, 1)
     tvec = np.asarray(tvec_lm, dtype=np.float64).reshape(3, 1)
