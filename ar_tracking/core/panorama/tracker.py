@@ -185,9 +185,9 @@ class ActiveSearchTracker:
         bxk, byk = bx[k], by[k]
         c0 = ncc[k, byk, bxk]
         # 4. Sub-pixel: parabola through the peak and its neighbours, separately in x and y.
-        l, rr = ncc[k, byk, bxk - 1], ncc[k, byk, bxk + 1]
+        lft, rr = ncc[k, byk, bxk - 1], ncc[k, byk, bxk + 1]
         t_, b_ = ncc[k, byk - 1, bxk], ncc[k, byk + 1, bxk]
-        dx = 0.5 * (l - rr) / np.minimum(l - 2 * c0 + rr, -1e-9)
+        dx = 0.5 * (lft - rr) / np.minimum(lft - 2 * c0 + rr, -1e-9)
         dy = 0.5 * (t_ - b_) / np.minimum(t_ - 2 * c0 + b_, -1e-9)
         mx = px[k] + (bxk - r) + np.clip(dx, -0.5, 0.5)
         my = py[k] + (byk - r) + np.clip(dy, -0.5, 0.5)

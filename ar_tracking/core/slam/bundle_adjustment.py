@@ -413,8 +413,10 @@ class SyntheticBAProblem:
     outliers: set[tuple[int, int]]
 
 
-def look_at(position: Array, target: Array, up: Array = np.array([0.0, -1.0, 0.0])) -> tuple[Array, Array]:
-    """(R_c_w, t_c_w) of a camera at ``position`` with its optical axis towards ``target``."""
+def look_at(position: Array, target: Array, up: Array | None = None) -> tuple[Array, Array]:
+    """(R_c_w, t_c_w) of a camera at ``position`` with its optical axis towards ``target``
+    (``up`` default -y, the image's up in a y-down world)."""
+    up = np.array([0.0, -1.0, 0.0]) if up is None else up
     z = np.asarray(target, float) - np.asarray(position, float)
     z /= np.linalg.norm(z)
     x = np.cross(up, z)

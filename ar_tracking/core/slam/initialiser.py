@@ -345,7 +345,6 @@ class Initialiser:
         cond = max((decomposition_condition(h, self.rays[meas], self.K, 2.0) for h in hyps), default=0.0)
         # A pose to report: the hypothesis closest to the previous one (any: same rotation at start).
         R_rep = hyps[0].R if hyps else np.eye(3)
-        t_rep = hyps[0].t if hyps else np.zeros(3)
         tnorm = max((float(np.linalg.norm(h.t)) for h in hyps), default=0.0)
         if not hyps or cond < self.cfg.condition_threshold:
             if not hyps:

@@ -397,7 +397,7 @@ class MapMaker:
                                                  cfg.min_parallax_deg, max(max_err, 2.0))
             results.append((ppid, suv, slev, R0, t0, sid, m, xyz_1[0], bool(good_1[0])))
         with self.map.lock:
-            for ppid, suv, slev, R0, t0, sid, m, xyz, good in results:
+            for ppid, suv, slev, _R0, _t0, sid, m, xyz, good in results:
                 pp = self.map.partial_points.get(ppid)
                 src = self.map.keyframes.get(sid)
                 if pp is None or src is None or src.erased or ppid in self.map.points:

@@ -185,7 +185,7 @@ def refine_pose(X_w: Array, uv_meas: Array, levels: NDArray[np.int64] | Array, c
     it = 0
     H = np.zeros((6, 6))
     eye6 = np.eye(6)
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 - the count is returned
         e, e_flat, J, front = _normalised_residuals(X_w, uv_meas, inv_sig, camera, R, t, vel, dt)
         en = np.where(front, np.hypot(e[:, 0], e[:, 1]), 1e6)
         scale = (float(fixed_scale) if fixed_scale is not None

@@ -89,7 +89,7 @@ def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32],
     pre-warp. Returns the rotation R (``R_cur_prev`` when H0 is identity) and the residuals.
     """
     T0 = np.asarray(template, dtype=np.float32)
-    I = np.asarray(image, dtype=np.float32)
+    img = np.asarray(image, dtype=np.float32)
     h, w = T0.shape
     K = camera.K
     Kinv = np.linalg.inv(K)
@@ -116,7 +116,7 @@ def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32],
     overlap = 0.0
     for it in range(1, iterations + 1):
         H = K @ R @ Kinv  # template pixel -> image pixel
-        Iw = np.asarray(cv2.warpPerspective(I, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        Iw = np.asarray(cv2.warpPerspective(img, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                             borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
         vmask = cv2.warpPerspective(ones, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                     borderValue=0) > 0.999
@@ -147,7 +147,7 @@ def estimate_rotation(template: NDArray[np.float32], image: NDArray[np.float32],
             break
     # Final residual at the returned rotation.
     H = K @ R @ Kinv
-    Iw = np.asarray(cv2.warpPerspective(I, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+    Iw = np.asarray(cv2.warpPerspective(img, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                         borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
     vmask = cv2.warpPerspective(ones, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                 borderValue=0) > 0.999
