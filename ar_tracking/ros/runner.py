@@ -848,12 +848,24 @@ class GraphRunner:
                 ledger.external[topic] += 1
 
     def _stop_node_processes(self, nodes: list[Any], executor: Any, recorder: _Recorder) -> None:
-        """Stop every node process at once (each takes what is still queued for it), record
-        what they publish meanwhile until the recorder is quiet, then collect their counts."""
+        """Stop the node processes upstream first: a node is asked to stop (it takes what is
+        still queued for it, reports its counts and exits) once every node it subscribes to has
+        reported, so that a backlog an upstream node is still working off reaches its
+        downstream nodes (a node in a cycle, or left when the time is up, is stopped with the
+        rest). What they publish meanwhile is recorded until the recorder is quiet."""
         handles = [n for n in nodes if hasattr(n, 'node_class')]
-        for h in handles:
-            h.request_stop()
         deadline = time.monotonic() + self.DRAIN_MAX_S
+        remaining = list(handles)
+        while remaining:
+            layer = [h for h in remaining if not any(
+                g is not h and set(h.subscription_topics) & set(g.publisher_topics) for g in remaining)] or remaining
+            if time.monotonic() >= deadline:
+                layer = remaining
+            for h in layer:
+                h.request_stop()
+            while time.monotonic() < deadline and not all(h.reported() or not h.process.is_alive() for h in layer):
+                executor.spin_once(timeout_sec=0.02)
+            remaining = [h for h in remaining if h not in layer]
         last, quiet_since = recorder.count, time.monotonic()
         while time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)

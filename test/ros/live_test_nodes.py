@@ -36,3 +36,35 @@ class DyingNode(TrackingNode):
         self.seen += 1
         if self.seen == 10:
             raise RuntimeError('sensor driver lost')
+
+
+class LaggingRelay(TrackingNode):
+    """Republishes each IMU sample on relay/imu after 300 ms of work: at the end of a run it
+    still has a backlog, published with gaps longer than a downstream node's drain wait."""
+
+    INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+    OUTPUTS = {'relay/imu': 'sensor_msgs/msg/Imu'}
+
+    def __init__(self, **kwargs: Any) -> None:
+        from ar_tracking.ros.node_base import STREAM_QOS
+
+        super().__init__('relay', **kwargs)
+        self.pub = self.advertise(Imu, 'relay/imu', STREAM_QOS)
+        self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS)
+
+    def on_imu(self, msg: Imu) -> None:
+        time.sleep(0.3)
+        self.pub.publish(msg)
+
+
+class RelayCounter(TrackingNode):
+    """Takes relay/imu (downstream of LaggingRelay)."""
+
+    INPUTS = {'relay/imu': 'sensor_msgs/msg/Imu'}
+    OUTPUTS: dict = {}
+
+    def __init__(self, **kwargs: Any) -> None:
+        from ar_tracking.ros.node_base import STREAM_QOS
+
+        super().__init__('counter', **kwargs)
+        self.subscribe(Imu, 'relay/imu', lambda msg: None, STREAM_QOS)

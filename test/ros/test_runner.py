@@ -576,6 +576,20 @@ def test_a_node_process_that_dies_is_reported_by_name(tmp_path):
         assert out.message_count(['/ground_truth/orientation']) > 0
 
 
+def test_node_processes_stop_upstream_first(tmp_path):
+    """At the end of a live run a node still working off a backlog (300 ms per sample) keeps
+    publishing with gaps longer than a downstream node's drain wait: the downstream node is
+    stopped only once the upstream one has drained and reported, so it takes every sample."""
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=2.0, rate_hz=5.0)
+    graph = {'relay': 'live_test_nodes:LaggingRelay', 'counter': 'live_test_nodes:RelayCounter'}
+    result = GraphRunner(bag, tmp_path / 'out.mcap', rate=1.0, graph=graph, executor='processes').run()
+    assert result.failed_nodes == {} and not result.interrupted
+    n = result.live_inputs['relay']['/imu/data_raw'][0]
+    assert n >= 9
+    assert result.live_inputs['relay']['/imu/data_raw'] == (n, n)
+    assert result.live_inputs['counter']['/relay/imu'] == (n, n)
+
+
 def test_processes_executor_is_for_realtime_runs(tmp_path):
     bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)
     with pytest.raises(RunError, match='processes is for realtime runs'):
