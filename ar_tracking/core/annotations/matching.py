@@ -984,13 +984,14 @@ class ReDetector:
                                  borderType=cv2.BORDER_CONSTANT)[:2 * rv + 1, :2 * r + 1]
         else:
             full = np.ones((2 * rv + 1, 2 * r + 1), np.float32)
-        res = cv2.matchTemplate(reg, patch.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+        res: NDArray[np.float32] = np.asarray(
+            cv2.matchTemplate(reg, patch.astype(np.float32), cv2.TM_CCOEFF_NORMED), np.float32)
         res[(full < 0.999) | ~np.isfinite(res)] = -1.0
         # Offsets from the predicted position (sub-pixel: x0, y0 were rounded).
         c = (P - 1) / 2.0
-        xs = x0 + c + np.arange(2 * r + 1) - cu
-        ys = y0 + c + np.arange(2 * rv + 1) - cv_
-        inside = (np.hypot(xs[None, :], ys[:, None]) <= radius_px) & (
+        xs: Array = x0 + c + np.arange(2 * r + 1, dtype=float) - cu
+        ys: Array = y0 + c + np.arange(2 * rv + 1, dtype=float) - cv_
+        inside: NDArray[np.bool_] = (np.hypot(xs[None, :], ys[:, None]) <= radius_px) & (
             np.abs(ys)[:, None] <= (v_tol if v_tol is not None else np.inf))
         return res, xs, ys, inside
 
