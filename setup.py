@@ -59,7 +59,7 @@ setup(
     extras_require={
         # ROS 2 Jazzy from PyPI, for machines without a ROS install.
         'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
-        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'websockets>=12'],
+        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'websockets>=12', 'ruff>=0.6', 'mypy>=1.10'],
         # Peer estimators compared in `ar-tracking bench` only (never imported at runtime).
         'bench': ['imufusion>=1.2', 'ahrs>=0.3.1'],
     },

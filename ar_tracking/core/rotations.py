@@ -17,7 +17,7 @@ import math
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 Array = NDArray[np.float64]
@@ -222,7 +222,7 @@ def align_about_axis(src: Array, dst: Array, axis: Array, weights: Array | None 
     return math.atan2(float(w @ sin_part), float(w @ cos_part))
 
 
-def rotations_about_axis(axis: Array, angles: Array) -> Array:
+def rotations_about_axis(axis: Array, angles: ArrayLike) -> Array:
     """(H, 3, 3) rotations by ``angles`` (rad) about one unit axis (Rodrigues, batched)."""
     k = np.asarray(axis, float) / np.linalg.norm(axis)
     a = np.asarray(angles, float).reshape(-1)

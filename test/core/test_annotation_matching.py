@@ -234,7 +234,9 @@ def test_consensus_score_prefers_the_true_rotation_over_shifted_look_alikes():
     case, cands = _shifted_facade_case()
     paper = ransac_alignment(case.dirs, cands, MatchConfig(consensus_score=False, placement_penalty=0.0))
     ours = ransac_alignment(case.dirs, cands, MatchConfig())
-    ang = lambda al: np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+    def ang(al):
+        return np.degrees(Rotation.from_matrix(al.R_target_source.T @ case.R_target_source).magnitude())
+
     assert ang(paper) > 1.5  # the lowest normalised error picks the shifted rotation
     assert ang(ours) < 1.0  # the least squares over all matches shares #0's parallax
     for p in ours.placements:
@@ -394,7 +396,9 @@ def test_fit_parallax_recovers_a_displacement_at_a_common_depth():
     fixed = model.apply(predicted)
     # The heading error is what the model removes (elevated anchors also move up or down a
     # little, which it leaves).
-    heading_err = lambda a: np.degrees(np.abs((model.azimuth(a) - model.azimuth(truth) + np.pi) % (2 * np.pi) - np.pi))
+    def heading_err(a):
+        return np.degrees(np.abs((model.azimuth(a) - model.azimuth(truth) + np.pi) % (2 * np.pi) - np.pi))
+
     assert heading_err(predicted).max() > 1.0 and heading_err(fixed).max() < 0.05
 
 

@@ -228,7 +228,7 @@ def test_sensor_prior_is_the_mean_of_the_orientation_samples(ros_context):
         x, y, z, w = R.as_quat()
         msg.transform.rotation.x, msg.transform.rotation.y, msg.transform.rotation.z, msg.transform.rotation.w = x, y, z, w
         pub.publish(msg)
-        assert spin_until(h.ex, lambda: len(h.node.callback_stats['orientation/panorama_in_world'].durations_ms) > k)
+        assert spin_until(h.ex, lambda k=k: len(h.node.callback_stats['orientation/panorama_in_world'].durations_ms) > k)
     err = np.degrees((Rotation.from_matrix(h.node.R_enu_pano) * base.inv()).magnitude())
     assert err < 0.01  # a single sample is 0.5-1.5 deg off
 
@@ -243,7 +243,7 @@ def test_unsupported_alignment_publishes_approximate_labels_and_no_alignment(ros
                                   'show_approximate': show})
         h.fix(T0)
         h.map(T0 + 1, case.target, case.mapped)
-        assert spin_until(h.ex, lambda: h.node.detector.tiles_done == int((tiles_of(case.mapped) > 0).sum())
+        assert spin_until(h.ex, lambda h=h: h.node.detector.tiles_done == int((tiles_of(case.mapped) > 0).sum())
                           and h.markers, 10.0)
         spin_until(h.ex, lambda: False, 0.2)
         shown = [m for m in h.markers[-1].markers if m.action == 0]

@@ -3,7 +3,6 @@ server that is down or refuses the user is one line per attempt, the node goes o
 annotations and tries again after 1, 2, 4 ... s of bag time."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 pytest.importorskip('rclpy')

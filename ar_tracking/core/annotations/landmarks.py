@@ -186,7 +186,7 @@ def select_support_landmarks(gray: NDArray, mapped: NDArray[np.bool_], geometry:
 
 def _inner_mask(mapped: NDArray[np.bool_], patch_px: int) -> NDArray[np.uint8]:
     """Where a patch (with the self-similarity margin) lies inside the mapped area."""
-    return cv2.erode(np.asarray(mapped, np.uint8), np.ones((patch_px + 9, patch_px + 9), np.uint8))
+    return np.asarray(cv2.erode(np.asarray(mapped, np.uint8), np.ones((patch_px + 9, patch_px + 9), np.uint8)), dtype=np.uint8)
 
 
 def _unique_corners(gray: NDArray, mapped: NDArray[np.bool_], geometry: CylinderGeometry,

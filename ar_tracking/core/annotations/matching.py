@@ -257,7 +257,7 @@ def _walsh_basis(n_keep: int) -> NDArray[np.float32]:
 def _unit_rows(x: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     n = np.linalg.norm(x, axis=-1, keepdims=True)
     ok = n[..., 0] > 1e-6
-    return x / np.where(n > 1e-6, n, 1.0), ok
+    return np.asarray(x / np.where(n > 1e-6, n, 1.0), dtype=np.float32), ok
 
 
 def patch_walsh(patches: NDArray[np.float32], basis: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -535,6 +535,7 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
         """Least-squares rotation mapping directions a onto b (the heading only, with gravity)."""
         if k_up is None:
             return absolute_orientation(a, b)
+        assert R_prior is not None  # k_up is only set with a prior
         return rotations_about_axis(k_up, align_about_axis(a @ R_prior.T, b, k_up))[0] @ R_prior
 
     def fallback() -> Alignment:
@@ -543,10 +544,12 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     result = Alignment(None)
     if len(with_c) < max(2, cfg.min_inliers):
         return fallback()
+    assert cs is not None  # with_c is not empty
     tol_rad = cfg.inlier_px / geo.f
     prior_tol = cfg.prior_window_px / geo.f  # the compass error, rad
     need = max(cfg.min_inliers, int(math.floor(cfg.min_inlier_ratio * len(with_c))) + 1)
     if k_up is not None:
+        assert R_prior is not None  # k_up is only set with a prior
         Rs = _heading_hypotheses(src, with_c, cd, R_prior, k_up, tol_rad, prior_tol)
     else:
         Rs = _pair_hypotheses(src, with_c, candidates, cd, cfg, tol_rad, rng)
@@ -797,7 +800,7 @@ def _consistent(R: Array, a: Array, cands: Sequence[Candidate], cu: Array, cv_: 
     near = np.flatnonzero(dist < inlier_px)
     if near.size == 0:
         return int(np.argmin(dist))
-    return int(near[np.argmax([cands[k].score - penalty * dist[k] / inlier_px for k in near])])
+    return int(near[np.argmax([cands[int(k)].score - penalty * dist[k] / inlier_px for k in near])])
 
 
 def _frames(v1: Array, v2: Array) -> Array:
@@ -876,7 +879,7 @@ class ReDetector:
         self.R_enu_target: Array | None = None
         self.dirty = False
         self.tiles_done = 0
-        self._cache: tuple[str, Alignment] | None = None
+        self._cache: tuple[str | None, Alignment] | None = None
         self._map: tuple[NDArray[np.float32], NDArray[np.bool_] | None] | None = None
 
     @property
@@ -1034,6 +1037,7 @@ class ReDetector:
         if (R is None or al.v_tol is None or up is None or not cfg.parallax_model
                 or len(matched) < cfg.parallax_min_matches):
             return
+        assert predicted is not None  # R is set
         found = {p.index: p.direction for p in al.placements}
         observed = np.array([found[ids[k]] for k in matched])
 

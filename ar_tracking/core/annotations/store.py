@@ -97,7 +97,7 @@ class Annotation:
 
     def has_world_orientation(self) -> bool:
         q = np.asarray(self.panorama_in_world_quat_xyzw, float)
-        return q.shape == (4,) and bool(np.all(np.isfinite(q))) and abs(np.linalg.norm(q) - 1) < 1e-3
+        return bool(q.shape == (4,) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3)
 
 
 @dataclass(frozen=True)
@@ -137,7 +137,7 @@ class PanoramaInfo:
 
     def has_world_orientation(self) -> bool:
         q = np.asarray(self.panorama_in_world_quat_xyzw, float)
-        return q.shape == (4,) and bool(np.all(np.isfinite(q))) and abs(np.linalg.norm(q) - 1) < 1e-3
+        return bool(q.shape == (4,) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3)
 
     def heading_sigma_rad(self) -> float:
         """1-sigma of the heading (NaN when unknown)."""
@@ -447,12 +447,12 @@ class SqliteAnnotationStore(AnnotationStore):
                 logger.warning('annotation %d (%r) skipped: %s', i, getattr(a, 'text', ''), reason)
                 continue
             d = np.asarray(a.direction, float)
-            q = np.asarray(a.panorama_in_world_quat_xyzw, float)
-            q = [float(v) for v in q] if a.has_world_orientation() else [None] * 4
+            q_row: list[float | None] = ([float(v) for v in np.asarray(a.panorama_in_world_quat_xyzw, float)]
+                                         if a.has_world_orientation() else [None] * 4)
             rows.append((a.text, np.ascontiguousarray(a.patch).tobytes(), a.patch_side,
                          float(d[0]), float(d[1]), float(d[2]), float(a.latitude_deg),
                          float(a.longitude_deg), float(a.altitude_m), a.panorama_id, a.author,
-                         int(a.created_ns), *q))
+                         int(a.created_ns), *q_row))
         if not rows:
             return report
         ids = []
@@ -462,6 +462,7 @@ class SqliteAnnotationStore(AnnotationStore):
                                  'latitude, longitude, altitude, panorama_id, author, created_ns, '
                                  'pano_qx, pano_qy, pano_qz, pano_qw) '
                                  'VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)', row)
+                assert cur.lastrowid is not None  # set by every INSERT
                 rid = int(cur.lastrowid)
                 db.execute('INSERT INTO annotations_rtree VALUES (?, ?, ?, ?, ?)',
                            (rid, row[6], row[6], row[7], row[7]))
@@ -490,6 +491,7 @@ class SqliteAnnotationStore(AnnotationStore):
             for row in rows:
                 cur = db.execute('INSERT INTO landmarks (panorama_id, patch, patch_side, dx, dy, dz) '
                                  'VALUES (?, ?, ?, ?, ?, ?)', row)
+                assert cur.lastrowid is not None  # set by every INSERT
                 ids.append(int(cur.lastrowid))
         report.ids = ids
         return report
@@ -688,8 +690,8 @@ class SqliteAnnotationStore(AnnotationStore):
                           id=int(rid))
         except (TypeError, ValueError) as exc:
             return None, str(exc)
-        reason = validate_landmark(lm)
-        return (None, reason) if reason else (lm, '')
+        problem = validate_landmark(lm)
+        return (None, problem) if problem else (lm, '')
 
     @classmethod
     def _from_row(cls, row: tuple) -> tuple[Annotation | None, str]:
@@ -707,8 +709,8 @@ class SqliteAnnotationStore(AnnotationStore):
                            id=int(rid))
         except (TypeError, ValueError) as exc:
             return None, str(exc)
-        reason = validate_annotation(a)
-        return (None, reason) if reason else (a, '')
+        problem = validate_annotation(a)
+        return (None, problem) if problem else (a, '')
 
 
 def open_store(url: str | Path, *, create: bool = False, timeout_s: float = 5.0) -> AnnotationStore:

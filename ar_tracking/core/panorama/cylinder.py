@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ..rotations import rot_y
 
@@ -41,14 +41,14 @@ class CylinderGeometry:
         v = y / rho * self.f + self.height / 2.0
         return u, v
 
-    def column_distance(self, u1: Array, u2: Array) -> Array:
+    def column_distance(self, u1: ArrayLike, u2: ArrayLike) -> Array:
         """|u1 - u2| in columns the short way round the cylinder (the map wraps at W)."""
         W = self.width
-        return np.abs((np.asarray(u1) - u2 + W / 2) % W - W / 2)
+        return np.abs((np.asarray(u1, dtype=float) - np.asarray(u2, dtype=float) + W / 2) % W - W / 2)
 
-    def map_distance(self, u1: Array, v1: Array, u2: Array, v2: Array) -> Array:
+    def map_distance(self, u1: ArrayLike, v1: ArrayLike, u2: ArrayLike, v2: ArrayLike) -> Array:
         """Euclidean map distance (pixels) between (u1, v1) and (u2, v2) across the wrap."""
-        return np.hypot(self.column_distance(u1, u2), np.asarray(v1) - v2)
+        return np.hypot(self.column_distance(u1, u2), np.asarray(v1, dtype=float) - np.asarray(v2, dtype=float))
 
     def unproject(self, u: Array, v: Array) -> Array:
         """Unit directions (..., 3) of map coordinates ``u``, ``v`` (inverse of :meth:`project`)."""
