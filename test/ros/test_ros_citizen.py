@@ -172,7 +172,9 @@ def test_two_namespaced_replays_have_monotonic_clocks_latched_tf_static_and_exit
     for topic, got in clocks.items():
         node.create_subscription(Clock, topic, lambda m, got=got: got.append(m.clock.sec * 10**9 + m.clock.nanosec), 500)
     spin_until(ex, lambda: False, 0.5)
-    common = ['-p', f'bag_path:={SAMPLE}', '-p', 'rate:=8.0', '-p', 'clock_topic:=clock',
+    # rate 3: the replays play for 5-7 s, time enough for this process to discover them on a
+    # loaded machine (at rate 8 r1 could finish before its clock reached us)
+    common = ['-p', f'bag_path:={SAMPLE}', '-p', 'rate:=3.0', '-p', 'clock_topic:=clock',
               '-p', "topics:=['/tf_static', '/imu/mag']", '-p', 'linger_s:=2.0']
     r1 = NodeProcess('bag_replay', ['-r', '__ns:=/r1', '-p', 'start_offset_s:=0.0', *common], tmp_path, 'r1')
     r2 = NodeProcess('bag_replay', ['-r', '__ns:=/r2', '-p', 'start_offset_s:=4.0', *common], tmp_path, 'r2')
