@@ -49,7 +49,9 @@ class LaggingRelay(TrackingNode):
         from ar_tracking.ros.node_base import STREAM_QOS
 
         super().__init__('relay', **kwargs)
-        self.pub = self.advertise(Imu, 'relay/imu', STREAM_QOS)
+        # Reliable (advertise's default), as the graph's nodes publish: the runner's recorder
+        # subscribes reliably and would never match a best-effort publisher.
+        self.pub = self.advertise(Imu, 'relay/imu')
         self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS)
 
     def on_imu(self, msg: Imu) -> None:
