@@ -47,7 +47,7 @@ from ..ros.conversions import (
     stamp_ns,
     to_stamp,
 )
-from ..ros.node_base import RELIABLE_QOS, STREAM_QOS, TrackingNode, run_node
+from ..ros.node_base import RELIABLE_QOS, RELIABLE_STREAM_QOS, STREAM_QOS, TrackingNode, run_node
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamped
 
@@ -172,7 +172,7 @@ class HybridOrientationFilterNode(TrackingNode):
         if (self.publish_tf or self.publish_mount_tf) and not self.tf.available:
             self.get_logger().warning('publish_tf: tf2_msgs is not installed here; no TF is published')
         self.input_type = input_type
-        self.subscribe(INPUT_TYPES[input_type], 'panorama/orientation', self.on_visual, STREAM_QOS)
+        self.subscribe(INPUT_TYPES[input_type], 'panorama/orientation', self.on_visual, RELIABLE_STREAM_QOS)
         self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS)
         self.subscribe(MagneticField, 'imu/mag', self.on_mag, STREAM_QOS)
         self.subscribe(Imu, 'imu/data', self.on_ahrs, STREAM_QOS)
