@@ -414,7 +414,7 @@ class WorldAlignment:
         A disturbance lasts seconds and turns the field for all of its samples at once, so the
         samples are grouped in short windows (``window_s``): each window gives the heading
         of the field it implies in the panorama frame, the windows' headings are compared with
-        the centre of their densest half (with hysteresis, ``mode_switch_ratio``), and a window
+        the cluster :meth:`_choose_cluster` takes as the Earth's field, and a window
         that departs gets a Cauchy weight for all its samples (this survives up to half of the
         windows disturbed; a per-sample loss started from least squares does not, once a long
         disturbance has pulled the fit). f_P and h are
@@ -442,10 +442,10 @@ class WorldAlignment:
         # field offset fixed in the world and one fixed in the phone look alike - after which
         # every window agrees with the wrong fit.
         h_held = self._h_last if self._h_last is not None else np.zeros(3)
-        lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         if n_win >= 3:
             f_held = (Rtm_w.sum(axis=0) - np.einsum('nji,j->i', S_w, h_held)) / n_w.sum()
             w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up)
+        lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         for _ in range(max(1, c.irls_iterations)):
             wn = w_win * n_w
             sw = float(wn.sum())

@@ -855,17 +855,20 @@ class GraphRunner:
         rest). What they publish meanwhile is recorded until the recorder is quiet."""
         handles = [n for n in nodes if hasattr(n, 'node_class')]
         deadline = time.monotonic() + self.DRAIN_MAX_S
-        remaining = list(handles)
+        # upstream[i]: the node processes whose outputs node i subscribes to
+        upstream = [{j for j, g in enumerate(handles) if g is not h and set(h.subscription_topics) & set(g.publisher_topics)}
+                    for h in handles]
+        remaining = set(range(len(handles)))
         while remaining:
-            layer = [h for h in remaining if not any(
-                g is not h and set(h.subscription_topics) & set(g.publisher_topics) for g in remaining)] or remaining
-            if time.monotonic() >= deadline:
-                layer = remaining
+            ready = {i for i in remaining if not upstream[i] & remaining}
+            if not ready or time.monotonic() >= deadline:
+                ready = set(remaining)
+            layer = [handles[i] for i in sorted(ready)]
             for h in layer:
                 h.request_stop()
             while time.monotonic() < deadline and not all(h.reported() or not h.process.is_alive() for h in layer):
                 executor.spin_once(timeout_sec=0.02)
-            remaining = [h for h in remaining if h not in layer]
+            remaining -= ready
         last, quiet_since = recorder.count, time.monotonic()
         while time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)

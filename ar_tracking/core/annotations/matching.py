@@ -1010,8 +1010,7 @@ class ReDetector:
             return
         res, xs, ys, inside = win
         peak = (res >= cv2.dilate(res, np.ones((3, 3), np.uint8))) & inside & (res > -1.0)
-        du = np.abs((cu + xs[None, :] - p.u + geo.width / 2) % geo.width - geo.width / 2)
-        far = np.hypot(du, cv_ + ys[:, None] - p.v) >= cfg.lookalike_sep_px
+        far = geo.map_distance(cu + xs[None, :], cv_ + ys[:, None], p.u, p.v) >= cfg.lookalike_sep_px
         rivals = res[peak & far]
         # The match's own NCC on the current map (the candidate's may be from an earlier map).
         own = res[inside & ~far]

@@ -38,6 +38,7 @@ import math
 
 import numpy as np
 
+from ..rotations import skew
 from .eskf import (
     CHI2_3DOF_999,
     GRAVITY_M_S2,
@@ -54,11 +55,6 @@ from .eskf import (
     quat_to_matrix,
     matrix_to_quat,
 )
-
-
-def skew(v: Array) -> Array:
-    """[v]x: skew(v) @ u = v x u."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def joint_covariance(ori: OrientationState, pos: PositionState, cross: Array) -> Array:
@@ -118,6 +114,16 @@ def predict_joint(ori: OrientationState, pos: PositionState, cross: Array, gyro:
     return split_covariance(P, ori, pos), w, a_world
 
 
+def pose_jacobian(R_world_imu: Array, t_imu_cam: Array) -> Array:
+    """H (6x15) of the camera pose (position, then rotation in the world) with respect to the
+    error state: the lever arm turns an orientation error into a camera position error."""
+    H = np.zeros((6, 15))
+    H[:3, :3] = -R_world_imu @ skew(t_imu_cam)
+    H[:3, 6:9] = np.eye(3)
+    H[3:, :3] = R_world_imu
+    return H
+
+
 def pose_observation(ori: OrientationState, pos: PositionState, R_imu_cam: Array, t_imu_cam: Array,
                      R_meas_world_cam: Array, p_meas_world_cam: Array) -> tuple[Array, Array]:
     """Innovation z (6: position, then rotation in the world) of a camera pose and its H (6x15)."""
@@ -127,11 +133,7 @@ def pose_observation(ori: OrientationState, pos: PositionState, R_imu_cam: Array
     z = np.empty(6)
     z[:3] = p_meas_world_cam - p_cam
     z[3:] = quat_log(matrix_to_quat(R_meas_world_cam @ R_cam.T))
-    H = np.zeros((6, 15))
-    H[:3, :3] = -R @ skew(t_imu_cam)
-    H[:3, 6:9] = np.eye(3)
-    H[3:, :3] = R
-    return z, H
+    return z, pose_jacobian(R, t_imu_cam)
 
 
 def update_joint(ori: OrientationState, pos: PositionState, cross: Array, R_imu_cam: Array, t_imu_cam: Array,

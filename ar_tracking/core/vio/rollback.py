@@ -52,7 +52,7 @@ from .eskf import (
     predict_position,
     sampling_error_cov,
 )
-from .joint import joint_covariance, predict_joint, skew, update_joint
+from .joint import joint_covariance, pose_jacobian, predict_joint, update_joint
 from .sampling import interval_model
 
 logger = logging.getLogger(__name__)
@@ -283,10 +283,7 @@ class RollbackFusion:
         orientation uncertainty into camera position uncertainty, and the two correlate)."""
         R = state.ori.R
         if self.config.joint:
-            H = np.zeros((6, 15))
-            H[:3, :3] = -R @ skew(self.config.t_imu_cam)
-            H[:3, 6:9] = np.eye(3)
-            H[3:, :3] = R
+            H = pose_jacobian(R, self.config.t_imu_cam)
             P = joint_covariance(state.ori, state.pos, state.cross)
             cov_j = H @ P @ H.T
             return 0.5 * (cov_j + cov_j.T)
