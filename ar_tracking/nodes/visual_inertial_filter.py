@@ -42,7 +42,7 @@ from ..ros.conversions import (
 )
 from ..ros.node_base import (
     RELIABLE_QOS,
-    SENSOR_QOS,
+    STREAM_QOS,
     TrackingNode,
     run_node,
 )
@@ -120,7 +120,7 @@ class VisualInertialFilterNode(TrackingNode):
         self.published = 0
         self.pub_odom = self.advertise(Odometry, 'vi/odometry', RELIABLE_QOS)
         self.pub_pred = self.advertise(PoseStamped, 'vi/predicted_pose', RELIABLE_QOS)
-        self.subscribe(Imu, 'imu/data_raw', self.on_imu, SENSOR_QOS)
+        self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS)
         self.subscribe(PoseWithCovarianceStamped, 'markers/pose', self.on_pose, RELIABLE_QOS)
         self._subscribe_tf_static()
         self.get_logger().info(f'visual_inertial_filter: roll-back {"on" if self.config.rollback else "off"}, buffer {self.config.buffer_s:g} s, '
