@@ -27,6 +27,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from .graph_plan import load_node_class
+
 logger = logging.getLogger(__name__)
 
 #: How long a child may take to import, build its node and match its subscribers, s.
@@ -55,7 +57,6 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
     from rclpy.executors import SingleThreadedExecutor
 
     from .params import to_overrides
-    from .runner import load_node_class
 
     context = rclpy.Context()
     node = None
@@ -107,8 +108,6 @@ class NodeProcess:
 
     def __init__(self, name: str, spec: Any, params: dict[str, Any], domain_id: int,
                  transforms: list[Any] | None = None) -> None:
-        from .runner import load_node_class
-
         self.name = name
         self.node_class = load_node_class(spec)
         mp = multiprocessing.get_context('spawn')
