@@ -15,6 +15,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .bench_bag import benchmark_bag
+
 logger = logging.getLogger(__name__)
 
 AREAS = ('graph', 'orientation', 'orientation_seeds', 'panorama', 'markers_vi', 'annotations', 'slam', 'store',
@@ -27,17 +29,6 @@ def percentiles_ms(values: list[float]) -> dict[str, float]:
     arr = np.asarray(values)
     return {'p50_ms': round(float(np.percentile(arr, 50)), 4),
             'p95_ms': round(float(np.percentile(arr, 95)), 4), 'n': int(arr.size)}
-
-
-def benchmark_bag(workdir: Path, duration_s: float, seed: int = 1) -> Path:
-    """The rotation_sweep bag the graph benchmark runs on (made once, then reused)."""
-    from ..sim.bagmaker import make_bag
-
-    path = workdir / f'rotation_sweep_seed{seed}_{duration_s:g}s.mcap'
-    if not path.exists():
-        logger.info('making the benchmark bag %s', path)
-        make_bag('rotation_sweep', path, seed=seed, duration_s=duration_s, overwrite=True)
-    return path
 
 
 def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0) -> dict[str, Any]:

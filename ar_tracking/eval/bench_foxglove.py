@@ -138,7 +138,7 @@ def bench_foxglove(workdir: Path, duration_s: float = 20.0, repeats: int = 3) ->
     (see the module docstring); medians of ``repeats`` interleaved runs each."""
     from ..ros.foxglove import FoxgloveBridge
     from ..ros.runner import GraphRunner
-    from .bench import benchmark_bag
+    from .bench_bag import benchmark_bag
 
     bag = benchmark_bag(workdir, duration_s)
     params = [p for p in [bag.with_name(bag.stem + '.params.yaml')] if p.exists()]

@@ -184,7 +184,7 @@ def bench_sim(workdir: Path, seed: int = 1, duration_s: float = 60.0, vision: st
     graph: dict[str, Any] = {'imu_magnetometer': ImuMagnetometerNode}
     if vision == 'panorama':
         from ..nodes.panorama_mapper import PanoramaMapperNode
-        from .bench import benchmark_bag
+        from .bench_bag import benchmark_bag
 
         bag = benchmark_bag(workdir, duration_s, seed=seed)
         graph['panorama_mapper'] = PanoramaMapperNode

@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.rotations import matrix_to_quat_xyzw, rot_x, rot_z
-from . import robot_arcs as ra
+from . import robot_arcs_model as ra
 from .world import rng_stream
 
 Array = NDArray[np.float64]
