@@ -35,6 +35,7 @@ more matches to align the browsing panorama with; above the estimated horizon.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import math
@@ -48,7 +49,8 @@ import yaml
 
 from .core.annotations.landmarks import LandmarkConfig, select_landmarks
 from .core.annotations.patches import cut_patch
-from .core.annotations.store import (Annotation, AddReport, Landmark, PanoramaInfo, validate_annotation)
+from .core.annotations.store import (Annotation, AnnotationStore, AddReport, Landmark, PanoramaInfo,
+                                     validate_annotation)
 from .core.annotations.world_orientation import DEFAULT_R_IMU_CAM, PanoramaWorld, PanoramaWorldEstimator
 from .core.imu_orientation import ImuCalibration
 from .core.panorama import MapConfig, MapperConfig, PanoramaMapper
@@ -222,9 +224,11 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
     ``support_landmarks`` next to each annotation (:mod:`.core.annotations.landmarks`).
     ``params_files``: the device calibration (default: ``<bag>.params.yaml`` when present).
     ``png``: also write the authoring panorama with a degree grid there. Raises BagError /
-    StoreError (one line) for unusable bags / stores."""
-    from .ros.conversions import ConversionError, compressed_to_array, image_to_array
+    StoreError (one line) for unusable bags / stores.
 
+    The steps: read the bag and map it (:func:`_map_bag`), estimate the panorama's orientation in
+    the world, turn the positions into patches and records (:func:`_anchor_records`), store them
+    with the panorama and its landmarks (:func:`_store_all`)."""
     bag = Path(bag)
     # Open the store first: a missing/locked/corrupt store fails before minutes of mapping.
     store = open_store(store_path, create=create)  # a path, sqlite:///path or postgresql:// (PostGIS)
@@ -236,58 +240,7 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
         geo = CylinderGeometry()
         mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr)))
         world_est = PanoramaWorldEstimator(cal, R_imu_cam, WorldAlignmentConfig(declination_rad=decl))
-        K = None
-        fixes: list[tuple[float, float, float]] = []
-        init_ns: int | None = None
-        with BagReader(bag) as reader:
-            topics = reader.topics
-            image_topics = [t for t in topics if t.endswith('image_raw') or t.endswith('image_raw/compressed')]
-            if not image_topics:
-                raise BagError(f'{bag}: no camera image topic in the bag')
-            n_img = reader.message_count(image_topics)
-            wanted = image_topics + [TOPIC_INFO, TOPIC_GPS, TOPIC_IMU, TOPIC_MAG]
-            done = 0
-            for m in reader.messages([t for t in wanted if t in topics]):
-                if m.topic == TOPIC_INFO:
-                    info = reader.deserialize(m)
-                    k = np.asarray(info.k, float).reshape(3, 3)
-                    if np.all(np.isfinite(k)) and k[0, 0] > 0:
-                        K = k
-                elif m.topic == TOPIC_IMU:
-                    s = reader.deserialize(m)
-                    w, a = s.angular_velocity, s.linear_acceleration
-                    world_est.add_imu(_ns(s.header), np.array([w.x, w.y, w.z]), np.array([a.x, a.y, a.z]))
-                elif m.topic == TOPIC_MAG:
-                    s = reader.deserialize(m)
-                    f = s.magnetic_field
-                    world_est.add_mag(_ns(s.header), np.array([f.x, f.y, f.z]))
-                elif m.topic == TOPIC_GPS:
-                    f = reader.deserialize(m)
-                    if f.status.status >= 0 and all(math.isfinite(x) for x in (f.latitude, f.longitude, f.altitude)):
-                        fixes.append((f.latitude, f.longitude, f.altitude))
-                else:
-                    done += 1
-                    if K is None:
-                        continue
-                    msg = reader.deserialize(m)
-                    try:
-                        arr = compressed_to_array(msg) if m.topic.endswith('compressed') else image_to_array(msg)
-                    except ConversionError as exc:
-                        logger.warning('%s: frame skipped: %s', bag, exc)
-                        continue
-                    if arr.dtype != np.uint8:
-                        continue
-                    bgr = m.topic.endswith('compressed') or getattr(msg, 'encoding', '').startswith('bgr')
-                    gray = arr if arr.ndim == 2 else cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY if bgr else cv2.COLOR_RGB2GRAY)
-                    stamp = _ns(msg.header)
-                    res = mapper.process(gray, K, stamp)
-                    if res.status == 'initialised':
-                        init_ns = stamp
-                    if res.R_pano_cam is not None and init_ns is not None:
-                        world_est.add_visual(stamp, res.R_pano_cam)
-                    mapper.background()
-                    if progress is not None and n_img:
-                        progress(done / n_img)
+        fixes, init_ns = _map_bag(bag, mapper, world_est, progress)
         if init_ns is None:
             raise BagError(f'{bag}: the panorama could not be started (no usable camera frames with camera_info)')
         pid = panorama_id or f'{bag.stem}-{hashlib.sha1(f"{bag.name}:{init_ns}".encode()).hexdigest()[:10]}'
@@ -307,7 +260,6 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
             report.tilt_sigma_deg = math.degrees(world.tilt_sigma_rad)
             report.ahrs_disagreement_deg = math.degrees(world.ahrs_disagreement_rad)
         R_enu_pano = world.R_enu_pano if world is not None else None
-        gray = mapper.map.gray
         if png is not None:
             report.png = str(write_panorama_png(mapper.map.tone_mapped(8), mapper.map.mapped, png, R_enu_pano))
         rows = positions(init_ns) if callable(positions) else positions
@@ -316,49 +268,143 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
         q = matrix_to_quat_xyzw(R_enu_pano) if R_enu_pano is not None else np.full(4, np.nan)
         if replace:
             report.replaced = store.delete_panorama(pid)
-        existing = np.array([a.direction for a in store.annotations_of(pid)]).reshape(-1, 3)
-        same = math.cos(SAME_POSITION_PX / geo.f)
-        records, texts = [], []
-        for p in todo:
-            d = position_direction(p, geo, R_enu_pano)
-            if d is None:
-                report.skipped.append((p.text, 'a compass bearing needs the panorama orientation, which could not be estimated'))
-                continue
-            u, v = geo.project(d)
-            patch, d, reason = cut_patch(gray, mapper.map.mapped, float(u), float(v), patch_px, geo)
-            if patch is None or d is None:
-                report.skipped.append((p.text, reason))
-                logger.warning('annotation %r skipped: %s', p.text, reason)
-                continue
-            if len(existing) and float(np.max(existing @ d)) >= same:
-                report.duplicates += 1
-                continue
-            a = Annotation(text=p.text, patch=patch, direction=d, latitude_deg=lat, longitude_deg=lon,
-                           altitude_m=alt, panorama_id=pid, author=author, created_ns=init_ns,
-                           panorama_in_world_quat_xyzw=q)
-            bad = validate_annotation(a)
-            if bad:
-                report.skipped.append((p.text, bad))
-                continue
-            records.append(a)
-            texts.append(p.text)
-            existing = np.vstack([existing, d])
-        added: AddReport = store.add(records)
-        report.stored = added.ids
-        report.skipped += [(texts[i], r) for i, r in added.skipped]
-        store.put_panorama(PanoramaInfo(
-            pid, q, world.covariance_enu if world is not None else np.full((3, 3), np.nan),
-            world.up if world is not None else np.full(3, np.nan),
-            'estimated' if world is not None else 'none', init_ns))
-        if report.stored and landmarks > 0 and not store.landmarks([pid]):
-            cfg = LandmarkConfig(count=landmarks, support_count=support_landmarks)
-            found = select_landmarks(gray, mapper.map.mapped, geo, world.up if world is not None else None, cfg,
-                                     avoid=np.array([a.direction for a in store.annotations_of(pid)]))
-            report.landmarks = len(store.add_landmarks(
-                Landmark(pid, lm.patch, lm.direction) for lm in found).ids)
+        template = Annotation(text='', patch=np.zeros((patch_px, patch_px), np.uint8), direction=np.zeros(3),
+                              latitude_deg=lat, longitude_deg=lon, altitude_m=alt, panorama_id=pid,
+                              author=author, created_ns=init_ns, panorama_in_world_quat_xyzw=q)
+        records, texts = _anchor_records(todo, store, template, mapper, geo, R_enu_pano, patch_px, report)
+        _store_all(store, records, texts, template, world, mapper, geo, landmarks, support_landmarks, report)
         return report
     finally:
         store.close()
+
+
+def _map_bag(bag: Path, mapper: PanoramaMapper, world_est: PanoramaWorldEstimator,
+             progress: Callable[[float], None] | None) -> tuple[list[tuple[float, float, float]], int | None]:
+    """Read the bag once: camera frames into the panorama mapper (from the first camera_info on),
+    the mapper's orientations, ``/imu/data_raw`` and ``/imu/mag`` into the world estimator, the
+    valid GPS fixes collected. Returns (fixes, stamp of the frame that started the panorama or
+    None)."""
+    K = None
+    fixes: list[tuple[float, float, float]] = []
+    init_ns: int | None = None
+    with BagReader(bag) as reader:
+        topics = reader.topics
+        image_topics = [t for t in topics if t.endswith('image_raw') or t.endswith('image_raw/compressed')]
+        if not image_topics:
+            raise BagError(f'{bag}: no camera image topic in the bag')
+        n_img = reader.message_count(image_topics)
+        wanted = image_topics + [TOPIC_INFO, TOPIC_GPS, TOPIC_IMU, TOPIC_MAG]
+        done = 0
+        for m in reader.messages([t for t in wanted if t in topics]):
+            if m.topic == TOPIC_INFO:
+                info = reader.deserialize(m)
+                k = np.asarray(info.k, float).reshape(3, 3)
+                if np.all(np.isfinite(k)) and k[0, 0] > 0:
+                    K = k
+            elif m.topic == TOPIC_IMU:
+                s = reader.deserialize(m)
+                w, a = s.angular_velocity, s.linear_acceleration
+                world_est.add_imu(_ns(s.header), np.array([w.x, w.y, w.z]), np.array([a.x, a.y, a.z]))
+            elif m.topic == TOPIC_MAG:
+                s = reader.deserialize(m)
+                f = s.magnetic_field
+                world_est.add_mag(_ns(s.header), np.array([f.x, f.y, f.z]))
+            elif m.topic == TOPIC_GPS:
+                f = reader.deserialize(m)
+                if f.status.status >= 0 and all(math.isfinite(x) for x in (f.latitude, f.longitude, f.altitude)):
+                    fixes.append((f.latitude, f.longitude, f.altitude))
+            else:
+                done += 1
+                if K is None:
+                    continue
+                frame = _gray_frame(bag, m.topic, reader.deserialize(m))
+                if frame is None:
+                    continue
+                gray, stamp = frame
+                res = mapper.process(gray, K, stamp)
+                if res.status == 'initialised':
+                    init_ns = stamp
+                if res.R_pano_cam is not None and init_ns is not None:
+                    world_est.add_visual(stamp, res.R_pano_cam)
+                mapper.background()
+                if progress is not None and n_img:
+                    progress(done / n_img)
+    return fixes, init_ns
+
+
+def _gray_frame(bag: Path, topic: str, msg: Any) -> tuple[np.ndarray, int] | None:
+    """(8-bit grey image, header stamp) of one camera message for the mapper, None for a frame
+    that cannot be converted (logged) or is not 8-bit."""
+    from .ros.conversions import ConversionError, compressed_to_array, image_to_array
+
+    try:
+        arr = compressed_to_array(msg) if topic.endswith('compressed') else image_to_array(msg)
+    except ConversionError as exc:
+        logger.warning('%s: frame skipped: %s', bag, exc)
+        return None
+    if arr.dtype != np.uint8:
+        return None
+    bgr = topic.endswith('compressed') or getattr(msg, 'encoding', '').startswith('bgr')
+    gray = arr if arr.ndim == 2 else cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY if bgr else cv2.COLOR_RGB2GRAY)
+    return gray, _ns(msg.header)
+
+
+def _anchor_records(todo: Sequence[Position], store: AnnotationStore, template: Annotation, mapper: PanoramaMapper,
+                    geo: CylinderGeometry, R_enu_pano: np.ndarray | None, patch_px: int,
+                    report: AnnotateReport) -> tuple[list[Annotation], list[str]]:
+    """The records of the positions: each one's patch cut from the finished map at its direction;
+    a position without a direction, patch or valid record is skipped (reason in ``report``), one
+    within ``SAME_POSITION_PX`` of a stored or earlier one of the panorama counted a duplicate.
+    ``template`` carries the fields every record shares (fix, panorama, author, orientation)."""
+    gray = mapper.map.gray
+    existing = np.array([a.direction for a in store.annotations_of(template.panorama_id)]).reshape(-1, 3)
+    same = math.cos(SAME_POSITION_PX / geo.f)
+    records, texts = [], []
+    for p in todo:
+        d = position_direction(p, geo, R_enu_pano)
+        if d is None:
+            report.skipped.append((p.text, 'a compass bearing needs the panorama orientation, which could not be estimated'))
+            continue
+        u, v = geo.project(d)
+        patch, d, reason = cut_patch(gray, mapper.map.mapped, float(u), float(v), patch_px, geo)
+        if patch is None or d is None:
+            report.skipped.append((p.text, reason))
+            logger.warning('annotation %r skipped: %s', p.text, reason)
+            continue
+        if len(existing) and float(np.max(existing @ d)) >= same:
+            report.duplicates += 1
+            continue
+        a = dataclasses.replace(template, text=p.text, patch=patch, direction=d)
+        bad = validate_annotation(a)
+        if bad:
+            report.skipped.append((p.text, bad))
+            continue
+        records.append(a)
+        texts.append(p.text)
+        existing = np.vstack([existing, d])
+    return records, texts
+
+
+def _store_all(store: AnnotationStore, records: list[Annotation], texts: list[str], template: Annotation,
+               world: PanoramaWorld | None, mapper: PanoramaMapper, geo: CylinderGeometry,
+               landmarks: int, support_landmarks: int, report: AnnotateReport) -> None:
+    """Store the records, the panorama (its orientation in the world, covariance, up direction and
+    source) and, when records were stored and the panorama has none yet, its landmarks."""
+    pid, init_ns = template.panorama_id, template.created_ns
+    added: AddReport = store.add(records)
+    report.stored = added.ids
+    report.skipped += [(texts[i], r) for i, r in added.skipped]
+    store.put_panorama(PanoramaInfo(
+        pid, template.panorama_in_world_quat_xyzw,
+        world.covariance_enu if world is not None else np.full((3, 3), np.nan),
+        world.up if world is not None else np.full(3, np.nan),
+        'estimated' if world is not None else 'none', init_ns))
+    if report.stored and landmarks > 0 and not store.landmarks([pid]):
+        cfg = LandmarkConfig(count=landmarks, support_count=support_landmarks)
+        found = select_landmarks(mapper.map.gray, mapper.map.mapped, geo, world.up if world is not None else None,
+                                 cfg, avoid=np.array([a.direction for a in store.annotations_of(pid)]))
+        report.landmarks = len(store.add_landmarks(
+            Landmark(pid, lm.patch, lm.direction) for lm in found).ids)
 
 
 def _ns(header: Any) -> int:
