@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from .imu_orientation import STANDARD_GRAVITY_M_S2, ImuCalibration
 from .rotations import quat_wxyz_to_matrix, rot_z
+from ..errors import ArTrackingError
 
 Array = NDArray[np.float64]
 
@@ -48,7 +49,7 @@ _MAG_MAX_REJECTION_S = 60.0
 _MAG_REJECTION_FACTOR = 2.0
 
 
-class AhrsError(ValueError):
+class AhrsError(ArTrackingError, ValueError):
     """An AHRS setting that cannot work (one line for the user)."""
 
 

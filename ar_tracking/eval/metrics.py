@@ -39,6 +39,7 @@ from ar_tracking.core.rotations import (
     quat_xyzw_to_matrix,
 )
 from ar_tracking.io.bags import BagError, BagMessage, BagReader, stamp_to_ns, static_transforms
+from ar_tracking.errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
 
@@ -57,7 +58,7 @@ QUAT_NORM_TOL = 1e-3
 Array = NDArray[np.float64]
 
 
-class EvaluationError(Exception):
+class EvaluationError(ArTrackingError):
     """The bag cannot be evaluated (e.g. it has no ground truth). One line for the user."""
 
 

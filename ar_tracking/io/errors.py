@@ -6,6 +6,8 @@ recovery in :mod:`~ar_tracking.io.mcap_recovery`) share it without importing eac
 """
 from __future__ import annotations
 
+from ..errors import ArTrackingError
 
-class BagError(Exception):
+
+class BagError(ArTrackingError):
     """A bag cannot be opened, read or written. The message is one line meant for the user."""

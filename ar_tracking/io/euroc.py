@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from ..core.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from .bags import BagError, BagWriter, msg_class, ns_to_stamp
+from ..errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ TOPIC_TF_STATIC = '/tf_static'
 BODY_GT = Path('state_groundtruth_estimate0') / 'data.csv'
 
 
-class EurocError(Exception):
+class EurocError(ArTrackingError):
     """An EuRoC folder cannot be converted. The message is one line meant for the user."""
 
 

@@ -22,13 +22,15 @@ import subprocess
 import tempfile
 from pathlib import Path
 
+from ..errors import ArTrackingError
+
 logger = logging.getLogger(__name__)
 
 #: The server's user when this process is root.
 SERVER_USER = 'postgres'
 
 
-class ClusterError(Exception):
+class ClusterError(ArTrackingError):
     """The temporary cluster could not be started (one line)."""
 
 

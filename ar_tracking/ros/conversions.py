@@ -15,9 +15,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from ..errors import ArTrackingError
 
 
-class ConversionError(ValueError):
+class ConversionError(ArTrackingError, ValueError):
     """A message cannot be converted: the reason in one line."""
 
 

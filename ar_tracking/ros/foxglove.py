@@ -38,6 +38,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from ..errors import ArTrackingError
+
 logger = logging.getLogger(__name__)
 
 #: Default port of Foxglove's WebSocket connection.
@@ -54,7 +56,7 @@ TRANSFORM_TOPICS = ('/orientation/panorama_in_world',)
 LAYOUT_PATH = Path(__file__).resolve().parents[2] / 'config' / 'foxglove_layout.json'
 
 
-class FoxgloveError(Exception):
+class FoxgloveError(ArTrackingError):
     """The live view cannot start (one line: the SDK is missing, the port is taken)."""
 
 

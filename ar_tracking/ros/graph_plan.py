@@ -10,6 +10,8 @@ import importlib
 import math
 from typing import Any, Callable, Iterable
 
+from ..errors import ArTrackingError
+
 #: The processing nodes the runner can start: name -> "module:Class". Replay nodes are not
 #: listed: in the runner, the runner itself plays the bag.
 GRAPH_NODES: dict[str, str] = {
@@ -45,7 +47,7 @@ ROTATION_IN_PLACE_TOPIC = '/imu/mag'
 EXECUTOR_CHOICES = ('auto', 'threads', 'processes', 'single', 'events', 'multi')
 
 
-class RunError(Exception):
+class RunError(ArTrackingError):
     """The graph cannot run on this bag: one line for the user."""
 
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .graph_plan import load_node_class
+from ..errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
 
@@ -37,7 +38,7 @@ START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 10.0
 
 
-class NodeProcessError(Exception):
+class NodeProcessError(ArTrackingError):
     """A node process did not start, died, or did not report."""
 
 

@@ -12,8 +12,10 @@ from typing import Any
 
 import yaml
 
+from ..errors import ArTrackingError
 
-class ParamsError(Exception):
+
+class ParamsError(ArTrackingError):
     """A params file cannot be read: one line for the user."""
 
 

@@ -12,10 +12,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
+from ..errors import ArTrackingError
+
 Progress = Callable[[float], None]
 
 
-class SimError(Exception):
+class SimError(ArTrackingError):
     """Bad arguments to the simulator; the message is one line meant for the user."""
 
 

@@ -2,6 +2,8 @@
 AprilTag dictionaries, the seed's edge-model corner refinement, its lens model (eq. 2), and the
 camera pose from all corners of all visible markers with a covariance."""
 
+from ...errors import ArTrackingError
 
-class MarkerError(ValueError):
+
+class MarkerError(ArTrackingError, ValueError):
     """Bad marker-map or detector configuration (one line for the user)."""
