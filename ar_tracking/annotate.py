@@ -59,6 +59,7 @@ from .core.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from .core.world_alignment import WorldAlignmentConfig
 from .io.bags import BagError, BagReader
 from .io.stores import open_store
+from .errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
 
@@ -86,7 +87,7 @@ class Position:
 Positions = Union[Sequence[Union[Position, tuple]], Callable[[int], Sequence[Position]]]
 
 
-class PositionError(ValueError):
+class PositionError(ArTrackingError, ValueError):
     """A bad position row (one line)."""
 
 

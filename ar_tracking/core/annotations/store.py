@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 from .records import (EARTH_RADIUS_M, AddReport, Annotation, Landmark, PanoramaInfo, _panorama_row, distance_m,
                       panorama_from_row, validate_annotation, validate_landmark, validate_panorama)
 from .records import ORIENTATION_SOURCES as ORIENTATION_SOURCES, PATCH_SIDES as PATCH_SIDES
+from ...errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +69,7 @@ LANDMARKS_VERSION = 2
 PANORAMAS_VERSION = 3
 
 
-class StoreError(Exception):
+class StoreError(ArTrackingError):
     """The store cannot be opened, read or written: one line for the user."""
 
 

@@ -33,13 +33,14 @@ from .exposure import (OFFSET_EXPOSURE, ExposureConfig, ExposureFilter, OverlapE
 from .map import MapConfig, NewPixels, PanoramaMap, seam_error
 from .relocalise import Relocaliser, RelocaliserConfig
 from .tracker import ActiveSearchTracker, TrackerConfig, TrackResult
+from ...errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
 
 
-class PanoramaError(ValueError):
+class PanoramaError(ArTrackingError, ValueError):
     """A frame or calibration the mapper cannot use (one line)."""
 
 
