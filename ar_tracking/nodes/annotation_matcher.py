@@ -140,6 +140,10 @@ class AnnotationMatcherNode(TrackingNode):
         self.R_enu_pano: np.ndarray | None = None
         self.prior_sum = np.zeros((3, 3))  # sum of the orientation samples of this panorama
         self.pano_orientation: dict[int, np.ndarray] = {}
+        #: the latest orientation for the detector (R_enu_panorama sample, heading sigma), handed
+        #: over only when it matches a tile: the detector projects every annotation with it
+        #: (~0.5 ms), and on most of the 2 x 30 orientation messages per second nothing is queued
+        self._orientation: tuple[np.ndarray, float] | None = None
         self.guard = StampGuard(reset_s)
         self.published = 0
         self._last_reason = ''
@@ -221,8 +225,7 @@ class AnnotationMatcherNode(TrackingNode):
                                    [r.panorama_id for r in records], self.match_config, self.geometry, R_src,
                                    landmark=[isinstance(r, Landmark) for r in records],
                                    source_heading_sigma_rad=sigma)
-        if self.R_enu_pano is not None:
-            self.detector.set_orientation(self.R_enu_pano, self.target_sigma)
+        self._orientation = None if self.R_enu_pano is None else (self.R_enu_pano, self.target_sigma)
 
     # -- map -------------------------------------------------------------------------------
 
@@ -335,7 +338,7 @@ class AnnotationMatcherNode(TrackingNode):
         self.prior_sum += R_enu_pano
         self.R_enu_pano = nearest_rotation(self.prior_sum)
         if self.detector is not None:
-            self.detector.set_orientation(R_enu_pano, self.target_sigma)
+            self._orientation = (R_enu_pano, self.target_sigma)
         self._work(t)
 
     # -- work and outputs ------------------------------------------------------------------
@@ -344,6 +347,9 @@ class AnnotationMatcherNode(TrackingNode):
         det = self.detector
         if det is None or self.gray is None or not det.queue:
             return
+        if self._orientation is not None:  # what the detector would have had since the last sample
+            det.set_orientation(*self._orientation)
+            self._orientation = None
         det.step(self.gray, self.mapped, max(1, int(self.budget_ms / self.op_cost_ms)))
         if det.dirty:
             self._publish(t)  # stamped when the result is available (the frame that did the work)

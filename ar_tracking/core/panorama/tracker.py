@@ -98,6 +98,19 @@ def _kabsch_batch(b: Array, d: Array) -> Array:
     return U @ Vt
 
 
+def _window_sums(stacked: NDArray[np.uint8], n: int, S: int, P: int) -> tuple[Array, Array]:
+    """Sums of the values and of their squares of every P x P window of n S x S images stacked
+    vertically (``stacked`` (n S, S)): two (n, S - P + 1, S - P + 1) float64 arrays."""
+    side = S - P + 1
+    total, squares = cv2.integral2(stacked, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+    top = np.arange(n)[:, None] * S + np.arange(side)[None, :]  # integral rows of each window's top
+    out = []
+    for integral in (total, squares):
+        a, b = integral[top], integral[top + P]
+        out.append(b[..., P:] - b[..., :side] - a[..., P:] + a[..., :side])
+    return out[0], out[1]
+
+
 def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
     """Mean of the central 1 - 2 * trim of the values (robust to a few bad pairs) and its
     standard error (spread of the kept values / sqrt(kept))."""
@@ -158,16 +171,18 @@ class ActiveSearchTracker:
         Tz = T - t_mean[:, None, None]
         t_norm = np.sqrt(np.einsum('nij,nij->n', Tz, Tz))
         # 3. Search windows in the frame and NCC at every offset within the radius.
-        off = np.arange(-half - r, half + r + 1)
-        Wn = frame[(yr[:, None] + off[None, :])[:, :, None], (xr[:, None] + off[None, :])[:, None, :]].astype(np.float32)
+        S = P + 2 * r
+        Wu = sliding_window_view(frame, (S, S))[yr - half - r, xr - half - r]  # (n, S, S) uint8
+        Wn = Wu.astype(np.float32)
         # Cross-correlation of each template with every window position as one batched
         # matrix product (float32: exact enough for 8-bit pixels, and about twice as fast).
         side = 2 * r + 1
         views = sliding_window_view(Wn, (P, P), axis=(1, 2)).reshape(n, side * side, P * P)
         num = np.matmul(views, Tz.astype(np.float32).reshape(n, P * P, 1)).reshape(n, side, side).astype(np.float64)
-        # Window sums of the values and their squares (integers below 2^24: exact in float32).
-        box = views.sum(axis=2, dtype=np.float64).reshape(n, side, side)
-        box2 = np.einsum('nkp,nkp->nk', views, views).astype(np.float64).reshape(n, side, side)
+        # Window sums of the values and their squares from integral images of the windows
+        # stacked into one (n S) x S image: integers, exact in float64 (the same values as
+        # summing each window, at a quarter of the time).
+        box, box2 = _window_sums(Wu.reshape(n * S, S), n, S, P)
         var = np.maximum(box2 - box * box / (P * P), 0.0)
         denom = np.sqrt(var) * t_norm[:, None, None]
         ncc = np.where(denom > 1e-6 * P * P, num / np.maximum(denom, 1e-12), -1.0)
