@@ -50,9 +50,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import erfinv
-
 from .rotations import cross3, rot_z
+from .window_statistics import WindowSums, cauchy_about_median, shorth
 
 Array = NDArray[np.float64]
 
@@ -139,76 +138,6 @@ class WorldAlignmentEstimate:
     accel_bias: Array
 
 
-def _cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, float]:
-    """Cauchy weights of values about their median, with the robust sigma (1.4826 MAD, at
-    least ``floor``) times ``scale`` as the Cauchy width; returns (weights, sigma)."""
-    dev = np.abs(x - np.median(x))
-    sigma = max(1.4826 * float(np.median(dev)), floor)
-    return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
-
-
-def _shorth(x: Array, share: float = 0.5) -> tuple[float, float]:
-    """Centre and robust sigma of the densest ``share`` of x: the shortest interval that holds
-    that share of the values (Rousseeuw's shorth / least median of squares location for one
-    half). Unlike the median it sits in the larger of two clusters instead of between them;
-    with a share below one half its width is not inflated by a second cluster as large as the
-    first (a half of two equal clusters spans both). The width is scaled to a normal sigma."""
-    xs = np.sort(x)
-    n = len(xs)
-    h = min(n, max(2, int(n * share) + 1))
-    widths = xs[h - 1:] - xs[:n - h + 1]
-    i = int(np.argmin(widths))
-    # A normal's central share p spans 2 sqrt(2) erfinv(p) sigma.
-    return float(np.mean(xs[i:i + h])), float(widths[i]) / (2.0 * math.sqrt(2.0) * float(erfinv(min(h / n, 0.999))))
-
-
-class _WindowSums:
-    """Sums of samples per time window of ``window_ns`` (stamps), in preallocated arrays whose
-    last used row is the open window; neighbours are merged two by two past ``max_windows``.
-    ``shapes`` names the summed quantities and their shapes; ``n`` counts the samples."""
-
-    def __init__(self, window_ns: int, max_windows: int, shapes: dict[str, tuple[int, ...]]) -> None:
-        self.window_ns = window_ns
-        self.max_windows = max_windows
-        self.n = np.zeros(64)
-        self.sums = {k: np.zeros((64,) + shape) for k, shape in shapes.items()}
-        self.count = 0  # windows used, the open one included
-        self.end_ns: int | None = None
-
-    def open(self, t_ns: int) -> int:
-        """Index of the window that takes a sample at t_ns (a new one when t_ns is past the
-        open window's end)."""
-        if self.end_ns is None or t_ns >= self.end_ns:
-            if self.end_ns is None:
-                self.end_ns = t_ns + self.window_ns
-            else:
-                self.end_ns += self.window_ns * ((t_ns - self.end_ns) // self.window_ns + 1)
-            if self.count == len(self.n):
-                if self.count >= self.max_windows:
-                    self._merge_pairs()
-                else:
-                    self.n = np.concatenate([self.n, np.zeros(len(self.n))])
-                    self.sums = {k: np.concatenate([v, np.zeros_like(v)]) for k, v in self.sums.items()}
-            self.count += 1
-        return self.count - 1
-
-    def _merge_pairs(self) -> None:
-        k = self.count // 2 * 2
-        half = (self.count + 1) // 2
-        for arr in [self.n] + list(self.sums.values()):
-            merged = arr[0:k:2] + arr[1:k:2]
-            if self.count % 2:
-                merged = np.concatenate([merged, arr[k:k + 1]])
-            arr[:half] = merged
-            arr[half:] = 0
-        self.count = half
-
-    def arrays(self) -> tuple[Array, dict[str, Array]]:
-        """Counts and sums of the windows so far (views)."""
-        k = self.count
-        return self.n[:k], {name: v[:k] for name, v in self.sums.items()}
-
-
 class WorldAlignment:
     """Accumulates (R_pano_imu, accel, field) samples and estimates R_pano_enu (module doc)."""
 
@@ -229,7 +158,7 @@ class WorldAlignment:
         self._t_last_ns = 0
         # Gravity per window: count, sum R_imu_P, sum R_P_imu a, sum a.
         win_ns = int(self.config.window_s * 1e9)
-        self._gw = _WindowSums(win_ns, self.config.max_windows, {
+        self._gw = WindowSums(win_ns, self.config.max_windows, {
             'S': (3, 3), 'Rta': (3,), 'a': (3,),
             'RtK': (3, 3), 'K': (3, 3), 'KtK': (3, 3), 'Kta': (3,)})
         self._prev_omega: Array | None = None
@@ -242,7 +171,7 @@ class WorldAlignment:
         # Field: the normal equations of m = R_imu_P f + h are sums, so each window keeps its
         # own sums (count, sum R_imu_P, sum R_P_imu m, sum m, sum |m|) and the robust solve
         # works on windows only.
-        self._fw = _WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rtm': (3,), 'm': (3,), 'norm': ()})
+        self._fw = WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rtm': (3,), 'm': (3,), 'norm': ()})
         self._field_samples = 0
         self._solve_t_ns: int | None = None
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
@@ -489,7 +418,7 @@ class WorldAlignment:
         e2 = cross3(up, e1)
         f_abs = math.atan2(float(f @ e2), float(f @ e1))
         rel = (np.arctan2(mean_f @ e2, mean_f @ e1) - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-        centre, spread = _shorth(rel, c.cluster_share)
+        centre, spread = shorth(rel, c.cluster_share)
         spread = max(spread, math.radians(0.25))
         width = c.cauchy_scale * spread
         centre = self._choose_cluster(rel, centre, f_abs, width)
@@ -503,8 +432,8 @@ class WorldAlignment:
         # heading test).
         norm = np.linalg.norm(mean_f, axis=1)
         dip = np.arcsin(np.clip(-(mean_f @ up) / np.maximum(norm, 1e-12), -1.0, 1.0))
-        w_norm, _ = _cauchy_about_median(norm, 0.005, c.cauchy_scale)
-        w_dip, _ = _cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
+        w_norm, _ = cauchy_about_median(norm, 0.005, c.cauchy_scale)
+        w_dip, _ = cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
         return w_psi * w_norm * w_dip, spread
 
     def _episode_cost(self, rel: Array, centre: float, width: float) -> float:
@@ -544,7 +473,7 @@ class WorldAlignment:
         for x in candidates:
             far &= np.abs(rel - x) > c.reject_widths * width
         if int(far.sum()) >= 2:
-            candidates.append(_shorth(rel[far])[0])
+            candidates.append(shorth(rel[far])[0])
         # A candidate no window supports any more (the last choice, after h moved) cannot win.
         costs = [self._episode_cost(rel, x, width) if np.any(np.abs(rel - x) <= c.reject_widths * width)
                  else math.inf for x in candidates]

@@ -1,0 +1,87 @@
+"""Robust statistics over short time windows of samples, for estimators that keep only sums.
+
+:class:`WindowSums` keeps the per-window sums of the normal equations of a least-squares
+problem, so that a robust solve (per-window weights) costs O(windows), not O(samples);
+:func:`shorth` and :func:`cauchy_about_median` give the robust centre, spread and weights of
+per-window values. Used by :mod:`.world_alignment` (Langlotz 2011 sec. 5, the panorama's place
+in the world).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import erfinv
+
+Array = NDArray[np.float64]
+
+
+def cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, float]:
+    """Cauchy weights of values about their median, with the robust sigma (1.4826 MAD, at
+    least ``floor``) times ``scale`` as the Cauchy width; returns (weights, sigma)."""
+    dev = np.abs(x - np.median(x))
+    sigma = max(1.4826 * float(np.median(dev)), floor)
+    return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
+
+
+def shorth(x: Array, share: float = 0.5) -> tuple[float, float]:
+    """Centre and robust sigma of the densest ``share`` of x: the shortest interval that holds
+    that share of the values (Rousseeuw's shorth / least median of squares location for one
+    half). Unlike the median it sits in the larger of two clusters instead of between them;
+    with a share below one half its width is not inflated by a second cluster as large as the
+    first (a half of two equal clusters spans both). The width is scaled to a normal sigma."""
+    xs = np.sort(x)
+    n = len(xs)
+    h = min(n, max(2, int(n * share) + 1))
+    widths = xs[h - 1:] - xs[:n - h + 1]
+    i = int(np.argmin(widths))
+    # A normal's central share p spans 2 sqrt(2) erfinv(p) sigma.
+    return float(np.mean(xs[i:i + h])), float(widths[i]) / (2.0 * math.sqrt(2.0) * float(erfinv(min(h / n, 0.999))))
+
+
+class WindowSums:
+    """Sums of samples per time window of ``window_ns`` (stamps), in preallocated arrays whose
+    last used row is the open window; neighbours are merged two by two past ``max_windows``.
+    ``shapes`` names the summed quantities and their shapes; ``n`` counts the samples."""
+
+    def __init__(self, window_ns: int, max_windows: int, shapes: dict[str, tuple[int, ...]]) -> None:
+        self.window_ns = window_ns
+        self.max_windows = max_windows
+        self.n = np.zeros(64)
+        self.sums = {k: np.zeros((64,) + shape) for k, shape in shapes.items()}
+        self.count = 0  # windows used, the open one included
+        self.end_ns: int | None = None
+
+    def open(self, t_ns: int) -> int:
+        """Index of the window that takes a sample at t_ns (a new one when t_ns is past the
+        open window's end)."""
+        if self.end_ns is None or t_ns >= self.end_ns:
+            if self.end_ns is None:
+                self.end_ns = t_ns + self.window_ns
+            else:
+                self.end_ns += self.window_ns * ((t_ns - self.end_ns) // self.window_ns + 1)
+            if self.count == len(self.n):
+                if self.count >= self.max_windows:
+                    self._merge_pairs()
+                else:
+                    self.n = np.concatenate([self.n, np.zeros(len(self.n))])
+                    self.sums = {k: np.concatenate([v, np.zeros_like(v)]) for k, v in self.sums.items()}
+            self.count += 1
+        return self.count - 1
+
+    def _merge_pairs(self) -> None:
+        k = self.count // 2 * 2
+        half = (self.count + 1) // 2
+        for arr in [self.n] + list(self.sums.values()):
+            merged = arr[0:k:2] + arr[1:k:2]
+            if self.count % 2:
+                merged = np.concatenate([merged, arr[k:k + 1]])
+            arr[:half] = merged
+            arr[half:] = 0
+        self.count = half
+
+    def arrays(self) -> tuple[Array, dict[str, Array]]:
+        """Counts and sums of the windows so far (views)."""
+        k = self.count
+        return self.n[:k], {name: v[:k] for name, v in self.sums.items()}
