@@ -98,3 +98,56 @@ def test_label_timeline_figure(tmp_path):
     png = label_timeline(bag, tmp_path / 't.png')
     assert png is not None and png.stat().st_size > 5_000
     assert label_timeline(write(tmp_path / 'e.mcap', []), tmp_path / 'e.png') is None  # no markers: no figure
+
+
+def test_scores_only_the_given_labels(tmp_path):
+    """``labels``: the anchors the user could annotate; the others are neither missed nor counted."""
+    final = {'door': unit(POS[0]), 'sign': unit(POS[1])}  # window not annotated
+    m = evaluate_annotations(write(tmp_path / 'l.mcap', [final]), labels=['door', 'sign'])
+    assert m['n'] == 2 and m['anchors'] == 3 and m['redetection_rate'] == 1.0 and m['wrong_rate'] == 0.0
+
+
+def _turning_bag(path, spot, lever_m, labels_dirs_from):
+    """A full turn about the vertical with the camera ``lever_m`` in front of the turning axis at
+    ``spot`` (the images of a sweep are rendered from the spot); one marker array with every
+    anchor placed at its direction from ``labels_dirs_from``."""
+    m = _Msgs()
+    R_enu_cam0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # x east, y down, z north
+    with BagWriter(path) as bag:
+        bag.write('/ground_truth/annotations', T0, m.markers(T0, LABELS, POS))
+        for k in range(100):
+            t = T0 + k * 10_000_000
+            R_pano_cam = rot_y(2 * np.pi * k / 100)
+            R_enu_cam = R_enu_cam0 @ R_pano_cam
+            h = R_enu_cam[:2, 2] / np.linalg.norm(R_enu_cam[:2, 2])
+            tf = truth_msg(t, R_enu_cam)
+            c = spot + lever_m * np.array([h[0], h[1], 0.0])
+            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(x) for x in c)
+            bag.write('/ground_truth/orientation', t, tf)
+            bag.write('/panorama/orientation', t, truth_msg(t, R_pano_cam))
+        dirs = [R_enu_cam0.T @ unit(p - labels_dirs_from) * 10.0 for p in POS]
+        arr = m.markers(T0 + 500_000_000, LABELS, dirs)
+        for mk in arr.markers:
+            mk.ns = 'matched'
+        bag.write('/annotations/markers', T0 + 500_000_000, arr)
+    return path
+
+
+def test_truth_is_seen_from_the_standing_spot_not_the_camera_on_its_lever_arm(tmp_path):
+    """The camera 0.3 m in front of the turning axis: labels placed as seen from the spot (where
+    the frames are rendered from) are right; the first frame's camera position is not the truth."""
+    from ar_tracking.eval.annotation_metrics import standing_spot
+
+    spot = np.array([1.0, -0.5, 0.2])
+    m = evaluate_annotations(_turning_bag(tmp_path / 's.mcap', spot, 0.3, spot))
+    assert m['redetection_rate'] == 1.0 and max(m['errors_deg'].values()) < 0.01
+    first_camera = spot + np.array([0.0, 0.3, 0.0])  # heading north at the first frame
+    m = evaluate_annotations(_turning_bag(tmp_path / 'c.mcap', spot, 0.3, first_camera))
+    assert max(m['errors_deg'].values()) > 0.3
+    # the fit itself, and its fallback (the mean) when the heading barely changes
+    t = np.linspace(0, 2 * np.pi, 50)
+    h = np.stack([np.sin(t), np.cos(t), 0 * t], 1)
+    R = np.zeros((50, 3, 3))
+    R[:, :, 2] = h
+    assert np.allclose(standing_spot(spot + 0.3 * h, R), spot, atol=1e-6)
+    assert np.allclose(standing_spot(spot + 0.3 * h[:5], R[:5]), (spot + 0.3 * h[:5]).mean(0))
