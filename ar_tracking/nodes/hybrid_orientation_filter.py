@@ -48,6 +48,7 @@ from ..ros.conversions import (
     to_stamp,
 )
 from ..ros.node_base import RELIABLE_QOS, RELIABLE_STREAM_QOS, STREAM_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamped
 
@@ -67,6 +68,94 @@ def _unit_quat(v: Any) -> str | None:
     return None if abs(norm - 1.0) < 1e-3 else f'not a unit quaternion (norm {norm:.4g})'
 
 
+_ALIGN = WorldAlignmentConfig()
+_GYRO = GyroBackupParams()
+
+#: The node's parameters (the IMU calibration ones come from TrackingNode.imu_calibration_params).
+PARAMS = (
+    ParamSpec('relative_input_type', 'transform',
+              'Message type of panorama/orientation: transform (TransformStamped reference -> camera) or pose '
+              '(PoseStamped, orientation of the camera in header.frame_id)',
+              read_only=True, validate=lambda v: None if v in INPUT_TYPES else 'must be transform or pose'),
+    ParamSpec('imu_to_camera_quat_xyzw', [1.0, 0.0, 0.0, 0.0],
+              'Rotation imu -> camera_optical (R_imu_cam, x y z w), used when no /tf_static gives it; default the '
+              'phone: diag(1, -1, -1)', read_only=True, validate=_unit_quat),
+    ParamSpec('camera_frame_id', 'camera_optical',
+              'frame_id of orientation/global (the camera; the TF child frame)', validate=_frame_name),
+    ParamSpec('world_frame_id', 'enu',
+              'World frame of imu/data and of the outputs (ENU; the TF parent frame)', validate=_frame_name),
+    ParamSpec('imu_frame_id', 'imu',
+              'IMU frame of the static mount transform published with publish_mount_tf', validate=_frame_name),
+    ParamSpec('publish_tf', True, 'Broadcast each orientation/global on /tf (world_frame_id -> camera_frame_id)'),
+    ParamSpec('publish_mount_tf', True,
+              'Publish the IMU mount (imu_frame_id -> camera_frame_id) on /tf_static while it comes from '
+              'imu_to_camera_quat_xyzw (not when /tf_static gave it)'),
+    ParamSpec('accel_bias_sigma_m_s2', _ALIGN.accel_bias_sigma_m_s2,
+              'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2 (tight: a loose bias absorbs '
+              'scale errors)', min_value=1e-6, max_value=10.0),
+    ParamSpec('hard_iron_sigma', _ALIGN.hard_iron_sigma,
+              'Prior 1-sigma of the residual hard iron, relative to the field strength',
+              min_value=1e-6, max_value=10.0),
+    ParamSpec('window_s', _ALIGN.window_s,
+              'Window of the robust field fit, s (a disturbance is judged window by window)',
+              min_value=0.01, max_value=60.0),
+    ParamSpec('solve_period_s', _ALIGN.solve_period_s,
+              'Re-solve the field fit this often (sample stamps), s', min_value=0.01, max_value=60.0),
+    ParamSpec('solve_period_share', _ALIGN.solve_period_share,
+              'Early in a session re-solve the field fit every this share of its span instead (at least every 0.1 s)',
+              min_value=0.0, max_value=1.0),
+    ParamSpec('hand_velocity_m_s', _ALIGN.hand_velocity_m_s,
+              'Typical speed of the phone in the hand, m/s (tilt covariance: the velocity term of the gravity mean)',
+              min_value=0.0, max_value=10.0),
+    ParamSpec('correlation_s', _ALIGN.correlation_s,
+              'Correlation time of field disturbances and hand motion, s (effective sample count of the heading '
+              'covariance)', min_value=0.05, max_value=60.0),
+    ParamSpec('lever_arm_sigma_m', _ALIGN.lever_arm_sigma_m,
+              'Prior 1-sigma of the lever arm (the IMU from the centre the user turns about), m; 0: no lever-arm '
+              'model', min_value=0.0, max_value=10.0),
+    ParamSpec('cauchy_scale', _ALIGN.cauchy_scale,
+              'Cauchy scale of the window weights, in robust sigmas', min_value=0.5, max_value=100.0),
+    ParamSpec('tilt_floor_rad', _ALIGN.tilt_floor_rad,
+              'Floor of the reported tilt 1-sigma, rad', min_value=0.0, max_value=1.0),
+    ParamSpec('heading_floor_rad', _ALIGN.heading_floor_rad,
+              'Floor of the reported heading 1-sigma, rad', min_value=0.0, max_value=1.0),
+    ParamSpec('declination_rad', 0.0,
+              'Magnetic declination, rad, positive when magnetic north is east of true north (as imu_magnetometer)',
+              min_value=-3.1416, max_value=3.1416),
+    ParamSpec('gyro_noise_rad_s', _GYRO.gyro_noise_rad_s,
+              'Gyro rate noise, 1-sigma per sample, rad/s', min_value=0.0, max_value=10.0),
+    ParamSpec('gyro_bias_sigma_rad_s', _GYRO.bias_sigma_rad_s,
+              'Residual gyro bias after learning, 1-sigma rad/s (backup covariance)', min_value=0.0, max_value=10.0),
+    ParamSpec('gyro_bias_window_s', _GYRO.bias_window_s,
+              'Interval over which gyro and visual rotations are compared to learn the bias, s',
+              min_value=0.05, max_value=10.0),
+    ParamSpec('gyro_bias_gain', _GYRO.bias_gain,
+              'Weight of one comparison in the running gyro bias (0: no learning)', min_value=0.0, max_value=1.0),
+    ParamSpec('visual_noise_rad', 0.001, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0),
+    ParamSpec('max_mag_age_s', 0.1,
+              'Oldest field sample still paired with an IMU sample, s', min_value=0.0, max_value=10.0),
+    ParamSpec('max_pair_gap_s', 0.2,
+              'Largest gap between two visual orientations that is interpolated across, s',
+              min_value=0.0, max_value=10.0),
+    ParamSpec('visual_timeout_s', 0.2,
+              'No visual orientation for this long (in stamps): the tracker is lost, the gyro backup publishes',
+              min_value=0.0, max_value=60.0),
+    ParamSpec('backup_rate_hz', 30.0,
+              'Rate of orientation/global from the gyro backup, Hz', min_value=0.1, max_value=1000.0),
+    ParamSpec('max_backup_s', 30.0,
+              'After this long without vision the gyro backup stops and imu/data (the AHRS) is followed, s',
+              min_value=0.0, max_value=3600.0),
+    ParamSpec('gyro_rate_output', False,
+              'Also publish at every gyro sample between camera frames (the last frame carried forward by the gyro)'),
+    ParamSpec('reseed_threshold_rad', 0.1,
+              'When vision returns this far from the gyro backup, its frame changed: restart the panorama-in-world '
+              'estimate from the backup, rad', min_value=0.0, max_value=3.2),
+    ParamSpec('reset_after_s', 1.0,
+              'A stamp this much older than the previous one means the clock jumped back (bag loop): reset',
+              min_value=0.0, max_value=3600.0),
+)
+
+
 class HybridOrientationFilterNode(TrackingNode):
     INPUTS = {
         'panorama/orientation': 'geometry_msgs/msg/TransformStamped',
@@ -83,69 +172,62 @@ class HybridOrientationFilterNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('hybrid_orientation_filter', **kwargs)
-        p = self.param
-        a = WorldAlignmentConfig()
-        g = GyroBackupParams()
-        input_type = p('relative_input_type', 'transform',
-                       'Message type of panorama/orientation: transform (TransformStamped reference -> camera) '
-                       'or pose (PoseStamped, orientation of the camera in header.frame_id)',
-                       read_only=True, validate=lambda v: None if v in INPUT_TYPES else 'must be transform or pose')
-        q_imu_cam = p('imu_to_camera_quat_xyzw', [1.0, 0.0, 0.0, 0.0],
-                      'Rotation imu -> camera_optical (R_imu_cam, x y z w), used when no /tf_static gives it; '
-                      'default the phone: diag(1, -1, -1)', read_only=True, validate=_unit_quat)
-        self.camera_frame: str = p('camera_frame_id', 'camera_optical', 'frame_id of orientation/global (the camera; the TF child frame)',
-                                   live=lambda v: setattr(self, 'camera_frame', v), validate=_frame_name)
-        self.world_frame: str = p('world_frame_id', 'enu', 'World frame of imu/data and of the outputs (ENU; the TF parent frame)',
-                                  live=lambda v: setattr(self, 'world_frame', v), validate=_frame_name)
-        self.imu_frame: str = p('imu_frame_id', 'imu', 'IMU frame of the static mount transform published with publish_mount_tf',
-                                live=self._set_imu_frame, validate=_frame_name)
-        self.publish_tf: bool = p('publish_tf', True, 'Broadcast each orientation/global on /tf (world_frame_id -> camera_frame_id)',
-                                  live=lambda v: setattr(self, 'publish_tf', v))
-        self.publish_mount_tf: bool = p('publish_mount_tf', True, 'Publish the IMU mount (imu_frame_id -> camera_frame_id) on /tf_static '
-                                        'while it comes from imu_to_camera_quat_xyzw (not when /tf_static gave it)',
-                                        live=self._set_publish_mount_tf)
-        self.calibration = self.imu_calibration_params()
-        config = WorldAlignmentConfig(
-            accel_bias_sigma_m_s2=p('accel_bias_sigma_m_s2', a.accel_bias_sigma_m_s2, 'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2 (tight: a loose bias absorbs scale errors)', min_value=1e-6, max_value=10.0),
-            hard_iron_sigma=p('hard_iron_sigma', a.hard_iron_sigma, 'Prior 1-sigma of the residual hard iron, relative to the field strength', min_value=1e-6, max_value=10.0),
-            window_s=p('window_s', a.window_s, 'Window of the robust field fit, s (a disturbance is judged window by window)', min_value=0.01, max_value=60.0),
-            solve_period_s=p('solve_period_s', a.solve_period_s, 'Re-solve the field fit this often (sample stamps), s', min_value=0.01, max_value=60.0),
-            solve_period_share=p('solve_period_share', a.solve_period_share, 'Early in a session re-solve the field fit every this share of its span instead (at least every 0.1 s)', min_value=0.0, max_value=1.0),
-            hand_velocity_m_s=p('hand_velocity_m_s', a.hand_velocity_m_s, 'Typical speed of the phone in the hand, m/s (tilt covariance: the velocity term of the gravity mean)', min_value=0.0, max_value=10.0),
-            correlation_s=p('correlation_s', a.correlation_s, 'Correlation time of field disturbances and hand motion, s (effective sample count of the heading covariance)', min_value=0.05, max_value=60.0),
-            lever_arm_sigma_m=p('lever_arm_sigma_m', a.lever_arm_sigma_m, 'Prior 1-sigma of the lever arm (the IMU from the centre the user turns about), m; 0: no lever-arm model', min_value=0.0, max_value=10.0),
-            cauchy_scale=p('cauchy_scale', a.cauchy_scale, 'Cauchy scale of the window weights, in robust sigmas', min_value=0.5, max_value=100.0),
-            tilt_floor_rad=p('tilt_floor_rad', a.tilt_floor_rad, 'Floor of the reported tilt 1-sigma, rad', min_value=0.0, max_value=1.0),
-            heading_floor_rad=p('heading_floor_rad', a.heading_floor_rad, 'Floor of the reported heading 1-sigma, rad', min_value=0.0, max_value=1.0),
-            declination_rad=p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north (as imu_magnetometer)', min_value=-3.1416, max_value=3.1416,
-                              live=lambda v: self.align.set_declination(v)),
-        )
-        backup = GyroBackupParams(
-            gyro_noise_rad_s=p('gyro_noise_rad_s', g.gyro_noise_rad_s, 'Gyro rate noise, 1-sigma per sample, rad/s', min_value=0.0, max_value=10.0),
-            bias_sigma_rad_s=p('gyro_bias_sigma_rad_s', g.bias_sigma_rad_s, 'Residual gyro bias after learning, 1-sigma rad/s (backup covariance)', min_value=0.0, max_value=10.0),
-            bias_window_s=p('gyro_bias_window_s', g.bias_window_s, 'Interval over which gyro and visual rotations are compared to learn the bias, s', min_value=0.05, max_value=10.0),
-            bias_gain=p('gyro_bias_gain', g.bias_gain, 'Weight of one comparison in the running gyro bias (0: no learning)', min_value=0.0, max_value=1.0),
-        )
         def live_ns(attr: str, scale: float = 1e9) -> Any:
             return lambda v: setattr(self, attr, int(scale * v))
 
-        self.visual_noise_rad: float = p('visual_noise_rad', 0.001, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0,
-                                         live=lambda v: setattr(self, 'visual_noise_rad', v))
-        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample still paired with an IMU sample, s', min_value=0.0, max_value=10.0,
-                                          live=live_ns('max_mag_age_ns')))
-        self.max_pair_gap_ns = int(1e9 * p('max_pair_gap_s', 0.2, 'Largest gap between two visual orientations that is interpolated across, s', min_value=0.0, max_value=10.0))
-        self.visual_timeout_ns = int(1e9 * p('visual_timeout_s', 0.2, 'No visual orientation for this long (in stamps): the tracker is lost, the gyro backup publishes', min_value=0.0, max_value=60.0,
-                                             live=live_ns('visual_timeout_ns')))
-        self.backup_period_ns = int(1e9 / p('backup_rate_hz', 30.0, 'Rate of orientation/global from the gyro backup, Hz', min_value=0.1, max_value=1000.0,
-                                            live=lambda v: setattr(self, 'backup_period_ns', int(1e9 / v))))
-        self.max_backup_ns = int(1e9 * p('max_backup_s', 30.0, 'After this long without vision the gyro backup stops and imu/data (the AHRS) is followed, s', min_value=0.0, max_value=3600.0,
-                                         live=live_ns('max_backup_ns')))
-        self.gyro_rate_output: bool = p('gyro_rate_output', False, 'Also publish at every gyro sample between camera frames (the last frame carried forward by the gyro)',
-                                        live=lambda v: setattr(self, 'gyro_rate_output', v))
-        self.reseed_rad: float = p('reseed_threshold_rad', 0.1, 'When vision returns this far from the gyro backup, its frame changed: restart the panorama-in-world estimate from the backup, rad', min_value=0.0, max_value=3.2,
-                                   live=lambda v: setattr(self, 'reseed_rad', v))
-        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0,
-                    live=self._set_reset_after)
+        v = declare_params(self, PARAMS, live={
+            'camera_frame_id': lambda x: setattr(self, 'camera_frame', x),
+            'world_frame_id': lambda x: setattr(self, 'world_frame', x),
+            'imu_frame_id': self._set_imu_frame,
+            'publish_tf': lambda x: setattr(self, 'publish_tf', x),
+            'publish_mount_tf': self._set_publish_mount_tf,
+            'declination_rad': lambda x: self.align.set_declination(x),
+            'visual_noise_rad': lambda x: setattr(self, 'visual_noise_rad', x),
+            'max_mag_age_s': live_ns('max_mag_age_ns'),
+            'visual_timeout_s': live_ns('visual_timeout_ns'),
+            'backup_rate_hz': lambda x: setattr(self, 'backup_period_ns', int(1e9 / x)),
+            'max_backup_s': live_ns('max_backup_ns'),
+            'gyro_rate_output': lambda x: setattr(self, 'gyro_rate_output', x),
+            'reseed_threshold_rad': lambda x: setattr(self, 'reseed_rad', x),
+            'reset_after_s': self._set_reset_after,
+        })
+        input_type = v['relative_input_type']
+        q_imu_cam = v['imu_to_camera_quat_xyzw']
+        self.camera_frame: str = v['camera_frame_id']
+        self.world_frame: str = v['world_frame_id']
+        self.imu_frame: str = v['imu_frame_id']
+        self.publish_tf: bool = v['publish_tf']
+        self.publish_mount_tf: bool = v['publish_mount_tf']
+        self.calibration = self.imu_calibration_params()
+        config = WorldAlignmentConfig(
+            accel_bias_sigma_m_s2=v['accel_bias_sigma_m_s2'],
+            hard_iron_sigma=v['hard_iron_sigma'],
+            window_s=v['window_s'],
+            solve_period_s=v['solve_period_s'],
+            solve_period_share=v['solve_period_share'],
+            hand_velocity_m_s=v['hand_velocity_m_s'],
+            correlation_s=v['correlation_s'],
+            lever_arm_sigma_m=v['lever_arm_sigma_m'],
+            cauchy_scale=v['cauchy_scale'],
+            tilt_floor_rad=v['tilt_floor_rad'],
+            heading_floor_rad=v['heading_floor_rad'],
+            declination_rad=v['declination_rad'],
+        )
+        backup = GyroBackupParams(
+            gyro_noise_rad_s=v['gyro_noise_rad_s'],
+            bias_sigma_rad_s=v['gyro_bias_sigma_rad_s'],
+            bias_window_s=v['gyro_bias_window_s'],
+            bias_gain=v['gyro_bias_gain'],
+        )
+        self.visual_noise_rad: float = v['visual_noise_rad']
+        self.max_mag_age_ns = int(1e9 * v['max_mag_age_s'])
+        self.max_pair_gap_ns = int(1e9 * v['max_pair_gap_s'])
+        self.visual_timeout_ns = int(1e9 * v['visual_timeout_s'])
+        self.backup_period_ns = int(1e9 / v['backup_rate_hz'])
+        self.max_backup_ns = int(1e9 * v['max_backup_s'])
+        self.gyro_rate_output: bool = v['gyro_rate_output']
+        self.reseed_rad: float = v['reseed_threshold_rad']
+        reset_s = v['reset_after_s']
 
         self.R_imu_cam_param = quat_xyzw_to_matrix(np.asarray(q_imu_cam, dtype=float))
         self.R_imu_cam = self.R_imu_cam_param

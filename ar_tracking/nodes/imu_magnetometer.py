@@ -50,10 +50,77 @@ from ..ros.conversions import (
 )
 from ..ros.frames import WORLD_FROM_ENU, check_world_frame
 from ..ros.node_base import RELIABLE_QOS, STREAM_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster
 
 METHODS = ('vqf', 'compass')
+_AHRS = AhrsConfig()
+
+#: The node's parameters (the IMU calibration ones come from TrackingNode.imu_calibration_params).
+PARAMS = (
+    ParamSpec('method', 'vqf',
+              'Orientation method: vqf (gyro-aided AHRS with rest and magnetic-disturbance handling) or compass '
+              "(per-sample tilt-compass, Langlotz eq. 3-4, the paper's sensor-only baseline)",
+              read_only=True, choices=METHODS),
+    *(ParamSpec(f'mag_bias_{axis}', 0.0,
+                f'imu_filter_madgwick name: field bias along {axis}, tesla (added to hard_iron_offset)',
+                min_value=-1e-3, max_value=1e-3) for axis in 'xyz'),
+    ParamSpec('declination_rad', 0.0,
+              'Magnetic declination, rad, positive when magnetic north is east of true north',
+              min_value=-3.1416, max_value=3.1416),
+    ParamSpec('declination', 0.0,
+              'imu_filter_madgwick name of the declination, rad (added to declination_rad)',
+              min_value=-3.1416, max_value=3.1416),
+    ParamSpec('gravity_m_s2', 9.80665, 'Local gravity, m/s^2', min_value=9.7, max_value=9.9),
+    ParamSpec('expected_field_t', 0.0,
+              'Local magnetic field strength, tesla (0: learn it online; compass method)',
+              min_value=0.0, max_value=1e-4),
+    ParamSpec('expected_dip_rad', 0.0,
+              'Local inclination of the field, rad, positive down (compass method, used when expected_field_t > 0)',
+              min_value=-1.5708, max_value=1.5708),
+    ParamSpec('accel_noise_m_s2', 0.05,
+              'Accelerometer white noise, 1-sigma per axis, m/s^2 (compass covariance floor)',
+              min_value=1e-6, max_value=10.0),
+    ParamSpec('mag_noise_t', 3e-7,
+              'Magnetometer white noise, 1-sigma per axis, tesla (compass covariance floor)',
+              min_value=1e-12, max_value=1e-4),
+    ParamSpec('use_mag', True,
+              'Use the magnetometer for heading (false: 6D, heading from the gyro only, arbitrary origin)',
+              read_only=True),
+    ParamSpec('max_mag_age_s', 0.1,
+              'Oldest field sample (stamp difference to the IMU sample) still used; older: 6D update',
+              min_value=0.0, max_value=10.0),
+    ParamSpec('constant_dt', 0.0,
+              'IMU sample period, s (imu_filter_madgwick name; 0: measured from the stamps)',
+              min_value=0.0, max_value=1.0, read_only=True),
+    ParamSpec('tau_acc_s', _AHRS.tau_acc_s,
+              'VQF accelerometer time constant, s (larger: less tilt from hand acceleration, slower)',
+              min_value=0.05, max_value=100.0, read_only=True),
+    ParamSpec('tau_mag_s', _AHRS.tau_mag_s,
+              'VQF magnetometer time constant, s', min_value=0.05, max_value=1000.0, read_only=True),
+    ParamSpec('mag_disturbance_rejection', True,
+              'VQF magnetic disturbance rejection (field norm/dip against a learnt reference)', read_only=True),
+    ParamSpec('gyro_bias_estimation', True, 'VQF gyro bias estimation at rest and in motion', read_only=True),
+    ParamSpec('orientation_stddev', 0.0,
+              'Constant orientation 1-sigma, rad (imu_filter_madgwick name; 0: the covariance model)',
+              min_value=0.0, max_value=3.2),
+    ParamSpec('world_frame', 'enu',
+              'World frame of the published orientation: enu, ned or nwu', validate=check_world_frame),
+    ParamSpec('frame_id', '', 'Body frame id of the output (empty: the input frame_id)'),
+    ParamSpec('publish_tf', False,
+              'Also publish the orientation on /tf (fixed_frame -> body frame), like imu_filter_madgwick'),
+    ParamSpec('fixed_frame', '', 'Parent frame of the published TF (empty: the world_frame name)'),
+    ParamSpec('reset_after_s', 1.0,
+              'A stamp this much older than the previous one means the clock jumped back (bag loop): reset',
+              min_value=0.0, max_value=3600.0),
+    ParamSpec('bag_path', '',
+              'Replay mode: read imu/data_raw and imu/mag from this bag instead of subscribing', read_only=True),
+    ParamSpec('rate', 1.0,
+              'Replay mode: playback rate factor (0: as fast as possible)',
+              min_value=0.0, max_value=1000.0, read_only=True),
+    ParamSpec('loop', False, 'Replay mode: play the bag again when it ends', read_only=True),
+)
 
 
 class ImuMagnetometerNode(TrackingNode):
@@ -64,62 +131,57 @@ class ImuMagnetometerNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('imu_magnetometer', **kwargs)
-        p = self.param
-        d = AhrsConfig()
-        self.method: str = p('method', 'vqf', 'Orientation method: vqf (gyro-aided AHRS with rest and magnetic-disturbance handling) or compass (per-sample tilt-compass, Langlotz eq. 3-4, the paper\'s sensor-only baseline)',
-                             read_only=True, validate=lambda v: None if v in METHODS else f'must be one of {", ".join(METHODS)}')
-        mag_bias = [p(f'mag_bias_{axis}', 0.0, f'imu_filter_madgwick name: field bias along {axis}, tesla (added to hard_iron_offset)', min_value=-1e-3, max_value=1e-3) for axis in 'xyz']
-        calibration = self.imu_calibration_params(extra_hard_iron=mag_bias)
-        self._declination_parts = {
-            'declination_rad': p('declination_rad', 0.0, 'Magnetic declination, rad, positive when magnetic north is east of true north', min_value=-3.1416, max_value=3.1416,
-                                 live=lambda v: self._set_declination('declination_rad', v)),
-            'declination': p('declination', 0.0, 'imu_filter_madgwick name of the declination, rad (added to declination_rad)', min_value=-3.1416, max_value=3.1416,
-                             live=lambda v: self._set_declination('declination', v)),
-        }
+        v = declare_params(self, PARAMS, live={
+            'declination_rad': lambda x: self._set_declination('declination_rad', x),
+            'declination': lambda x: self._set_declination('declination', x),
+            'max_mag_age_s': lambda x: setattr(self, 'max_mag_age_ns', int(1e9 * x)),
+            'world_frame': self._set_world_frame,
+            'frame_id': lambda x: setattr(self, 'frame_id', x),
+            'publish_tf': lambda x: setattr(self, 'publish_tf', x),
+            'fixed_frame': lambda x: setattr(self, 'fixed_frame_param', x),
+            'reset_after_s': self._set_reset_after,
+        })
+        self.method: str = v['method']
+        calibration = self.imu_calibration_params(extra_hard_iron=[v[f'mag_bias_{axis}'] for axis in 'xyz'])
+        self._declination_parts = {'declination_rad': v['declination_rad'], 'declination': v['declination']}
         declination = sum(self._declination_parts.values())
         #: The filter is built with the starting declination; a live change turns its output
         #: about the vertical by the difference (the cores apply the declination the same way).
         self.declination_start_rad = declination
         self.R_declination_change = np.eye(3)
         model = FieldModel(
-            gravity_m_s2=p('gravity_m_s2', 9.80665, 'Local gravity, m/s^2', min_value=9.7, max_value=9.9),
-            field_t=p('expected_field_t', 0.0, 'Local magnetic field strength, tesla (0: learn it online; compass method)', min_value=0.0, max_value=1e-4),
-            dip_rad=p('expected_dip_rad', 0.0, 'Local inclination of the field, rad, positive down (compass method, used when expected_field_t > 0)', min_value=-1.5708, max_value=1.5708),
+            gravity_m_s2=v['gravity_m_s2'],
+            field_t=v['expected_field_t'],
+            dip_rad=v['expected_dip_rad'],
             declination_rad=declination,
-            accel_noise_m_s2=p('accel_noise_m_s2', 0.05, 'Accelerometer white noise, 1-sigma per axis, m/s^2 (compass covariance floor)', min_value=1e-6, max_value=10.0),
-            mag_noise_t=p('mag_noise_t', 3e-7, 'Magnetometer white noise, 1-sigma per axis, tesla (compass covariance floor)', min_value=1e-12, max_value=1e-4),
+            accel_noise_m_s2=v['accel_noise_m_s2'],
+            mag_noise_t=v['mag_noise_t'],
         )
-        self.use_mag: bool = p('use_mag', True, 'Use the magnetometer for heading (false: 6D, heading from the gyro only, arbitrary origin)', read_only=True)
-        self.max_mag_age_ns = int(1e9 * p('max_mag_age_s', 0.1, 'Oldest field sample (stamp difference to the IMU sample) still used; older: 6D update', min_value=0.0, max_value=10.0,
-                                          live=lambda v: setattr(self, 'max_mag_age_ns', int(1e9 * v))))
+        self.use_mag: bool = v['use_mag']
+        self.max_mag_age_ns = int(1e9 * v['max_mag_age_s'])
         try:
             config = AhrsConfig(
-                sample_period_s=p('constant_dt', 0.0, 'IMU sample period, s (imu_filter_madgwick name; 0: measured from the stamps)', min_value=0.0, max_value=1.0, read_only=True),
+                sample_period_s=v['constant_dt'],
                 use_mag=self.use_mag,
                 max_mag_age_s=self.max_mag_age_ns * 1e-9,
-                tau_acc_s=p('tau_acc_s', d.tau_acc_s, 'VQF accelerometer time constant, s (larger: less tilt from hand acceleration, slower)', min_value=0.05, max_value=100.0, read_only=True),
-                tau_mag_s=p('tau_mag_s', d.tau_mag_s, 'VQF magnetometer time constant, s', min_value=0.05, max_value=1000.0, read_only=True),
-                mag_disturbance_rejection=p('mag_disturbance_rejection', True, 'VQF magnetic disturbance rejection (field norm/dip against a learnt reference)', read_only=True),
-                bias_estimation=p('gyro_bias_estimation', True, 'VQF gyro bias estimation at rest and in motion', read_only=True),
+                tau_acc_s=v['tau_acc_s'],
+                tau_mag_s=v['tau_mag_s'],
+                mag_disturbance_rejection=v['mag_disturbance_rejection'],
+                bias_estimation=v['gyro_bias_estimation'],
                 declination_rad=declination,
                 gravity_m_s2=model.gravity_m_s2,
-                constant_sigma_rad=p('orientation_stddev', 0.0, 'Constant orientation 1-sigma, rad (imu_filter_madgwick name; 0: the covariance model)', min_value=0.0, max_value=3.2),
+                constant_sigma_rad=v['orientation_stddev'],
             )
         except AhrsError as exc:
             raise ValueError(str(exc)) from exc
-        self.world_frame: str = p('world_frame', 'enu', 'World frame of the published orientation: enu, ned or nwu', validate=check_world_frame,
-                                  live=self._set_world_frame)
-        self.frame_id: str = p('frame_id', '', 'Body frame id of the output (empty: the input frame_id)',
-                               live=lambda v: setattr(self, 'frame_id', v))
-        self.publish_tf: bool = p('publish_tf', False, 'Also publish the orientation on /tf (fixed_frame -> body frame), like imu_filter_madgwick',
-                                  live=lambda v: setattr(self, 'publish_tf', v))
-        self.fixed_frame_param: str = p('fixed_frame', '', 'Parent frame of the published TF (empty: the world_frame name)',
-                                        live=lambda v: setattr(self, 'fixed_frame_param', v))
-        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0,
-                    live=self._set_reset_after)
-        bag_path: str = p('bag_path', '', 'Replay mode: read imu/data_raw and imu/mag from this bag instead of subscribing', read_only=True)
-        rate = p('rate', 1.0, 'Replay mode: playback rate factor (0: as fast as possible)', min_value=0.0, max_value=1000.0, read_only=True)
-        loop = p('loop', False, 'Replay mode: play the bag again when it ends', read_only=True)
+        self.world_frame: str = v['world_frame']
+        self.frame_id: str = v['frame_id']
+        self.publish_tf: bool = v['publish_tf']
+        self.fixed_frame_param: str = v['fixed_frame']
+        reset_s = v['reset_after_s']
+        bag_path: str = v['bag_path']
+        rate = v['rate']
+        loop = v['loop']
 
         self.calibration = calibration
         self.ahrs = Ahrs(config, calibration) if self.method == 'vqf' else None
@@ -295,7 +357,8 @@ class ImuMagnetometerNode(TrackingNode):
                 self.warn_throttled(f'imu/data_raw: {est}, message dropped')
                 return
             if self.use_mag and not est.mag_used:
-                self.warn_throttled('magnetometer missing, stale or disturbed: heading from the gyro, its covariance growing', 30.0)
+                self.warn_throttled('magnetometer missing, stale or disturbed: heading from the gyro, '
+                                    'its covariance growing', 30.0)
             self._publish(calibrated, est.R_enu_body, est.covariance)
         else:
             self._emit_compass(accel, calibrated, mag)

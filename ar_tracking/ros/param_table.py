@@ -1,0 +1,99 @@
+"""Node parameters declared from tables (issue 21).
+
+A node keeps the static part of its parameters - name, default, description, range, choices,
+a value check - in a module-level tuple of :class:`ParamSpec`, and declares them in one call,
+:func:`declare_params`, that goes through :meth:`TrackingNode.param` (so the descriptors, the
+validation of initial values and of changes, and the live updates stay what ``param`` does).
+What needs the node instance - the ``live`` callbacks that reconfigure it after an accepted
+change, and checks that read its state - is attached by parameter name in ``__init__``.
+
+The table reads like the parameter list of the node's documentation and is short per line;
+defaults that belong to a core config dataclass are taken from an instance of it (e.g.
+``WorldAlignmentConfig().hard_iron_sigma``), so the node and the core cannot disagree.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping
+
+if TYPE_CHECKING:
+    from .node_base import TrackingNode
+
+Validator = Callable[[Any], 'str | None']
+
+
+def one_of(choices: Iterable[str], reason: str = 'must be one of') -> Validator:
+    """Parameter validator: the value is one of ``choices``; the reason lists them."""
+    options = tuple(choices)
+    return lambda v: None if v in options else f'{reason} {", ".join(options)}'
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """The static declaration of one node parameter.
+
+    ``min_value``/``max_value`` become the descriptor's range (numbers only); ``choices`` and
+    ``validate`` check the initial value and every change (both must pass; ``choices`` is
+    checked first). ``read_only`` is what ``TrackingNode.param`` takes: a parameter is writable
+    at run time only when the node attaches a ``live`` callback to it.
+    """
+
+    name: str
+    default: Any
+    description: str
+    min_value: float | None = None
+    max_value: float | None = None
+    read_only: bool = True
+    choices: tuple[str, ...] | None = None
+    validate: Validator | None = None
+
+    def validator(self, extra: Validator | None = None) -> Validator | None:
+        """The combined check of ``choices``, ``validate`` and ``extra`` (None if there is none)."""
+        by_choice = one_of(self.choices) if self.choices is not None else None
+        checks = [c for c in (by_choice, self.validate, extra) if c is not None]
+        if not checks:
+            return None
+        if len(checks) == 1:
+            return checks[0]
+
+        def check(v: Any) -> str | None:
+            for c in checks:
+                reason = c(v)
+                if reason is not None:
+                    return reason
+            return None
+
+        return check
+
+
+def declare_params(
+    node: TrackingNode,
+    table: Iterable[ParamSpec],
+    *,
+    live: Mapping[str, Callable[[Any], None]] | None = None,
+    validate: Mapping[str, Validator] | None = None,
+) -> dict[str, Any]:
+    """Declare every parameter of ``table`` on ``node`` (in table order); name -> value.
+
+    ``live`` attaches the callback that applies an accepted change (the parameter is then
+    writable), ``validate`` adds a check that needs the node; both are keyed by parameter name,
+    and a name that is not in the table is a programming error (KeyError), so a renamed
+    parameter cannot silently lose its callback.
+    """
+    specs = list(table)
+    names = [s.name for s in specs]
+    if len(set(names)) != len(names):
+        raise KeyError(f'parameter table declares a name twice: {sorted({n for n in names if names.count(n) > 1})}')
+    live = dict(live or {})
+    validate = dict(validate or {})
+    unknown = (set(live) | set(validate)) - set(names)
+    if unknown:
+        raise KeyError(f'callbacks for parameters not in the table: {", ".join(sorted(unknown))}')
+    values: dict[str, Any] = {}
+    for s in specs:
+        values[s.name] = node.param(
+            s.name, s.default, s.description,
+            min_value=s.min_value, max_value=s.max_value, read_only=s.read_only,
+            validate=s.validator(validate.get(s.name)), live=live.get(s.name),
+        )
+    return values
