@@ -44,12 +44,66 @@ from ..ros.conversions import (
     stamp_ns,
 )
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params, one_of
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, transform_stamped
 
 
-def _one_of(options: tuple[str, ...]) -> Any:
-    return lambda v: None if v in options else f'use one of {", ".join(options)}'
+def _gamma_ok(v: Any) -> str | None:
+    return None if v == 0.0 or v >= 0.2 else 'use 0 (estimate) or a gamma of 0.2-5'
+
+
+def _contrast_ok(v: Any) -> str | None:
+    return None if v == 0.0 or v > 1.0 else 'use 0 (unknown) or a ratio above 1'
+
+
+#: The node's parameters.
+PARAMS = (
+    ParamSpec('dictionary', 'DICT_APRILTAG_36h11',
+              'OpenCV ArUco/AprilTag dictionary of the markers (cv2.aruco.DICT_*)', read_only=True),
+    ParamSpec('corner_refinement', 'caarls',
+              'Corner refinement: caarls (edge model + line fit, Caarls 2009 sec. 2.4), subpix (OpenCV '
+              'CORNER_REFINE_SUBPIX) or none', read_only=True, validate=one_of(REFINEMENTS, 'use one of')),
+    ParamSpec('lens_model', 'opencv',
+              'Lens model: opencv (camera_info distortion) or caarls_eq2 (eq. 2 with eq2_k)',
+              read_only=True, validate=one_of(LENS_KINDS, 'use one of')),
+    ParamSpec('eq2_k', [0.0, 0.0, 0.0],
+              'k1, k2, k3 of the eq. 2 lens model on the normalised image plane',
+              validate=lambda v: None if len(v) == 3 else 'needs 3 values'),
+    ParamSpec('marker_map_file', '',
+              'YAML marker map: frame_id, markers [{id, size_m, position, orientation_xyzw}]', read_only=True),
+    ParamSpec('marker_map', '',
+              'The marker map inline (same YAML document as marker_map_file); used when marker_map_file is empty',
+              read_only=True),
+    ParamSpec('corner_sigma_px', 0.06,
+              'Corner noise 1-sigma of a sharp, fully seen marker (the floor of every corner sigma), px',
+              min_value=1e-4, max_value=10.0),
+    ParamSpec('response_gamma', 0.0,
+              "Camera's display gamma, undone before the edge fit (1: linear images; 0: estimated from the markers)",
+              min_value=0.0, max_value=5.0, read_only=True, validate=_gamma_ok),
+    ParamSpec('marker_print_contrast', 0.0,
+              'White/black reflectance ratio of the printed markers, for the gamma estimate from their levels (0: '
+              'unknown, estimate from edge symmetry)',
+              min_value=0.0, max_value=1000.0, read_only=True, validate=_contrast_ok),
+    ParamSpec('blur_sigma_gain', 0.25,
+              'Corner sigma added per px of edge blur beyond 1 px', min_value=0.0, max_value=10.0, read_only=True),
+    ParamSpec('info_wait_s', 0.2,
+              'How long (in image stamps) an image waits for the camera_info of its stamp before the latest one is '
+              'used, s', min_value=0.0, max_value=5.0),
+    ParamSpec('min_corner_angle_deg', 25.0,
+              'A quad with an interior angle below this (or above 180 minus this) is seen edge-on: rejected',
+              min_value=0.0, max_value=89.99, read_only=True),
+    ParamSpec('min_side_px', 12.0,
+              'Markers with a side shorter than this are rejected, px',
+              min_value=4.0, max_value=1000.0, read_only=True),
+    ParamSpec('max_position_sigma_m', 0.5,
+              'Poses whose position 1-sigma exceeds this are not published, m', min_value=1e-4, max_value=100.0),
+    ParamSpec('map_frame_id', '', 'Frame of markers/pose (empty: the marker map frame_id)'),
+    ParamSpec('reset_after_s', 1.0,
+              'A stamp this much older than the previous one means the clock jumped back (bag loop): reset',
+              min_value=0.0, max_value=3600.0),
+    ParamSpec('publish_tf', True, 'Broadcast each markers/pose on /tf (map frame -> the image frame_id)'),
+)
 
 
 class MarkerTrackerNode(TrackingNode):
@@ -68,28 +122,25 @@ class MarkerTrackerNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('marker_tracker', **kwargs)
-        p = self.param
-        dictionary = p('dictionary', 'DICT_APRILTAG_36h11', 'OpenCV ArUco/AprilTag dictionary of the markers (cv2.aruco.DICT_*)', read_only=True)
-        refinement = p('corner_refinement', 'caarls', 'Corner refinement: caarls (edge model + line fit, Caarls 2009 sec. 2.4), subpix (OpenCV CORNER_REFINE_SUBPIX) or none', read_only=True, validate=_one_of(REFINEMENTS))
-        self.lens_kind = p('lens_model', 'opencv', 'Lens model: opencv (camera_info distortion) or caarls_eq2 (eq. 2 with eq2_k)', read_only=True, validate=_one_of(LENS_KINDS))
-        self.eq2_k = np.asarray(p('eq2_k', [0.0, 0.0, 0.0], 'k1, k2, k3 of the eq. 2 lens model on the normalised image plane', validate=lambda v: None if len(v) == 3 else 'needs 3 values'), float)
-        map_file = p('marker_map_file', '', 'YAML marker map: frame_id, markers [{id, size_m, position, orientation_xyzw}]', read_only=True)
-        map_text = p('marker_map', '', 'The marker map inline (same YAML document as marker_map_file); used when marker_map_file is empty', read_only=True)
-        self.corner_sigma_px = p('corner_sigma_px', 0.06, 'Corner noise 1-sigma of a sharp, fully seen marker (the floor of every corner sigma), px', min_value=1e-4, max_value=10.0)
-        gamma = p('response_gamma', 0.0, "Camera's display gamma, undone before the edge fit (1: linear images; 0: estimated from the markers)", min_value=0.0, max_value=5.0, read_only=True,
-                  validate=lambda v: None if v == 0.0 or v >= 0.2 else 'use 0 (estimate) or a gamma of 0.2-5')
-        contrast = p('marker_print_contrast', 0.0, 'White/black reflectance ratio of the printed markers, for the gamma estimate from their levels (0: unknown, estimate from edge symmetry)', min_value=0.0, max_value=1000.0, read_only=True,
-                     validate=lambda v: None if v == 0.0 or v > 1.0 else 'use 0 (unknown) or a ratio above 1')
-        blur_gain = p('blur_sigma_gain', 0.25, 'Corner sigma added per px of edge blur beyond 1 px', min_value=0.0, max_value=10.0, read_only=True)
-        self.info_wait_ns = int(1e9 * p('info_wait_s', 0.2, 'How long (in image stamps) an image waits for the camera_info of its stamp before the latest one is used, s', min_value=0.0, max_value=5.0))
-        min_angle = p('min_corner_angle_deg', 25.0, 'A quad with an interior angle below this (or above 180 minus this) is seen edge-on: rejected', min_value=0.0, max_value=89.99, read_only=True)
-        min_side = p('min_side_px', 12.0, 'Markers with a side shorter than this are rejected, px', min_value=4.0, max_value=1000.0, read_only=True)
-        self.max_position_sigma_m = p('max_position_sigma_m', 0.5, 'Poses whose position 1-sigma exceeds this are not published, m', min_value=1e-4, max_value=100.0)
-        self.map_frame_id = p('map_frame_id', '', 'Frame of markers/pose (empty: the marker map frame_id)')
-        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
+        v = declare_params(self, PARAMS, live={'publish_tf': lambda x: setattr(self, 'publish_tf', x)})
+        dictionary = v['dictionary']
+        refinement = v['corner_refinement']
+        self.lens_kind = v['lens_model']
+        self.eq2_k = np.asarray(v['eq2_k'], float)
+        map_file = v['marker_map_file']
+        map_text = v['marker_map']
+        self.corner_sigma_px = v['corner_sigma_px']
+        gamma = v['response_gamma']
+        contrast = v['marker_print_contrast']
+        blur_gain = v['blur_sigma_gain']
+        self.info_wait_ns = int(1e9 * v['info_wait_s'])
+        min_angle = v['min_corner_angle_deg']
+        min_side = v['min_side_px']
+        self.max_position_sigma_m = v['max_position_sigma_m']
+        self.map_frame_id = v['map_frame_id']
+        reset_s = v['reset_after_s']
         # TF: the map -> camera (the image frame) with every published pose; live switch.
-        self.publish_tf: bool = p('publish_tf', True, 'Broadcast each markers/pose on /tf (map frame -> the image frame_id)',
-                                  live=lambda v: setattr(self, 'publish_tf', v))
+        self.publish_tf: bool = v['publish_tf']
         self.tf = TfBroadcaster(self)
 
         try:

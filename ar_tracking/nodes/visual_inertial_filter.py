@@ -46,6 +46,7 @@ from ..ros.node_base import (
     TrackingNode,
     run_node,
 )
+from ..ros.param_table import ParamSpec, declare_params
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import subscribe_static_transforms
 
@@ -66,6 +67,78 @@ def _len3(v: Any) -> str | None:
     return None if len(v) == 3 else 'needs 3 values'
 
 
+_NOISE = FilterNoise()
+_INITIAL = InitialUncertainty()
+_FUSION = FusionConfig()
+
+#: The node's parameters (defaults of the filter's from its core configs).
+PARAMS = (
+    ParamSpec('gyro_noise_rad_s', _NOISE.gyro_noise_rad_s,
+              'Gyro white noise per sample, 1-sigma, rad/s (sigma_z,w of Fig. 7)', min_value=1e-6, max_value=1.0),
+    ParamSpec('angular_rate_change_rad_s', _NOISE.angular_rate_change_rad_s,
+              'Process noise of the angular rate (user motion), rad/s/sqrt(s) (sigma_dw)',
+              min_value=0.0, max_value=100.0),
+    ParamSpec('gyro_bias_walk_rad_s', _NOISE.gyro_bias_walk_rad_s,
+              'Gyro bias random walk, rad/s/sqrt(s) (sigma_db,w)', min_value=0.0, max_value=1.0),
+    ParamSpec('accel_noise_m_s2', _NOISE.accel_noise_m_s2,
+              'Accelerometer white noise per sample, 1-sigma, m/s^2 (sigma_z,a)', min_value=1e-6, max_value=10.0),
+    ParamSpec('accel_change_m_s2', _NOISE.accel_change_m_s2,
+              'Process noise of the acceleration (user motion), m/s^2/sqrt(s) (sigma_da)',
+              min_value=0.0, max_value=1000.0),
+    ParamSpec('accel_bias_walk_m_s2', _NOISE.accel_bias_walk_m_s2,
+              'Accelerometer bias random walk, m/s^2/sqrt(s) (sigma_db,a)', min_value=0.0, max_value=10.0),
+    ParamSpec('initial_velocity_sigma_m_s', _INITIAL.velocity_m_s,
+              'Velocity 1-sigma at initialisation, m/s', min_value=1e-6, max_value=100.0),
+    ParamSpec('initial_gyro_bias_sigma_rad_s', _INITIAL.gyro_bias_rad_s,
+              'Gyro bias 1-sigma at initialisation, rad/s', min_value=1e-9, max_value=1.0),
+    ParamSpec('initial_accel_bias_sigma_m_s2', _INITIAL.accel_bias_m_s2,
+              'Accelerometer bias 1-sigma at initialisation, m/s^2', min_value=1e-9, max_value=10.0),
+    ParamSpec('imu_to_camera_xyzw', [0.0, 0.0, 0.0, 1.0],
+              'R_imu_cam as a quaternion (x, y, z, w): rotates camera_optical vectors into the IMU frame (the '
+              '/tf_static imu -> camera_optical)', validate=_unit_quat),
+    ParamSpec('camera_in_imu_m', [0.0, 0.0, 0.0], 'Position of the camera origin in the IMU frame, m', validate=_len3),
+    ParamSpec('position_sigma_m', _FUSION.position_sigma_m,
+              'Camera position noise 1-sigma when markers/pose has no covariance, and added to it, m',
+              min_value=1e-6, max_value=10.0),
+    ParamSpec('orientation_sigma_rad', _FUSION.orientation_sigma_rad,
+              'Camera orientation noise 1-sigma when markers/pose has no covariance, and added to it, rad',
+              min_value=1e-6, max_value=3.2),
+    ParamSpec('gate_chi2', _FUSION.gate_chi2,
+              'Innovation gate: squared Mahalanobis distance above which a pose is an outlier (0: no gate)',
+              min_value=0.0, max_value=1e6),
+    ParamSpec('max_consecutive_rejections', _FUSION.max_consecutive_rejections,
+              'After this many poses rejected in a row, re-initialise from the camera', min_value=1, max_value=1000),
+    ParamSpec('buffer_s', _FUSION.buffer_s,
+              'Roll-back buffer length: poses older than this (vs the newest IMU sample) are rejected, s',
+              min_value=0.05, max_value=30.0, read_only=True),
+    ParamSpec('max_imu_gap_s', _FUSION.max_imu_gap_s,
+              'IMU gaps longer than this are bridged with the newer sample and reported, s',
+              min_value=0.001, max_value=10.0),
+    ParamSpec('reset_gap_s', _FUSION.reset_gap_s,
+              'IMU gaps longer than this lose the track until the next camera pose, s',
+              min_value=0.001, max_value=60.0),
+    ParamSpec('rollback', True,
+              'Roll back to the capture time of late poses (false: apply on arrival, for comparison)'),
+    ParamSpec('joint_error_state', _FUSION.joint,
+              'One joint 15-state error filter (orientation-position couplings, the pose covariance in full); false: '
+              'the two separate filters of Fig. 7'),
+    ParamSpec('sampling_model', _FUSION.sampling_model,
+              'Integrate each IMU interval with the step of the specific force placed at the kink of the angular rate '
+              '(located from the gyro samples around it); false: the trapezoid'),
+    ParamSpec('sampling_error_scale', _FUSION.sampling_error_scale,
+              'Scale of the IMU sampling-error covariance (a step of the specific force between two samples, '
+              'delta^2/12; 0: off)', min_value=0.0, max_value=100.0),
+    ParamSpec('render_latency_s', 0.03,
+              'Display latency: vi/predicted_pose is extrapolated this far ahead of the newest IMU sample, s',
+              min_value=0.0, max_value=1.0),
+    ParamSpec('world_frame_id', 'enu', 'frame_id of the outputs (the marker-map frame of markers/pose)'),
+    ParamSpec('child_frame_id', 'camera_optical', 'child_frame_id of vi/odometry'),
+    ParamSpec('reset_after_s', 1.0,
+              'A stamp this much older than the previous one means the clock jumped back (bag loop): reset',
+              min_value=0.0, max_value=3600.0),
+)
+
+
 class VisualInertialFilterNode(TrackingNode):
     INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu', 'markers/pose': 'geometry_msgs/msg/PoseWithCovarianceStamped'}
     OUTPUTS = {'vi/odometry': 'nav_msgs/msg/Odometry', 'vi/predicted_pose': 'geometry_msgs/msg/PoseStamped'}
@@ -73,45 +146,42 @@ class VisualInertialFilterNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('visual_inertial_filter', **kwargs)
-        p = self.param
-        d = FilterNoise()
+        v = declare_params(self, PARAMS)
         noise = FilterNoise(
-            gyro_noise_rad_s=p('gyro_noise_rad_s', d.gyro_noise_rad_s, 'Gyro white noise per sample, 1-sigma, rad/s (sigma_z,w of Fig. 7)', min_value=1e-6, max_value=1.0),
-            angular_rate_change_rad_s=p('angular_rate_change_rad_s', d.angular_rate_change_rad_s, 'Process noise of the angular rate (user motion), rad/s/sqrt(s) (sigma_dw)', min_value=0.0, max_value=100.0),
-            gyro_bias_walk_rad_s=p('gyro_bias_walk_rad_s', d.gyro_bias_walk_rad_s, 'Gyro bias random walk, rad/s/sqrt(s) (sigma_db,w)', min_value=0.0, max_value=1.0),
-            accel_noise_m_s2=p('accel_noise_m_s2', d.accel_noise_m_s2, 'Accelerometer white noise per sample, 1-sigma, m/s^2 (sigma_z,a)', min_value=1e-6, max_value=10.0),
-            accel_change_m_s2=p('accel_change_m_s2', d.accel_change_m_s2, 'Process noise of the acceleration (user motion), m/s^2/sqrt(s) (sigma_da)', min_value=0.0, max_value=1000.0),
-            accel_bias_walk_m_s2=p('accel_bias_walk_m_s2', d.accel_bias_walk_m_s2, 'Accelerometer bias random walk, m/s^2/sqrt(s) (sigma_db,a)', min_value=0.0, max_value=10.0),
+            gyro_noise_rad_s=v['gyro_noise_rad_s'],
+            angular_rate_change_rad_s=v['angular_rate_change_rad_s'],
+            gyro_bias_walk_rad_s=v['gyro_bias_walk_rad_s'],
+            accel_noise_m_s2=v['accel_noise_m_s2'],
+            accel_change_m_s2=v['accel_change_m_s2'],
+            accel_bias_walk_m_s2=v['accel_bias_walk_m_s2'],
         )
-        di = InitialUncertainty()
         initial = InitialUncertainty(
-            velocity_m_s=p('initial_velocity_sigma_m_s', di.velocity_m_s, 'Velocity 1-sigma at initialisation, m/s', min_value=1e-6, max_value=100.0),
-            gyro_bias_rad_s=p('initial_gyro_bias_sigma_rad_s', di.gyro_bias_rad_s, 'Gyro bias 1-sigma at initialisation, rad/s', min_value=1e-9, max_value=1.0),
-            accel_bias_m_s2=p('initial_accel_bias_sigma_m_s2', di.accel_bias_m_s2, 'Accelerometer bias 1-sigma at initialisation, m/s^2', min_value=1e-9, max_value=10.0),
+            velocity_m_s=v['initial_velocity_sigma_m_s'],
+            gyro_bias_rad_s=v['initial_gyro_bias_sigma_rad_s'],
+            accel_bias_m_s2=v['initial_accel_bias_sigma_m_s2'],
         )
-        dc = FusionConfig()
-        q_ic = p('imu_to_camera_xyzw', [0.0, 0.0, 0.0, 1.0], 'R_imu_cam as a quaternion (x, y, z, w): rotates camera_optical vectors into the IMU frame (the /tf_static imu -> camera_optical)', validate=_unit_quat)
-        t_ic = p('camera_in_imu_m', [0.0, 0.0, 0.0], 'Position of the camera origin in the IMU frame, m', validate=_len3)
+        q_ic = v['imu_to_camera_xyzw']
+        t_ic = v['camera_in_imu_m']
         self.config = FusionConfig(
             noise=noise, initial=initial,
             R_imu_cam=quat_xyzw_to_matrix(np.asarray(q_ic, float)),
             t_imu_cam=np.asarray(t_ic, float),
-            position_sigma_m=p('position_sigma_m', dc.position_sigma_m, 'Camera position noise 1-sigma when markers/pose has no covariance, and added to it, m', min_value=1e-6, max_value=10.0),
-            orientation_sigma_rad=p('orientation_sigma_rad', dc.orientation_sigma_rad, 'Camera orientation noise 1-sigma when markers/pose has no covariance, and added to it, rad', min_value=1e-6, max_value=3.2),
-            gate_chi2=p('gate_chi2', dc.gate_chi2, 'Innovation gate: squared Mahalanobis distance above which a pose is an outlier (0: no gate)', min_value=0.0, max_value=1e6),
-            max_consecutive_rejections=p('max_consecutive_rejections', dc.max_consecutive_rejections, 'After this many poses rejected in a row, re-initialise from the camera', min_value=1, max_value=1000),
-            buffer_s=p('buffer_s', dc.buffer_s, 'Roll-back buffer length: poses older than this (vs the newest IMU sample) are rejected, s', min_value=0.05, max_value=30.0, read_only=True),
-            max_imu_gap_s=p('max_imu_gap_s', dc.max_imu_gap_s, 'IMU gaps longer than this are bridged with the newer sample and reported, s', min_value=0.001, max_value=10.0),
-            reset_gap_s=p('reset_gap_s', dc.reset_gap_s, 'IMU gaps longer than this lose the track until the next camera pose, s', min_value=0.001, max_value=60.0),
-            rollback=p('rollback', True, 'Roll back to the capture time of late poses (false: apply on arrival, for comparison)'),
-            joint=p('joint_error_state', dc.joint, 'One joint 15-state error filter (orientation-position couplings, the pose covariance in full); false: the two separate filters of Fig. 7'),
-            sampling_model=p('sampling_model', dc.sampling_model, 'Integrate each IMU interval with the step of the specific force placed at the kink of the angular rate (located from the gyro samples around it); false: the trapezoid'),
-            sampling_error_scale=p('sampling_error_scale', dc.sampling_error_scale, 'Scale of the IMU sampling-error covariance (a step of the specific force between two samples, delta^2/12; 0: off)', min_value=0.0, max_value=100.0),
+            position_sigma_m=v['position_sigma_m'],
+            orientation_sigma_rad=v['orientation_sigma_rad'],
+            gate_chi2=v['gate_chi2'],
+            max_consecutive_rejections=v['max_consecutive_rejections'],
+            buffer_s=v['buffer_s'],
+            max_imu_gap_s=v['max_imu_gap_s'],
+            reset_gap_s=v['reset_gap_s'],
+            rollback=v['rollback'],
+            joint=v['joint_error_state'],
+            sampling_model=v['sampling_model'],
+            sampling_error_scale=v['sampling_error_scale'],
         )
-        self.render_latency_ns = int(1e9 * p('render_latency_s', 0.03, 'Display latency: vi/predicted_pose is extrapolated this far ahead of the newest IMU sample, s', min_value=0.0, max_value=1.0))
-        self.world_frame_id = p('world_frame_id', 'enu', 'frame_id of the outputs (the marker-map frame of markers/pose)')
-        self.child_frame_id = p('child_frame_id', 'camera_optical', 'child_frame_id of vi/odometry')
-        reset_s = p('reset_after_s', 1.0, 'A stamp this much older than the previous one means the clock jumped back (bag loop): reset', min_value=0.0, max_value=3600.0)
+        self.render_latency_ns = int(1e9 * v['render_latency_s'])
+        self.world_frame_id = v['world_frame_id']
+        self.child_frame_id = v['child_frame_id']
+        reset_s = v['reset_after_s']
         self.mount_from_params = bool(np.any(np.asarray(q_ic, float) != [0.0, 0.0, 0.0, 1.0]) or np.any(np.asarray(t_ic, float) != 0.0))
         self.mount_source = 'parameters' if self.mount_from_params else 'default (identity, no lever arm)'
         self.core = RollbackFusion(self.config)
