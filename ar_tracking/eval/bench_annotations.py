@@ -79,8 +79,23 @@ def _texture(seed: int) -> np.ndarray:
     return np.clip(img + 128.0, 0, 255)
 
 
+def _as_the_nodes_run() -> None:
+    """Limit this process's OpenBLAS pools to one thread, as every node does
+    (``ros/node_base.limit_blas_threads``): the matcher's Walsh product is a small matrix
+    product, and with other processes on both cores OpenBLAS's worker threads wait for a core on
+    every one (one tile took 51-56 ms instead of 0.8 ms on the loaded 2-core machine, session
+    11). Without rclpy (the helper lives with the nodes) the pools stay as they are."""
+    try:
+        from ..ros.node_base import limit_blas_threads
+    except ImportError:
+        return
+    limit_blas_threads()
+
+
 def bench_tile_match(n: int = 300, seed: int = 0) -> float:
-    """Median ms of one 64x64 tile against 12 annotations (no prior: all 12 are tested)."""
+    """Median ms of one 64x64 tile against 12 annotations (no prior: all 12 are tested), with
+    the BLAS pools as the nodes run them (:func:`_as_the_nodes_run`)."""
+    _as_the_nodes_run()
     gray = _texture(seed)
     rng = np.random.default_rng(seed)
     patches = []
@@ -96,7 +111,8 @@ def bench_ransac(n: int = 200, seed: int = 0, gravity: bool = False, points: int
     """Median ms of one alignment: ``points`` annotations (8) or annotations and landmarks, 3
     candidates each (a quarter with only wrong ones); the paper's rotation hypotheses, or with
     ``gravity`` the sensor prior (3 deg off) turned about the vertical
-    (``MatchConfig.gravity_alignment``)."""
+    (``MatchConfig.gravity_alignment``); BLAS pools as the nodes run them."""
+    _as_the_nodes_run()
     geo = CylinderGeometry()
     rng = np.random.default_rng(seed)
     u = rng.uniform(0, 2048, points)
