@@ -26,11 +26,36 @@ from ..io.bags import BagError, BagReader, normalize_topic
 from ..io.replay import ReplayOptions, ScheduledMessage, parse_remaps
 from ..ros.conversions import ConversionError, message_class, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params, with_defaults
 from ..ros.player import BagPlayer
 
 #: Topics that keep their absolute name and are latched (late joiners get them).
 LATCHED_TOPICS = ('/tf_static', '/ground_truth/annotations')
 
+
+
+def _names_a_topic(v: Any) -> str | None:
+    return None if v.strip('/') else 'must name a topic'
+
+
+#: The replay's parameters (a subclass sets the default of ``topics`` from its DEFAULT_TOPICS).
+PARAMS = (
+    ParamSpec('bag_path', '', 'Bag to play: rosbag2 directory, .mcap, .db3 or ROS 1 .bag', read_only=True),
+    ParamSpec('rate', 1.0,
+              'Playback rate factor (0: as fast as possible)', min_value=0.0, max_value=1000.0, read_only=True),
+    ParamSpec('start_offset_s', 0.0, 'Skip this much of the bag, s', min_value=0.0, max_value=1e7, read_only=True),
+    ParamSpec('loop', False, 'Play again from the start offset when the bag ends', read_only=True),
+    ParamSpec('topics', [''], 'Bag topics to play (empty: all)', read_only=True),
+    ParamSpec('remap', [''], 'Remappings from:=to applied to bag topics', read_only=True),
+    ParamSpec('publish_clock', True, 'Publish /clock from the bag time', read_only=True),
+    ParamSpec('clock_topic', '/clock',
+              'Topic of the bag clock: /clock, or clock (relative: /<namespace>/clock, one clock per robot; remap '
+              "/clock to it in that namespace's nodes)",
+              read_only=True, validate=_names_a_topic),
+    ParamSpec('linger_s', 0.5,
+              'Wall time to stay after the last message before exiting (late subscribers and reliable deliveries), s',
+              min_value=0.0, max_value=60.0, read_only=True),
+)
 
 class BagReplayNode(TrackingNode):
     """Replays a bag; subclasses change the name and the default topic selection."""
@@ -39,22 +64,19 @@ class BagReplayNode(TrackingNode):
 
     def __init__(self, node_name: str = 'bag_replay', **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        p = self.param
-        bag_path: str = p('bag_path', '', 'Bag to play: rosbag2 directory, .mcap, .db3 or ROS 1 .bag', read_only=True)
+        v = declare_params(self, with_defaults(PARAMS, topics=self.DEFAULT_TOPICS or ['']))
+        bag_path: str = v['bag_path']
         options = ReplayOptions(
-            rate=p('rate', 1.0, 'Playback rate factor (0: as fast as possible)', min_value=0.0, max_value=1000.0, read_only=True),
-            start_offset_s=p('start_offset_s', 0.0, 'Skip this much of the bag, s', min_value=0.0, max_value=1e7, read_only=True),
-            loop=p('loop', False, 'Play again from the start offset when the bag ends', read_only=True),
-            topics=list(p('topics', self.DEFAULT_TOPICS or [''], 'Bag topics to play (empty: all)', read_only=True)),
-            remap=parse_remaps([r for r in p('remap', [''], 'Remappings from:=to applied to bag topics', read_only=True) if r]),
+            rate=v['rate'],
+            start_offset_s=v['start_offset_s'],
+            loop=v['loop'],
+            topics=list(v['topics']),
+            remap=parse_remaps([r for r in v['remap'] if r]),
         )
         options.topics = [normalize_topic(t) for t in options.topics if t]
-        self.publish_clock: bool = p('publish_clock', True, 'Publish /clock from the bag time', read_only=True)
-        clock_topic: str = p('clock_topic', '/clock', 'Topic of the bag clock: /clock, or clock (relative: /<namespace>/clock, '
-                             'one clock per robot; remap /clock to it in that namespace\'s nodes)', read_only=True,
-                             validate=lambda v: None if v.strip('/') else 'must name a topic')
-        self.linger_s: float = p('linger_s', 0.5, 'Wall time to stay after the last message before exiting (late subscribers '
-                                 'and reliable deliveries), s', min_value=0.0, max_value=60.0, read_only=True)
+        self.publish_clock: bool = v['publish_clock']
+        clock_topic: str = v['clock_topic']
+        self.linger_s: float = v['linger_s']
         if not bag_path:
             raise ValueError('parameter bag_path is required (-p bag_path:=/path/to/bag)')
         try:

@@ -19,6 +19,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from ..ros.conversions import message_class
 from ..ros.foxglove import DEFAULT_PORT, FoxgloveBridge, FoxgloveError
 from ..ros.node_base import TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params
 
 #: The graph's topics a viewer wants, with their types (DESIGN.md sec. 2).
 LIVE_TOPICS = {
@@ -49,6 +50,16 @@ DEFAULT_TOPICS = [t for t in LIVE_TOPICS if not t.startswith(('camera/', 'gps/')
 VIEWER_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 
+#: The bridge's parameters.
+PARAMS = (
+    ParamSpec('port', DEFAULT_PORT,
+              'WebSocket port of the Foxglove server (0: any free port)', min_value=0, max_value=65535),
+    ParamSpec('host', '127.0.0.1', 'Address the server listens on (0.0.0.0: every interface)'),
+    ParamSpec('world_frame_id', 'enu', 'Parent frame of the orientation topics (orientation/global, imu/data)'),
+    ParamSpec('topics', list(DEFAULT_TOPICS),
+              'Topics served (relative names of the graph: ' + ', '.join(LIVE_TOPICS) + ')'),
+)
+
 
 class FoxgloveBridgeNode(TrackingNode):
     INPUTS: dict[str, str] = {}  # a viewer: the graph runner never starts it (run --foxglove does the job there)
@@ -56,11 +67,11 @@ class FoxgloveBridgeNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('foxglove_bridge', **kwargs)
-        p = self.param
-        port = p('port', DEFAULT_PORT, 'WebSocket port of the Foxglove server (0: any free port)', min_value=0, max_value=65535)
-        host = p('host', '127.0.0.1', 'Address the server listens on (0.0.0.0: every interface)')
-        world = p('world_frame_id', 'enu', 'Parent frame of the orientation topics (orientation/global, imu/data)')
-        topics = p('topics', list(DEFAULT_TOPICS), 'Topics served (relative names of the graph: ' + ', '.join(LIVE_TOPICS) + ')')
+        v = declare_params(self, PARAMS)
+        port = v['port']
+        host = v['host']
+        world = v['world_frame_id']
+        topics = v['topics']
         unknown = [t for t in topics if t.lstrip('/') not in LIVE_TOPICS]
         if unknown:
             raise ValueError(f'parameter topics: unknown topic(s) {", ".join(unknown)}; known: {", ".join(LIVE_TOPICS)}')

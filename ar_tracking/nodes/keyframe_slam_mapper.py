@@ -34,6 +34,7 @@ from ..core.slam.system import SlamConfig, SlamSystem
 from ..core.stamp_pairing import NearestStampPairer
 from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, transform_stamped
 
@@ -60,6 +61,34 @@ def _frame_name(v: Any) -> str | None:
     return None if v and v.strip() == v and not v.startswith('/') else 'a frame name: not empty, no leading slash or spaces'
 
 
+
+def _empty_or_frame_name(v: Any) -> str | None:
+    return None if not v else _frame_name(v)
+
+
+#: The node's parameters.
+PARAMS = (
+    ParamSpec('readout_s', 0.0,
+              'Rolling-shutter readout time, top to bottom row, s (0: global shutter; sec. 6)',
+              min_value=0.0, max_value=0.2, read_only=True),
+    ParamSpec('map_frame_id', 'slam_map',
+              'frame_id of the outputs (the map frame: the first keyframe, scale set at initialisation; the TF '
+              'parent)', validate=_frame_name),
+    ParamSpec('camera_frame_id', '',
+              'TF child frame: the camera (empty: the image header frame_id, else camera_optical)',
+              validate=_empty_or_frame_name),
+    ParamSpec('publish_tf', True, 'Broadcast each tracked pose on /tf (map_frame_id -> camera frame)'),
+    ParamSpec('map_rate_hz', 1.0,
+              'Rate of slam/map_points, slam/keyframes and slam/path, by image stamps (also published at each new '
+              'keyframe), Hz', min_value=0.01, max_value=100.0, read_only=True),
+    ParamSpec('camera_info_max_gap_s', 0.005,
+              'Largest stamp difference between an image and the camera_info paired with it, s',
+              min_value=0.0, max_value=1.0, read_only=True),
+    ParamSpec('reset_after_s', 1.0,
+              'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a '
+              'new map', min_value=0.0, max_value=3600.0),
+)
+
 def _pose(R_w_c: np.ndarray, p_w_c: np.ndarray, target: Pose | None = None) -> Pose:
     pose = Pose() if target is None else target
     pose.position.x, pose.position.y, pose.position.z = (float(v) for v in p_w_c)
@@ -83,18 +112,19 @@ class KeyframeSlamMapperNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('keyframe_slam_mapper', **kwargs)
-        p = self.param
-        self.readout_s = p('readout_s', 0.0, 'Rolling-shutter readout time, top to bottom row, s (0: global shutter; sec. 6)', min_value=0.0, max_value=0.2, read_only=True)
-        self.frame_id: str = p('map_frame_id', 'slam_map', 'frame_id of the outputs (the map frame: the first keyframe, scale set at initialisation; the TF parent)',
-                               live=self._set_map_frame, validate=_frame_name)
-        self.camera_frame: str = p('camera_frame_id', '', 'TF child frame: the camera (empty: the image header frame_id, else camera_optical)',
-                                   live=lambda v: setattr(self, 'camera_frame', v), validate=lambda v: None if not v else _frame_name(v))
-        self.publish_tf: bool = p('publish_tf', True, 'Broadcast each tracked pose on /tf (map_frame_id -> camera frame)',
-                                  live=lambda v: setattr(self, 'publish_tf', v))
-        self.map_period_ns = int(1e9 / p('map_rate_hz', 1.0, 'Rate of slam/map_points, slam/keyframes and slam/path, by image stamps (also published at each new keyframe), Hz', min_value=0.01, max_value=100.0, read_only=True))
-        self.max_info_gap_ns = int(1e9 * p('camera_info_max_gap_s', 0.005, 'Largest stamp difference between an image and the camera_info paired with it, s', min_value=0.0, max_value=1.0, read_only=True))
-        reset_s = p('reset_after_s', 1.0, 'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a new map', min_value=0.0, max_value=3600.0,
-                    live=lambda v: setattr(self.guard, 'reset_after_ns', int(v * 1e9)))
+        v = declare_params(self, PARAMS, live={
+            'map_frame_id': self._set_map_frame,
+            'camera_frame_id': lambda x: setattr(self, 'camera_frame', x),
+            'publish_tf': lambda x: setattr(self, 'publish_tf', x),
+            'reset_after_s': lambda x: setattr(self.guard, 'reset_after_ns', int(x * 1e9)),
+        })
+        self.readout_s = v['readout_s']
+        self.frame_id: str = v['map_frame_id']
+        self.camera_frame: str = v['camera_frame_id']
+        self.publish_tf: bool = v['publish_tf']
+        self.map_period_ns = int(1e9 / v['map_rate_hz'])
+        self.max_info_gap_ns = int(1e9 * v['camera_info_max_gap_s'])
+        reset_s = v['reset_after_s']
         self.config = SlamConfig(readout_s=self.readout_s)
 
         self.guard = StampGuard(reset_s)

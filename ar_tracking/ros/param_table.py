@@ -13,7 +13,7 @@ defaults that belong to a core config dataclass are taken from an instance of it
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping
 
 if TYPE_CHECKING:
@@ -91,9 +91,21 @@ def declare_params(
         raise KeyError(f'callbacks for parameters not in the table: {", ".join(sorted(unknown))}')
     values: dict[str, Any] = {}
     for s in specs:
+        # a list default is copied, so that nothing the node does with the value changes the table
+        default = list(s.default) if isinstance(s.default, list) else s.default
         values[s.name] = node.param(
-            s.name, s.default, s.description,
+            s.name, default, s.description,
             min_value=s.min_value, max_value=s.max_value, read_only=s.read_only,
             validate=s.validator(validate.get(s.name)), live=live.get(s.name),
         )
     return values
+
+
+def with_defaults(table: Iterable[ParamSpec], **defaults: Any) -> tuple[ParamSpec, ...]:
+    """The table with the defaults of the named parameters replaced (a subclass's own default,
+    e.g. camera_replay's topics); a name that is not in the table is a KeyError."""
+    specs = tuple(table)
+    unknown = set(defaults) - {s.name for s in specs}
+    if unknown:
+        raise KeyError(f'defaults for parameters not in the table: {", ".join(sorted(unknown))}')
+    return tuple(replace(s, default=defaults[s.name]) if s.name in defaults else s for s in specs)
