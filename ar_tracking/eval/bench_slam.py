@@ -20,6 +20,7 @@
 """
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,8 @@ from typing import Any
 import numpy as np
 
 from . import SHARED_DATA
+
+logger = logging.getLogger(__name__)
 
 
 def _frames(seed: int, duration_s: float, width: int, height: int) -> list[Any]:
@@ -80,10 +83,43 @@ def bench_tracking(width: int, height: int, duration_s: float = 20.0, seed: int 
     return out
 
 
+def benchmark_one_iteration(n_keyframes: int = 35, n_points: int = 300, seed: int = 0,
+                            repeats: int = 5) -> dict[str, float]:
+    """Times one BA iteration on the synthetic problem of :mod:`ar_tracking.sim.ba_problem`
+    (the sec. 7 figure).
+
+    Returns the median over ``repeats`` of the full call of ``bundle_adjust_one_iteration``
+    (graph construction + one LM iteration + read-back; ``ms_call``) and of the single
+    ``LevenbergMarquardtOptimizer.iterate()`` alone (linearise + Schur-ordered sparse Cholesky
+    solve + error; ``ms_iterate``), and the problem size.
+    """
+    from ..core.slam.bundle_adjustment import bundle_adjust_one_iteration, prepare_lm
+    from ..sim.ba_problem import make_synthetic_ba_problem
+
+    prob = make_synthetic_ba_problem(n_keyframes, n_points, seed)
+    calls, iters = [], []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        bundle_adjust_one_iteration(prob.keyframes, prob.points, prob.camera, prob.fixed_kf_ids)
+        calls.append(time.perf_counter() - t0)
+    # The bare iteration on a prebuilt graph.
+    prepared = prepare_lm(prob.keyframes, prob.points, prob.camera, prob.fixed_kf_ids)
+    for _ in range(max(1, repeats)):
+        opt = prepared.optimizer()
+        t0 = time.perf_counter()
+        opt.iterate()
+        iters.append(time.perf_counter() - t0)
+    out = {'ms_call': float(np.median(calls) * 1e3), 'ms_iterate': float(np.median(iters) * 1e3),
+           'keyframes': float(prepared.n_keyframes), 'points': float(prepared.n_points),
+           'measurements': float(prepared.n_measurements)}
+    logger.info('one BA iteration, %d keyframes / %d points / %d measurements: %.1f ms '
+                '(%.1f ms including graph construction)', prepared.n_keyframes, prepared.n_points,
+                prepared.n_measurements, out['ms_iterate'], out['ms_call'])
+    return out
+
+
 def bench_ba(seed: int = 0) -> dict[str, Any]:
     """One bundle-adjustment iteration with 35 keyframes and 300 points."""
-    from ..core.slam.bundle_adjustment import benchmark_one_iteration
-
     r = benchmark_one_iteration(n_keyframes=35, n_points=300, seed=seed, repeats=10)
     return {'ba_iteration_ms': round(float(r['ms_iterate']), 2), 'ba_call_ms': round(float(r['ms_call']), 2),
             'ba_problem': {k: int(r[k]) for k in ('keyframes', 'points', 'measurements')}}

@@ -26,7 +26,9 @@ one Levenberg-Marquardt iteration per Python call; before each iteration the ``c
 callback lets the mapping thread wait for the tracker to be between frames (:mod:`.frame_gate`)
 and the ``abort`` callback is polled (PTAM aborts global BA for a new keyframe).
 The paper's phone needed ~750 ms per iteration for 35 keyframes / 300 points (sec. 7);
-:func:`benchmark_one_iteration` measures ours on :func:`make_synthetic_ba_problem`.
+``ar_tracking.eval.bench_slam.benchmark_one_iteration`` measures ours (with :func:`prepare_lm`)
+on the synthetic problem of ``ar_tracking.sim.ba_problem`` (test fixtures with their ground
+truth live in sim, not here).
 """
 from __future__ import annotations
 
@@ -397,144 +399,42 @@ def bundle_adjust_one_iteration(keyframes: Sequence[Keyframe],
     return bundle_adjust(keyframes, points, camera, fixed_kf_ids, iterations=1, **kwargs)
 
 
-# ---------------------------------------------------------------------------------------------
-# Synthetic problem and benchmark
-# ---------------------------------------------------------------------------------------------
 @dataclass
-class SyntheticBAProblem:
-    """Noisy-initialised keyframes and points with the ground truth (for tests / benchmarks)."""
+class PreparedLM:
+    """The gtsam graph, initial values and elimination ordering of one bundle-adjustment stage,
+    built once, for timing the bare Levenberg-Marquardt iteration (the sec. 7 cost figure; the
+    benchmark is ``ar_tracking.eval.bench_slam.benchmark_one_iteration``)."""
 
-    camera: Camera
-    keyframes: list[Keyframe]
-    points: dict[int, Array]
-    true_poses: dict[int, tuple[Array, Array]]
-    true_points: dict[int, Array]
-    fixed_kf_ids: tuple[int, ...]
-    outliers: set[tuple[int, int]]
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    ordering: gtsam.Ordering
+    n_keyframes: int
+    n_points: int
+    n_measurements: int
 
-
-def look_at(position: Array, target: Array, up: Array | None = None) -> tuple[Array, Array]:
-    """(R_c_w, t_c_w) of a camera at ``position`` with its optical axis towards ``target``
-    (``up`` default -y, the image's up in a y-down world)."""
-    up = np.array([0.0, -1.0, 0.0]) if up is None else up
-    z = np.asarray(target, float) - np.asarray(position, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(up, z)
-    if np.linalg.norm(x) < 1e-9:
-        x = np.cross(np.array([1.0, 0.0, 0.0]), z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R_c_w = np.vstack([x, y, z])
-    return R_c_w, -R_c_w @ np.asarray(position, float)
+    def optimizer(self) -> gtsam.LevenbergMarquardtOptimizer:
+        """A fresh optimiser at the initial values (points eliminated first, as bundle_adjust)."""
+        params = gtsam.LevenbergMarquardtParams()
+        params.setOrdering(self.ordering)
+        return gtsam.LevenbergMarquardtOptimizer(self.graph, self.values, params)
 
 
-def _small_rotation(rng: np.random.Generator, sigma: float) -> Array:
-    import cv2
-    R, _ = cv2.Rodrigues(rng.normal(0.0, sigma, 3))
-    return np.asarray(R, dtype=np.float64)  # float64 in, float64 out: no copy
-
-
-def make_synthetic_ba_problem(n_keyframes: int = 35, n_points: int = 300, seed: int = 0, *,
-                              noise_px: float = 0.5, max_obs_per_point: int = 8,
-                              outlier_fraction: float = 0.0, outlier_px: float = 30.0,
-                              pose_noise_rad: float = 0.01, pose_noise_m: float = 0.03,
-                              point_noise_m: float = 0.05,
-                              camera: Camera | None = None) -> SyntheticBAProblem:
-    """Keyframes on an arc around a point cloud, each point measured by up to 8 keyframes.
-
-    Keyframes 0 and 1 keep their true poses and are listed in ``fixed_kf_ids`` (fixing two
-    keyframes fixes the monocular gauge including scale); the others and all points start from
-    noisy values. Measurements carry ``noise_px`` Gaussian noise (level 0, sigma 1) and a fraction
-    ``outlier_fraction`` are moved by ``outlier_px`` in a random direction.
-    """
-    rng = np.random.default_rng(seed)
-    cam = camera or Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
-    true_pts = {i: rng.uniform(-1.0, 1.0, 3) for i in range(n_points)}
-    P = np.array([true_pts[i] for i in range(n_points)])
-    true_poses: dict[int, tuple[Array, Array]] = {}
-    keyframes: list[Keyframe] = []
-    outliers: set[tuple[int, int]] = set()
-    angles = np.linspace(-0.7, 0.7, n_keyframes)
-    vis: list[list[int]] = [[] for _ in range(n_points)]
-    for k, a in enumerate(angles):
-        pos = np.array([4.0 * np.sin(a), 0.4 * np.sin(3.0 * a + 0.3), -4.0 * np.cos(a)])
-        target = rng.normal(0.0, 0.15, 3)
-        R, t = look_at(pos, target)
-        true_poses[k] = (R, t)
-        uv, z = project_world(cam, R, t, P)
-        ok = (z > 0.1) & cam.in_image(uv, border=4.0)
-        for i_vis in np.nonzero(ok)[0]:
-            vis[i_vis].append(k)
-    meas: dict[int, dict[int, Measurement]] = {k: {} for k in range(n_keyframes)}
-    for i in range(n_points):
-        if len(vis[i]) < 2:
-            continue
-        chosen = vis[i] if len(vis[i]) <= max_obs_per_point else list(
-            rng.choice(vis[i], max_obs_per_point, replace=False))
-        for k in chosen:
-            R, t = true_poses[int(k)]
-            uv, _ = project_world(cam, R, t, P[i])
-            uv = uv[0] + rng.normal(0.0, noise_px, 2)
-            if rng.random() < outlier_fraction:
-                ang = rng.uniform(0, 2 * np.pi)
-                uv = uv + outlier_px * np.array([np.cos(ang), np.sin(ang)])
-                outliers.add((int(k), i))
-            meas[int(k)][i] = Measurement(kf_id=int(k), point_id=i, uv=uv, level=0)
-    fixed = (0, 1) if n_keyframes > 1 else (0,)
-    for k in range(n_keyframes):
-        R, t = true_poses[k]
-        if k not in fixed:
-            R = _small_rotation(rng, pose_noise_rad) @ R
-            t = t + rng.normal(0.0, pose_noise_m, 3)
-        keyframes.append(Keyframe(id=k, stamp_ns=k * 100_000_000, R_c_w=R.copy(), t_c_w=t.copy(),
-                                  pyramid=[], measurements=meas[k], fixed=k == 0))
-    observed = {m.point_id for kf in keyframes for m in kf.measurements.values()}
-    pts = {i: true_pts[i] + rng.normal(0.0, point_noise_m, 3) for i in sorted(observed)}
-    return SyntheticBAProblem(cam, keyframes, pts, true_poses,
-                              {i: true_pts[i] for i in sorted(observed)}, fixed, outliers)
-
-
-def benchmark_one_iteration(n_keyframes: int = 35, n_points: int = 300, seed: int = 0,
-                            repeats: int = 5) -> dict[str, float]:
-    """Times one BA iteration on :func:`make_synthetic_ba_problem` (the sec. 7 figure).
-
-    Returns the median over ``repeats`` of the full call of :func:`bundle_adjust_one_iteration`
-    (graph construction + one LM iteration + read-back; ``ms_call``) and of the single
-    ``LevenbergMarquardtOptimizer.iterate()`` alone (linearise + Schur-ordered sparse Cholesky
-    solve + error; ``ms_iterate``), and the problem size.
-    """
-    prob = make_synthetic_ba_problem(n_keyframes, n_points, seed)
-    calls, iters = [], []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        bundle_adjust_one_iteration(prob.keyframes, prob.points, prob.camera, prob.fixed_kf_ids)
-        calls.append(time.perf_counter() - t0)
-    # The bare iteration on a prebuilt graph.
-    p = _build_problem(prob.keyframes, prob.points, set(prob.fixed_kf_ids), set())
+def prepare_lm(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | Iterable[MapPoint],
+               camera: Camera, fixed_kf_ids: Iterable[int] = (), *, robust: str = 'tukey',
+               c: float = TUKEY_C * 10.0) -> PreparedLM:
+    """The graph :func:`bundle_adjust` optimises in one stage, with the kernel width ``c``."""
+    pts = _points_mapping(points)
+    p = _build_problem(keyframes, pts, set(fixed_kf_ids), set())
     values = gtsam.Values()
-    for kf in prob.keyframes:
+    for kf in keyframes:
         values.insert(X(kf.id), pose_to_gtsam(kf.R_c_w, kf.t_c_w))
     for pid in p.point_ids:
-        values.insert(L(pid), prob.points[pid])
-    K = gtsam.Cal3_S2(prob.camera.fx, prob.camera.fy, 0.0, prob.camera.cx, prob.camera.cy)
-    graph = _build_graph(p, prob.camera, K, 'tukey', TUKEY_C * 10.0, values)
-    for _ in range(max(1, repeats)):
-        params = gtsam.LevenbergMarquardtParams()
-        params.setOrdering(_ordering(p))
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        t0 = time.perf_counter()
-        opt.iterate()
-        iters.append(time.perf_counter() - t0)
-    out = {'ms_call': float(np.median(calls) * 1e3), 'ms_iterate': float(np.median(iters) * 1e3),
-           'keyframes': float(len(p.kf_ids)), 'points': float(len(p.point_ids)),
-           'measurements': float(len(p.uv))}
-    logger.info('one BA iteration, %d keyframes / %d points / %d measurements: %.1f ms '
-                '(%.1f ms including graph construction)', len(p.kf_ids), len(p.point_ids),
-                len(p.uv), out['ms_iterate'], out['ms_call'])
-    return out
+        values.insert(L(pid), pts[pid])
+    K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
+    graph = _build_graph(p, camera, K, robust, c, values)
+    return PreparedLM(graph, values, _ordering(p), len(p.kf_ids), len(p.point_ids), len(p.uv))
 
 
-__all__ = ['BAResult', 'SyntheticBAProblem', 'bundle_adjust', 'bundle_adjust_one_iteration',
-           'make_synthetic_ba_problem', 'benchmark_one_iteration', 'look_at', 'pose_jacobians',
+__all__ = ['BAResult', 'PreparedLM', 'bundle_adjust', 'bundle_adjust_one_iteration', 'prepare_lm', 'pose_jacobians',
            'point_jacobians', 'projection_jacobian_camera', 'project_world', 'pose_to_gtsam',
            'pose_from_gtsam', 'robust_weights', 'robust_loss', 'TUKEY_C', 'HUBER_K']

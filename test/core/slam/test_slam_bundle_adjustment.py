@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ar_tracking.core.slam.bundle_adjustment import (benchmark_one_iteration, bundle_adjust,
-                                                     bundle_adjust_one_iteration,
-                                                     make_synthetic_ba_problem, point_jacobians,
-                                                     pose_from_gtsam, pose_jacobians,
+from ar_tracking.core.slam.bundle_adjustment import (bundle_adjust, bundle_adjust_one_iteration,
+                                                     point_jacobians, pose_from_gtsam, pose_jacobians,
                                                      pose_to_gtsam, project_world, robust_weights)
 from ar_tracking.core.slam.camera import Camera
+from ar_tracking.eval.bench_slam import benchmark_one_iteration
+from ar_tracking.sim.ba_problem import make_synthetic_ba_problem
 
 
 def _rot_err(Ra, Rb):

@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ar_tracking.core.slam.bundle_adjustment import look_at, project_world
+from ar_tracking.core.slam.bundle_adjustment import project_world
 from ar_tracking.core.slam.camera import Camera
 from ar_tracking.core.slam.culling import (keyframe_utilities, keyframes_to_cull,
                                            measurements_to_cull, point_measurement_metrics,
                                            rank_utilities)
 from ar_tracking.core.slam.slam_map import Keyframe, Measurement
+from ar_tracking.sim.ba_problem import look_at
 
 CAM = Camera(fx=400.0, fy=400.0, cx=319.5, cy=239.5, width=640, height=480)
 

@@ -8,10 +8,11 @@ import time
 import cv2
 import numpy as np
 
-from ar_tracking.core.slam.bundle_adjustment import make_synthetic_ba_problem, project_world
+from ar_tracking.core.slam.bundle_adjustment import project_world
 from ar_tracking.core.slam.camera import Camera
 from ar_tracking.core.slam.mapper import MapMaker, MapperConfig
 from ar_tracking.core.slam.slam_map import Keyframe, MapPoint, Measurement, PartialPoint, SlamMap
+from ar_tracking.sim.ba_problem import make_synthetic_ba_problem
 
 CAM = Camera(fx=300.0, fy=300.0, cx=159.5, cy=119.5, width=320, height=240)
 

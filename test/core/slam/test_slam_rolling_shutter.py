@@ -5,10 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ar_tracking.core.slam.bundle_adjustment import bundle_adjust, look_at
+from ar_tracking.core.slam.bundle_adjustment import bundle_adjust
 from ar_tracking.core.slam.camera import Camera
 from ar_tracking.core.slam.rolling_shutter import correct_keyframe, estimate_camera_velocity
 from ar_tracking.core.slam.slam_map import Keyframe, Measurement
+from ar_tracking.sim.ba_problem import look_at
 
 CAM = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480, readout_s=0.06)
 FRAME_DT = 1.0 / 15.0
