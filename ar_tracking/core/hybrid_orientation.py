@@ -92,8 +92,8 @@ class RotationBuffer:
 # Gyro backup while the visual tracker is lost.
 
 
-@dataclass
-class GyroBackupParams:
+@dataclass(frozen=True)
+class GyroBackupConfig:
     """Gyro integration and bias learning (rad, s)."""
 
     gyro_noise_rad_s: float = 0.01  # 1-sigma per sample of the rate
@@ -101,6 +101,11 @@ class GyroBackupParams:
     bias_window_s: float = 0.3  # visual/gyro comparison interval for the bias
     bias_gain: float = 0.05  # weight of one comparison in the running bias
     max_bias_rad_s: float = 0.1  # larger observed biases are discarded as outliers
+
+
+#: Deprecated name (issue 21: the core's configuration dataclasses are all called ``*Config``);
+#: kept so that code written against it still runs. Use :class:`GyroBackupConfig`.
+GyroBackupParams = GyroBackupConfig
 
 
 class GyroBackup:
@@ -113,9 +118,9 @@ class GyroBackup:
     camera frame, turned into the IMU frame).
     """
 
-    def __init__(self, R_imu_cam: Array, params: GyroBackupParams | None = None,
+    def __init__(self, R_imu_cam: Array, params: GyroBackupConfig | None = None,
                  bias_imu: Array | None = None) -> None:
-        self.params = params or GyroBackupParams()
+        self.params = params or GyroBackupConfig()
         self.R_imu_cam = np.asarray(R_imu_cam, dtype=float)
         self.bias_prior = np.zeros(3) if bias_imu is None else np.asarray(bias_imu, dtype=float)
         self.reset()

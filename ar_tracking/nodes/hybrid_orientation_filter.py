@@ -33,7 +33,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
-from ..core.hybrid_orientation import GyroBackup, GyroBackupParams, RotationBuffer
+from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig
 from ..ros.conversions import (
@@ -69,7 +69,7 @@ def _unit_quat(v: Any) -> str | None:
 
 
 _ALIGN = WorldAlignmentConfig()
-_GYRO = GyroBackupParams()
+_GYRO = GyroBackupConfig()
 
 #: The node's parameters (the IMU calibration ones come from TrackingNode.imu_calibration_params).
 PARAMS = (
@@ -213,7 +213,7 @@ class HybridOrientationFilterNode(TrackingNode):
             heading_floor_rad=v['heading_floor_rad'],
             declination_rad=v['declination_rad'],
         )
-        backup = GyroBackupParams(
+        backup = GyroBackupConfig(
             gyro_noise_rad_s=v['gyro_noise_rad_s'],
             bias_sigma_rad_s=v['gyro_bias_sigma_rad_s'],
             bias_window_s=v['gyro_bias_window_s'],

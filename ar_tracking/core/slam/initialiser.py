@@ -56,7 +56,7 @@ _GEN[6, 2, 0] = 1
 _GEN[7, 2, 1] = 1
 
 
-@dataclass
+@dataclass(frozen=True)
 class InitConfig:
     """Initialiser parameters (sec. 5.1)."""
 

@@ -27,7 +27,7 @@ logger = logging.getLogger('ar_tracking.core.slam.mapper')  # the map maker's lo
 Array = NDArray[np.float64]
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapperConfig:
     """Mapping-thread parameters (paper values where the paper gives one)."""
 

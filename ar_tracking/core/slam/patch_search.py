@@ -40,7 +40,7 @@ PATCH = 8  #: template size (sec. 4: 8x8)
 MARGIN = 1  #: extra template border for the ESM gradients
 
 
-@dataclass
+@dataclass(frozen=True)
 class SearchConfig:
     """Patch-search parameters (sec. 4)."""
 

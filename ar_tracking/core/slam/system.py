@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 Array = NDArray[np.float64]
 
 
-@dataclass
+@dataclass(frozen=True)
 class SlamConfig:
     """All SLAM parameters: the tracker's, the mapper's and the camera's readout time.
 

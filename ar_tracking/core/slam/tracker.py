@@ -50,7 +50,7 @@ Image = NDArray[np.uint8]
 STATES = ('initialising', 'waiting', 'tracking', 'lost', 'relocalised')
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrackerConfig:
     """Tracking parameters (sec. 4)."""
 
