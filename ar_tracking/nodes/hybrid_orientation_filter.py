@@ -48,17 +48,13 @@ from ..ros.conversions import (
     to_stamp,
 )
 from ..ros.node_base import RELIABLE_QOS, RELIABLE_STREAM_QOS, STREAM_QOS, TrackingNode, run_node
-from ..ros.param_table import ParamSpec, declare_params
+from ..ros.param_table import ParamSpec, declare_params, frame_name
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamped
 
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
 _EXTRINSIC_WARN_RAD = np.radians(1.0)
-
-
-def _frame_name(v: Any) -> str | None:
-    return None if v and v.strip() == v and not v.startswith('/') else 'a frame name: not empty, no leading slash or spaces'
 
 
 def _unit_quat(v: Any) -> str | None:
@@ -81,11 +77,11 @@ PARAMS = (
               'Rotation imu -> camera_optical (R_imu_cam, x y z w), used when no /tf_static gives it; default the '
               'phone: diag(1, -1, -1)', read_only=True, validate=_unit_quat),
     ParamSpec('camera_frame_id', 'camera_optical',
-              'frame_id of orientation/global (the camera; the TF child frame)', validate=_frame_name),
+              'frame_id of orientation/global (the camera; the TF child frame)', validate=frame_name),
     ParamSpec('world_frame_id', 'enu',
-              'World frame of imu/data and of the outputs (ENU; the TF parent frame)', validate=_frame_name),
+              'World frame of imu/data and of the outputs (ENU; the TF parent frame)', validate=frame_name),
     ParamSpec('imu_frame_id', 'imu',
-              'IMU frame of the static mount transform published with publish_mount_tf', validate=_frame_name),
+              'IMU frame of the static mount transform published with publish_mount_tf', validate=frame_name),
     ParamSpec('publish_tf', True, 'Broadcast each orientation/global on /tf (world_frame_id -> camera_frame_id)'),
     ParamSpec('publish_mount_tf', True,
               'Publish the IMU mount (imu_frame_id -> camera_frame_id) on /tf_static while it comes from '

@@ -34,7 +34,7 @@ from ..core.slam.system import SlamConfig, SlamSystem
 from ..core.stamp_pairing import NearestStampPairer
 from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
-from ..ros.param_table import ParamSpec, declare_params
+from ..ros.param_table import ParamSpec, declare_params, frame_name
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, transform_stamped
 
@@ -57,13 +57,9 @@ def point_cloud(points_xyz: np.ndarray, frame_id: str, stamp: Any) -> PointCloud
     return msg
 
 
-def _frame_name(v: Any) -> str | None:
-    return None if v and v.strip() == v and not v.startswith('/') else 'a frame name: not empty, no leading slash or spaces'
-
-
 
 def _empty_or_frame_name(v: Any) -> str | None:
-    return None if not v else _frame_name(v)
+    return None if not v else frame_name(v)
 
 
 #: The node's parameters.
@@ -73,7 +69,7 @@ PARAMS = (
               min_value=0.0, max_value=0.2, read_only=True),
     ParamSpec('map_frame_id', 'slam_map',
               'frame_id of the outputs (the map frame: the first keyframe, scale set at initialisation; the TF '
-              'parent)', validate=_frame_name),
+              'parent)', validate=frame_name),
     ParamSpec('camera_frame_id', '',
               'TF child frame: the camera (empty: the image header frame_id, else camera_optical)',
               validate=_empty_or_frame_name),

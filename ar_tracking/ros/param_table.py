@@ -28,6 +28,13 @@ def one_of(choices: Iterable[str], reason: str = 'must be one of') -> Validator:
     return lambda v: None if v in options else f'{reason} {", ".join(options)}'
 
 
+def frame_name(v: Any) -> str | None:
+    """Parameter validator: a TF frame name (not empty, no leading slash, no surrounding spaces)."""
+    if v and v.strip() == v and not v.startswith('/'):
+        return None
+    return 'a frame name: not empty, no leading slash or spaces'
+
+
 @dataclass(frozen=True)
 class ParamSpec:
     """The static declaration of one node parameter.
