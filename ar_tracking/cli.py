@@ -490,45 +490,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    """Exception families that are the user's input, reported as one line."""
-    from .io.bags import BagError
-    from .ros.params import ParamsError
+    """Exception families that are the user's input, reported as one line: every error of the
+    package (:class:`ar_tracking.errors.ArTrackingError`: bad bags, parameters, stores, scenario
+    arguments, ...) and files that are missing or not readable."""
+    from .errors import ArTrackingError
 
-    errors: list[type[BaseException]] = [BagError, ParamsError, FileNotFoundError, PermissionError]
-    try:
-        from .eval.metrics import EvaluationError
-
-        errors.append(EvaluationError)
-    except ImportError:
-        pass
-    try:
-        from .sim.bagmaker import SimError
-
-        errors.append(SimError)
-    except ImportError:
-        pass
-    try:
-        from .core.annotations.store import StoreError
-
-        errors.append(StoreError)
-    except ImportError:
-        pass
-    try:
-        from .io.euroc import EurocError
-
-        errors.append(EurocError)
-    except ImportError:
-        pass
-    try:
-        from .ros.runner import RunError
-
-        errors.append(RunError)
-    except ImportError:
-        pass
-    from .ros.foxglove import FoxgloveError
-
-    errors.append(FoxgloveError)
-    return tuple(errors)
+    return (ArTrackingError, FileNotFoundError, PermissionError)
 
 
 #: Commands that start rclpy nodes in this process (their logs go through rcutils, not logging).
