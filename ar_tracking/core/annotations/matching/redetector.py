@@ -69,6 +69,9 @@ class ReDetector:
         for side in sorted({p.shape[0] for p in patches}):
             ids = [i for i, p in enumerate(patches) if p.shape[0] == side]
             self.matchers.append((TileMatcher([patches[i] for i in ids], cfg, geo), ids))
+        #: annotation index -> its patch (float32, as matched), for the guided re-detection
+        self._patches: dict[int, NDArray[np.float32]] = {
+            i: matcher.patches[k] for matcher, ids in self.matchers for k, i in enumerate(ids)}
         self.candidates = [CandidateList(cfg.candidates, cfg.min_separation_px, geo.width) for _ in range(n)]
         self.queue: deque[int] = deque()
         self.seen: set[int] = set()
@@ -163,10 +166,7 @@ class ReDetector:
         if self._map is None:
             return None
         gray, mapped = self._map
-        patch = None
-        for matcher, ids in self.matchers:
-            if index in ids:
-                patch = matcher.patches[ids.index(index)]
+        patch = self._patches.get(index)
         if patch is None:
             return None
         P = patch.shape[0]
@@ -176,7 +176,10 @@ class ReDetector:
         y0 = int(round(cv_ - (P - 1) / 2)) - rv
         if y0 < 0 or y0 + P + 2 * rv > gray.shape[0]:
             return None
-        cols = np.arange(x0, x0 + P + 2 * r) % self.geometry.width
+        # The window's columns (wrapping at the map's seam: gathered, else a slice - same pixels).
+        cols: slice | Array = slice(x0, x0 + P + 2 * r)
+        if x0 < 0 or x0 + P + 2 * r > self.geometry.width:
+            cols = np.arange(x0, x0 + P + 2 * r) % self.geometry.width
         reg = gray[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
         if mapped is not None:
             m = mapped[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
@@ -185,7 +188,7 @@ class ReDetector:
         else:
             full = np.ones((2 * rv + 1, 2 * r + 1), np.float32)
         res: NDArray[np.float32] = np.asarray(
-            cv2.matchTemplate(reg, patch.astype(np.float32), cv2.TM_CCOEFF_NORMED), np.float32)
+            cv2.matchTemplate(reg, patch, cv2.TM_CCOEFF_NORMED), np.float32)
         res[(full < 0.999) | ~np.isfinite(res)] = -1.0
         # Offsets from the predicted position (sub-pixel: x0, y0 were rounded).
         c = (P - 1) / 2.0
