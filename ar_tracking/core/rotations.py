@@ -107,6 +107,16 @@ def rot_z(angle_rad: float) -> Array:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=float)
 
 
+def rotvec_to_matrix(rotvec: Array) -> Array:
+    """Rotation matrix (or stack) of rotation vectors (axis times angle, rad)."""
+    return Rotation.from_rotvec(np.asarray(rotvec, dtype=float)).as_matrix()
+
+
+def matrix_to_rotvec(R: Array) -> Array:
+    """Rotation vector(s) (axis times angle, rad) of a matrix (or stack), the angle in [0, pi]."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
 def angle_of(R: Array) -> Array:
     """Rotation angle in radians of a matrix (or stack), robust near 0 and pi."""
     R = np.asarray(R, dtype=float)

@@ -227,15 +227,14 @@ def slam_figures_of(bag_path: str | Path) -> Figures:
 def _pose_errors(truth: Any, t_ns: NDArray[np.int64], p: np.ndarray, R: np.ndarray
                  ) -> tuple[NDArray[np.int64], np.ndarray, np.ndarray]:
     """(stamps inside the truth, position error m, orientation error deg)."""
-    from scipy.spatial.transform import Rotation
-
+    from ..core.rotations import angle_of
     from .vi_metrics import truth_at
 
     if len(t_ns) == 0:
         return t_ns, np.zeros(0), np.zeros(0)
     pt, Rt, inside = truth_at(truth, t_ns)
     perr = np.linalg.norm(p[inside] - pt, axis=1)
-    oerr = np.degrees(Rotation.from_matrix(R[inside] @ np.swapaxes(Rt, 1, 2)).magnitude())
+    oerr = np.degrees(angle_of(R[inside] @ np.swapaxes(Rt, 1, 2)))
     return t_ns[inside], perr, oerr
 
 

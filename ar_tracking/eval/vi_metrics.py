@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
 
+from ..core.rotations import angle_of, interpolate_rotations, matrix_to_rotvec, quat_xyzw_to_matrix, rotvec_to_matrix
 from ..core.vio.rollback import FusionConfig, PoseMeasurement, RollbackFusion
 from ..io.bags import BagReader, stamp_to_ns
 
@@ -73,7 +73,7 @@ def _quat(q: Any) -> list[float]:
 
 def _series(t: list[int], p: list[Any], q: list[Any], log: list[int] | None = None, cov: list[Any] | None = None) -> PoseSeries:
     order = np.argsort(np.asarray(t, dtype=np.int64), kind='stable')
-    R = Rotation.from_quat(np.asarray(q, float)).as_matrix() if q else np.zeros((0, 3, 3))
+    R = quat_xyzw_to_matrix(np.asarray(q, float)) if q else np.zeros((0, 3, 3))
     return PoseSeries(np.asarray(t, np.int64)[order], np.asarray(p, float).reshape(-1, 3)[order], np.asarray(R)[order],
                       None if log is None else np.asarray(log, np.int64)[order],
                       None if cov is None else np.asarray(cov, float).reshape(-1, 6, 6)[order])
@@ -100,7 +100,7 @@ def load_vi(path: str | Path) -> ViData | None:
         for m in bag.messages(['/tf_static']):
             for tf in bag.deserialize(m).transforms:
                 if tf.header.frame_id.lstrip('/') == 'imu' and tf.child_frame_id.lstrip('/') == 'camera_optical':
-                    R_imu_cam = Rotation.from_quat(_quat(tf.transform.rotation)).as_matrix()
+                    R_imu_cam = quat_xyzw_to_matrix(np.asarray(_quat(tf.transform.rotation)))
                     tr = tf.transform.translation
                     t_imu_cam = np.array([tr.x, tr.y, tr.z], float)
         cols: dict[str, tuple[list, list, list, list, list]] = {t: ([], [], [], [], []) for t in (TOPIC_TRUTH, TOPIC_ODOM, TOPIC_POSE)}
@@ -139,14 +139,14 @@ def truth_at(truth: PoseSeries, t_ns: NDArray[np.int64]) -> tuple[Array, Array, 
     tq = (t_ns[inside] - truth.t_ns[0]) * 1e-9
     tt = (truth.t_ns - truth.t_ns[0]) * 1e-9
     p = np.stack([np.interp(tq, tt, truth.p[:, i]) for i in range(3)], -1)
-    R = Slerp(tt, Rotation.from_matrix(truth.R))(tq).as_matrix()
+    R, _ = interpolate_rotations(tt, truth.R, tq)
     return p, R, inside
 
 
 def _errors(truth: PoseSeries, t_ns: NDArray[np.int64], p: Array, R: Array) -> tuple[Array, Array, NDArray[np.int64]]:
     pt, Rt, inside = truth_at(truth, t_ns)
     perr = np.linalg.norm(p[inside] - pt, axis=1)
-    oerr = np.degrees(Rotation.from_matrix(R[inside] @ np.swapaxes(Rt, 1, 2)).magnitude())
+    oerr = np.degrees(angle_of(R[inside] @ np.swapaxes(Rt, 1, 2)))
     return perr, oerr, t_ns[inside]
 
 
@@ -177,8 +177,8 @@ def hold_camera(cam: PoseSeries, t_ns: NDArray[np.int64], extrapolate: bool = Fa
     ahead = (t_ns[ok] - cap_t[j]) * 1e-9
     f = np.where(dt_prev > 0, ahead / np.maximum(dt_prev, 1e-9), 0.0)
     p = P[j] + (P[j] - P[j - 1]) * f[:, None]
-    rel = Rotation.from_matrix(R[j] @ np.swapaxes(R[j - 1], 1, 2)).as_rotvec() * f[:, None]
-    return p, Rotation.from_rotvec(rel).as_matrix() @ R[j], ok
+    rel = matrix_to_rotvec(R[j] @ np.swapaxes(R[j - 1], 1, 2)) * f[:, None]
+    return p, rotvec_to_matrix(rel) @ R[j], ok
 
 
 def run_offline(data: ViData, rollback: bool, config: FusionConfig | None = None) -> PoseSeries:
@@ -294,7 +294,7 @@ def _rate_at(truth: PoseSeries, t_ns: NDArray[np.int64]) -> Array:
     if len(truth) < 2:
         return np.zeros(len(t_ns))
     dt = np.diff(truth.t_ns) * 1e-9
-    rel = Rotation.from_matrix(truth.R[1:] @ np.swapaxes(truth.R[:-1], 1, 2)).magnitude()
+    rel = angle_of(truth.R[1:] @ np.swapaxes(truth.R[:-1], 1, 2))
     rate = rel / np.maximum(dt, 1e-9)
     mid = (truth.t_ns[1:] + truth.t_ns[:-1]) // 2
     return np.interp(t_ns * 1e-9, mid * 1e-9, rate)

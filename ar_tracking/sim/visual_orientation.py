@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
-from ..core.rotations import interpolate_rotations, matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from ..core.rotations import interpolate_rotations, matrix_to_quat_xyzw, quat_xyzw_to_matrix, rotvec_to_matrix
 from ..io.bags import BagError, BagReader, BagWriter, msg_class, ns_to_stamp, stamp_to_ns
 
 logger = logging.getLogger(__name__)
@@ -75,7 +74,7 @@ def synthesize_visual(
     up_pano = -R_pano_cam[0][:, 1]
     drift += np.radians(model.drift_rate_deg_s) * t_s[:, None] * up_pano[None, :]
     noise = rng.normal(0.0, np.radians(model.noise_deg), (len(cam), 3))
-    R_meas = Rotation.from_rotvec(drift).as_matrix() @ R_pano_cam @ Rotation.from_rotvec(noise).as_matrix()
+    R_meas = rotvec_to_matrix(drift) @ R_pano_cam @ rotvec_to_matrix(noise)
     R_meas[0] = np.eye(3)  # the panorama frame is the first frame
     keep = np.ones(len(cam), dtype=bool)
     duration = t_s[-1]

@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 import yaml
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from . import MarkerError
+from ..rotations import matrix_to_rotvec, quat_xyzw_to_matrix
 from .detection import MarkerObservation
 
 Array = NDArray[np.float64]
@@ -74,7 +74,7 @@ class MarkerMap:
                 raise MarkerError(f'marker {mid}: size must be > 0 and the pose finite with a unit quaternion')
             if int(mid) in markers:
                 raise MarkerError(f'marker {mid} appears twice in the map')
-            markers[int(mid)] = MapMarker(int(mid), size, p[:3], Rotation.from_quat(q).as_matrix())
+            markers[int(mid)] = MapMarker(int(mid), size, p[:3], quat_xyzw_to_matrix(q))
         return MarkerMap(frame_id, markers)
 
     @staticmethod
@@ -236,7 +236,7 @@ def _solve_pose(observations: Sequence[MarkerObservation], marker_map: MarkerMap
         dp[i] += e
         R2, p2 = _camera_from_rt(dp[:3], dp[3:])
         F[:3, i] = (p2 - p_map_cam) / e
-        F[3:, i] = Rotation.from_matrix(R2 @ R_map_cam.T).as_rotvec() / e
+        F[3:, i] = matrix_to_rotvec(R2 @ R_map_cam.T) / e
     cov = F @ cov_rt @ F.T
     cov = 0.5 * (cov + cov.T)
     if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(R_map_cam)) and np.all(np.isfinite(p_map_cam))):
