@@ -9,6 +9,7 @@ three orders of magnitude slower. Every function that reads a message raises
 from __future__ import annotations
 
 import importlib
+import math
 from typing import Any
 
 import numpy as np
@@ -50,23 +51,27 @@ def vector3(v: Any) -> NDArray[np.float64]:
 
 
 def finite_vector3(v: Any, what: str) -> NDArray[np.float64]:
-    """A finite, non-zero 3-vector from a message field, else ConversionError."""
-    arr = vector3(v)
-    if not np.all(np.isfinite(arr)):
-        raise ConversionError(f'{what} is not finite: {arr.tolist()}')
-    if not np.any(arr):
+    """A finite, non-zero 3-vector from a message field, else ConversionError.
+
+    Checked on the three floats before the array is made (math, not numpy: this runs for every
+    IMU and field sample, 100-400 Hz per sensor, and numpy's per-call overhead was most of it)."""
+    x, y, z = float(v.x), float(v.y), float(v.z)
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise ConversionError(f'{what} is not finite: {[x, y, z]}')
+    if x == 0.0 and y == 0.0 and z == 0.0:
         raise ConversionError(f'{what} is all zero')
-    return arr
+    return np.array([x, y, z], dtype=float)
 
 
 def imu_sample(msg: Any, topic: str = 'imu/data_raw') -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(specific force, angular rate) of a sensor_msgs/Imu, else ConversionError: the
     acceleration must be finite and non-zero, the rate finite."""
     accel = finite_vector3(msg.linear_acceleration, f'{topic} linear_acceleration')
-    rate = vector3(msg.angular_velocity)
-    if not np.all(np.isfinite(rate)):
+    w = msg.angular_velocity
+    wx, wy, wz = float(w.x), float(w.y), float(w.z)
+    if not (math.isfinite(wx) and math.isfinite(wy) and math.isfinite(wz)):
         raise ConversionError(f'{topic} angular_velocity is not finite')
-    return accel, rate
+    return accel, np.array([wx, wy, wz], dtype=float)
 
 
 def set_vector3(target: Any, values: NDArray[np.float64]) -> Any:
