@@ -276,6 +276,7 @@ def _burst_graph(burst: int) -> dict:
             'queue5': sink('queue5', SENSOR_QOS), 'every': sink('every', keep_all)}
 
 
+@pytest.mark.lossy  # a burst of 7 into depth 5 drops on purpose: the accounting is the test
 @pytest.mark.parametrize('burst, executor', [(3, 'single'), (7, 'single'), (7, 'events')])
 def test_lockstep_counts_what_a_history_depth_drops_instead_of_waiting(tmp_path, burst, executor):
     """A burst larger than a subscription's depth is booked at publish time (superseded for a
