@@ -221,6 +221,22 @@ def live_report(nodes: list[Any], result: RunResult) -> None:
 
 # -- node processes (--executor processes) ---------------------------------------------------
 
+def best_effort_outputs(nodes: list[Any]) -> set[str]:
+    """Topics some node of the graph publishes best effort: an in-process node's publishers
+    say it themselves; a node process has told it when it was created (waited for here)."""
+    from rclpy.qos import ReliabilityPolicy
+
+    topics: set[str] = set()
+    for n in nodes:
+        if hasattr(n, 'node_class'):  # a node process
+            n.wait_created()
+            topics.update(n.best_effort_topics)
+        else:
+            topics.update(p.topic_name for p in getattr(n, 'publishers', ())
+                          if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT)
+    return topics
+
+
 def connect_node_processes(nodes: list[Any], ledger: DeliveryLedger) -> None:
     """Wait for every node process to build its node, tell each how many subscribers its
     outputs have (other node processes and this process's recorder), wait until they have

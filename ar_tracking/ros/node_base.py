@@ -48,6 +48,8 @@ RELIABLE_STREAM_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIAB
 RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 #: Subscriptions that must see every message (the runner's recorder): reliable, keep all.
 RECORDER_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
+#: The recorder's reader for a topic published best effort (the only reader that matches it).
+RECORDER_BEST_EFFORT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_ALL)
 #: Latched products (maps, static data): reliable + transient local, depth 1.
 LATCHED_QOS = QoSProfile(
     depth=1,

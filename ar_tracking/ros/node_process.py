@@ -56,6 +56,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import ReliabilityPolicy
 
     from .params import to_overrides
 
@@ -70,7 +71,8 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
             node.on_static_transforms(transforms)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers]))
+        conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers],
+                   [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]))
         expected: dict[str, int] = conn.recv()
         deadline = time.monotonic() + START_TIMEOUT_S
         pubs = [p for p in node.publishers if expected.get(p.topic_name, 0) > 0]
@@ -119,6 +121,9 @@ class NodeProcess:
             args=(name, spec, params, domain_id, list(transforms or []), child_conn, self._stop))
         self.subscription_topics: list[str] = []
         self.publisher_topics: list[str] = []
+        #: Output topics the child's node publishes best effort (a reliable reader never matches).
+        self.best_effort_topics: list[str] = []
+        self._created = False
         self.callback_stats: dict[str, _Durations] = {}
         self.publish_counts: dict[str, int] = {}
         self.failure: str | None = None
@@ -150,8 +155,12 @@ class NodeProcess:
         raise NodeProcessError(f'{self.name}: {self.failure}')
 
     def wait_created(self) -> None:
-        """Block until the child has built its node (its topics are then known)."""
-        self.subscription_topics, self.publisher_topics = self._receive('created', START_TIMEOUT_S)  # type: ignore[assignment]
+        """Block until the child has built its node (its topics are then known); once."""
+        if self._created:
+            return
+        self.subscription_topics, self.publisher_topics, self.best_effort_topics = (  # type: ignore[assignment]
+            self._receive('created', START_TIMEOUT_S))
+        self._created = True
 
     def expect(self, subscribers: dict[str, int]) -> None:
         """Tell the child how many subscribers each of its output topics will have."""

@@ -45,7 +45,8 @@ from ..io.bags import TF_STATIC_TOPIC, BagReader, BagWriter, static_transforms
 from .graph_plan import (EXECUTOR_CHOICES, GRAPH_CHOICES, GRAPH_NODES, NAMED_GRAPHS, ROTATION_IN_PLACE_TOPIC,
                          RunError, check_rate, choose_nodes, load_node_class, plan_nodes, transport_probe_graph)
 from .live_play import (DRAIN_MAX_S, DRAIN_QUIET_S, IMAGE_TYPES, SENSOR_STAMP_TYPES, RealtimePlayback,
-                        connect_node_processes, latency_stamp_topics, live_report, stop_node_processes)
+                        best_effort_outputs, connect_node_processes, latency_stamp_topics, live_report,
+                        stop_node_processes)
 from .node_process import NodeProcess
 from .params import params_for_node, to_overrides
 from .run_state import DeliveryLedger, Recorder, RunResult, RunSession, StopOnSignal, header_stamp_ns
@@ -292,7 +293,7 @@ class GraphRunner:
     def _open_output(self, s: RunSession, names: list[str], output_types: dict[str, str], recorder_node: Any) -> None:
         """Open the output bag and subscribe the recorder node to every node output."""
         from .conversions import message_class
-        from .node_base import RECORDER_QOS
+        from .node_base import RECORDER_BEST_EFFORT_QOS, RECORDER_QOS
 
         writer = s.writer = BagWriter(self.out_path, storage=self.storage, overwrite=True,  # type: ignore[arg-type]
                                       flush_every_s=self.flush_every_s)
@@ -304,11 +305,14 @@ class GraphRunner:
         s.recorder = Recorder(writer, output_types)
         s.clock_ns = [s.reader.start_ns]
         self._published_wall = {}
-        # The recorder keeps every message: KEEP_ALL, so that no burst of a node is lost.
+        # The recorder keeps every message (KEEP_ALL) with the reliability its publishers offer
+        # (as rosbag2: a reliable reader never matches a best-effort publisher).
+        best_effort = best_effort_outputs(s.nodes)
         for topic, msgtype in sorted(output_types.items()):
+            qos = RECORDER_BEST_EFFORT_QOS if topic in best_effort else RECORDER_QOS
             recorder_node.subscribe(message_class(msgtype), topic,
                                     self._tapped(self._record_callback(s, topic, output_types), topic, msgtype),
-                                    RECORDER_QOS, raw=True)
+                                    qos, raw=True)
 
     def _record_callback(self, s: RunSession, topic: str, output_types: dict[str, str]) -> Callable[[bytes], None]:
         """How the recorder takes one output: in lockstep into the step's batch (written in a

@@ -70,3 +70,18 @@ class RelayCounter(TrackingNode):
 
         super().__init__('counter', **kwargs)
         self.subscribe(Imu, 'relay/imu', lambda msg: None, STREAM_QOS)
+
+
+class BestEffortRelay(TrackingNode):
+    """Republishes each IMU sample on relay/imu best effort, as a sensor driver does (the
+    runner's recorder must take the reliability the publisher offers to match it)."""
+
+    INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+    OUTPUTS = {'relay/imu': 'sensor_msgs/msg/Imu'}
+
+    def __init__(self, **kwargs: Any) -> None:
+        from ar_tracking.ros.node_base import STREAM_QOS
+
+        super().__init__('relay', **kwargs)
+        self.pub = self.advertise(Imu, 'relay/imu', STREAM_QOS)
+        self.subscribe(Imu, 'imu/data_raw', self.pub.publish, STREAM_QOS)

@@ -591,6 +591,22 @@ def test_node_processes_stop_upstream_first(tmp_path):
     assert result.live_inputs['counter']['/relay/imu'] == (n, n)
 
 
+@pytest.mark.parametrize('executor', ['processes', 'single'])
+def test_a_best_effort_publisher_is_recorded(tmp_path, executor):
+    """A node that publishes best effort (as sensor drivers do) is recorded: the recorder takes
+    the reliability the publisher offers. Before, a reliable recorder never matched it: a node
+    process waited out its 60 s start timeout, and nothing of its output was recorded."""
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=1.0, rate_hz=20.0)
+    graph = {'relay': 'live_test_nodes:BestEffortRelay'}
+    started = time.monotonic()
+    rate = 0.0 if executor == 'single' else 2.0
+    result = GraphRunner(bag, tmp_path / 'out.mcap', rate=rate, graph=graph, executor=executor).run()
+    assert time.monotonic() - started < 45.0  # the start timeout is 60 s
+    assert result.failed_nodes == {} and not result.interrupted
+    with BagReader(result.out_path) as out:
+        assert out.message_count(['/relay/imu']) >= 15  # best effort on one machine: ~all of 20
+
+
 def test_processes_executor_is_for_realtime_runs(tmp_path):
     bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)
     with pytest.raises(RunError, match='processes is for realtime runs'):
