@@ -42,7 +42,119 @@ from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
 from ..io.stores import RetryBackoff, describe, open_store
 from ..ros.conversions import ConversionError, image_to_array, rotation_from_quaternion, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params
 from ..ros.stamp_guard import StampGuard, StampVerdict
+
+
+#: The node's parameters.
+PARAMS = (
+    ParamSpec('store_path', '', 'Annotation store (SQLite file) to load annotations from', read_only=True),
+    ParamSpec('store_url', '',
+              'Annotation store by URL, instead of store_path: sqlite:///path/notes.db or '
+              'postgresql://user@host/db[?schema=NAME] (PostGIS, shared by many users; password in PGPASSWORD or '
+              '~/.pgpass)', read_only=True),
+    ParamSpec('radius_m', 50.0,
+              'Annotations authored within this distance of the GPS fix are loaded (sec. 4.3), m',
+              min_value=1.0, max_value=100000.0),
+    ParamSpec('poor_gps_sigma_m', 25.0,
+              'A fix whose horizontal 1-sigma exceeds this is poor: every annotation of the store is loaded, m',
+              min_value=0.0, max_value=100000.0),
+    ParamSpec('reload_period_s', 10.0,
+              'Least time between two store queries (new fix, nothing loaded yet), s', min_value=0.0, max_value=3600.0),
+    ParamSpec('budget_ms', 10.0,
+              'Matching work per frame (map or orientation message), ms (sec. 3.2)', min_value=0.1, max_value=1000.0),
+    ParamSpec('op_cost_ms', 0.25,
+              'Planned cost of matching one tile against one annotation, ms (the budget counts these, so runs are '
+              'reproducible)', min_value=0.001, max_value=100.0),
+    ParamSpec('sensor_prior', True,
+              'Sensor prior (sec. 4.2): search around the position expected from the absolute orientation'),
+    ParamSpec('prior_window_deg', 10.0,
+              'Half-width of the inner prior window (compass error), degrees', min_value=0.5, max_value=180.0),
+    ParamSpec('prior_outer_factor', 3.0,
+              'The penalised outer window is this many times the inner one', min_value=1.0, max_value=20.0),
+    ParamSpec('prior_penalty', 0.3, 'NCC penalty at the edge of the outer window', min_value=0.0, max_value=2.0),
+    ParamSpec('ransac', True,
+              'Global alignment (sec. 4.3): RANSAC rotation between source and current panorama; places unmatched '
+              'annotations too'),
+    ParamSpec('inlier_px', 10.0, 'RANSAC inlier threshold, map pixels', min_value=0.5, max_value=100.0),
+    ParamSpec('min_inlier_ratio', 0.5,
+              'A hypothesis needs more than this share of inliers', min_value=0.0, max_value=1.0),
+    ParamSpec('placement_px', 25.0,
+              'Annotations are placed at their best candidate within this distance of the aligned position, map '
+              'pixels', min_value=0.5, max_value=200.0),
+    ParamSpec('guided_search', True,
+              'Search inferred annotations again with NCC around their aligned position (extension of sec. 4.3)'),
+    ParamSpec('placement_penalty', 0.2,
+              'NCC penalty of a candidate at the edge of the placement gate (look-alikes further from the aligned '
+              'position lose)', min_value=0.0, max_value=2.0),
+    ParamSpec('consensus_score', True,
+              'Choose the RANSAC hypothesis by the placement score (penalised NCC of the placed matches) instead of '
+              'the lowest normalised error, refine it on all matches (extension of sec. 4.3)'),
+    ParamSpec('guided_all', True,
+              'Search the matched annotations again around their aligned position too (with guided_search)'),
+    ParamSpec('prior_alignment', True,
+              'With the sensor prior: RANSAC rotations beyond the compass error of the absolute orientations are not '
+              'valid, the compass votes in the choice, and with no valid hypothesis the prior rotation places the '
+              'annotations (extension of sec. 4.2/4.3)'),
+    ParamSpec('gravity_alignment', True,
+              'With prior_alignment: the alignment turns the prior rotation about the vertical only (gravity fixes '
+              'the tilt of both panoramas); candidates more than gravity_v_px above or below are not matches'),
+    ParamSpec('gravity_v_px', 4.0,
+              'Vertical tolerance of a match after the gravity-constrained alignment, map pixels',
+              min_value=0.5, max_value=100.0),
+    ParamSpec('parallax_model', True,
+              'With gravity_alignment: fit the heading residuals of the matches with the parallax of a displaced '
+              'standing point and place again (extension of sec. 4.3)'),
+    ParamSpec('parallax_trim_sigmas', 3.0,
+              'Refit the parallax model once without the matches beyond this many robust standard deviations of its '
+              'residuals (landmarks much nearer than the anchors); 0: off', min_value=0.0, max_value=100.0),
+    ParamSpec('parallax_gate_sigmas', 3.0,
+              'After the parallax model, matches must lie within this many robust standard deviations of its '
+              'leave-one-out residuals (between inlier_px and placement_px); 0: off', min_value=0.0, max_value=100.0),
+    ParamSpec('landmarks', True,
+              "Load the source panoramas' landmarks with their annotations: matched and aligned like annotations, "
+              'never shown'),
+    ParamSpec('min_ncc', 0.55, 'Smallest NCC of a candidate match', min_value=-1.0, max_value=1.0),
+    ParamSpec('walsh_min', 0.5,
+              'Walsh pre-check threshold (sec. 3.2): positions below it get no NCC', min_value=-1.0, max_value=1.0),
+    ParamSpec('marker_distance_m', 10.0,
+              'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0),
+    ParamSpec('marker_height_m', 0.5, 'Text height of the markers, m', min_value=0.01, max_value=100.0),
+    ParamSpec('local_support_matches', 2,
+              'An inferred label (no match of its own) is shown as placed only with this many matches within '
+              'local_support_deg of it', min_value=0, max_value=1000),
+    ParamSpec('local_support_deg', 30.0,
+              'Azimuth range of the local support of an inferred label, degrees', min_value=0.0, max_value=180.0),
+    ParamSpec('bracket_support_deg', 90.0,
+              'An inferred label with fewer local matches is shown as placed when matches lie on both sides of it '
+              'within this azimuth (interpolated, not extrapolated), degrees; 0: off', min_value=0.0, max_value=180.0),
+    ParamSpec('local_support_matched', True,
+              'Matched labels too need local_support_matches other matches within local_support_deg (an isolated '
+              'match is only approximate)'),
+    ParamSpec('lookalike_margin', 0.1,
+              'Look-alike test after the parallax model: a match with another NCC peak in its gate (at least '
+              'lookalike_sep_px away) within this NCC of its own is placed at its prediction instead (inferred); 0: '
+              'off', min_value=0.0, max_value=2.0),
+    ParamSpec('lookalike_sep_px', 6.0,
+              'Least distance of a rival peak in the look-alike test (about 1 deg), map pixels',
+              min_value=0.0, max_value=100.0),
+    ParamSpec('min_support_matches', 4,
+              'Labels are shown as placed only when at least this many annotations and landmarks matched the '
+              'alignment', min_value=1, max_value=1000),
+    ParamSpec('support_prior_sigmas', 3.0,
+              "...and the alignment is within this many standard deviations of the sensor prior (both panoramas' "
+              'heading covariance), unless strong_support_matches matched', min_value=0.0, max_value=100.0),
+    ParamSpec('strong_support_matches', 10,
+              'This many matches support an alignment however far it is from the sensor prior',
+              min_value=1, max_value=1000),
+    ParamSpec('show_approximate', True,
+              "Before the alignment is supported, publish the labels in the 'approximate' namespace with their "
+              'uncertainty (false: publish none)'),
+    ParamSpec('frame_id', 'panorama', 'frame_id of the outputs (the current panorama)'),
+    ParamSpec('reset_after_s', 1.0,
+              'A map stamp this much older than the previous one means a new panorama (bag loop): start over',
+              min_value=0.0, max_value=3600.0),
+)
 
 
 class AnnotationMatcherNode(TrackingNode):
@@ -63,68 +175,42 @@ class AnnotationMatcherNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('annotation_matcher', **kwargs)
-        p = self.param
-        self.store_path: str = p('store_path', '', 'Annotation store (SQLite file) to load annotations from', read_only=True)
-        self.store_url: str = p('store_url', '', 'Annotation store by URL, instead of store_path: sqlite:///path/notes.db or '
-                                'postgresql://user@host/db[?schema=NAME] (PostGIS, shared by many users; password in PGPASSWORD or ~/.pgpass)',
-                                read_only=True)
+        v = declare_params(self, PARAMS)
+        self.store_path: str = v['store_path']
+        self.store_url: str = v['store_url']
         #: what on_fix opens; a store that cannot be reached is tried again after 1, 2, 4 ... 60 s (bag time)
         self.store_ref: str = self.store_url or self.store_path
         self.store_backoff = RetryBackoff(initial_s=1.0, max_s=60.0)
-        self.radius_m = p('radius_m', 50.0, 'Annotations authored within this distance of the GPS fix are loaded (sec. 4.3), m', min_value=1.0, max_value=100000.0)
-        self.poor_gps_m = p('poor_gps_sigma_m', 25.0, 'A fix whose horizontal 1-sigma exceeds this is poor: every annotation of the store is loaded, m', min_value=0.0, max_value=100000.0)
-        self.reload_period_ns = int(1e9 * p('reload_period_s', 10.0, 'Least time between two store queries (new fix, nothing loaded yet), s', min_value=0.0, max_value=3600.0))
-        self.budget_ms = p('budget_ms', 10.0, 'Matching work per frame (map or orientation message), ms (sec. 3.2)', min_value=0.1, max_value=1000.0)
-        self.op_cost_ms = p('op_cost_ms', 0.25, 'Planned cost of matching one tile against one annotation, ms (the budget counts these, so runs are reproducible)', min_value=0.001, max_value=100.0)
-        prior = p('sensor_prior', True, 'Sensor prior (sec. 4.2): search around the position expected from the absolute orientation')
-        window_deg = p('prior_window_deg', 10.0, 'Half-width of the inner prior window (compass error), degrees', min_value=0.5, max_value=180.0)
-        outer = p('prior_outer_factor', 3.0, 'The penalised outer window is this many times the inner one', min_value=1.0, max_value=20.0)
-        penalty = p('prior_penalty', 0.3, 'NCC penalty at the edge of the outer window', min_value=0.0, max_value=2.0)
-        ransac = p('ransac', True, 'Global alignment (sec. 4.3): RANSAC rotation between source and current panorama; places unmatched annotations too')
-        inlier_px = p('inlier_px', 10.0, 'RANSAC inlier threshold, map pixels', min_value=0.5, max_value=100.0)
-        ratio = p('min_inlier_ratio', 0.5, 'A hypothesis needs more than this share of inliers', min_value=0.0, max_value=1.0)
-        placement_px = p('placement_px', 25.0, 'Annotations are placed at their best candidate within this distance of the aligned position, map pixels', min_value=0.5, max_value=200.0)
-        guided = p('guided_search', True, 'Search inferred annotations again with NCC around their aligned position (extension of sec. 4.3)')
-        placement_penalty = p('placement_penalty', 0.2, 'NCC penalty of a candidate at the edge of the placement gate (look-alikes further from the aligned position lose)', min_value=0.0, max_value=2.0)
-        consensus = p('consensus_score', True, 'Choose the RANSAC hypothesis by the placement score (penalised NCC of the placed matches) instead of the lowest normalised error, refine it on all matches (extension of sec. 4.3)')
-        guided_all = p('guided_all', True, 'Search the matched annotations again around their aligned position too (with guided_search)')
-        prior_alignment = p('prior_alignment', True, 'With the sensor prior: RANSAC rotations beyond the compass error of the absolute orientations are not valid, the compass votes in the choice, and with no valid hypothesis the prior rotation places the annotations (extension of sec. 4.2/4.3)')
-        gravity = p('gravity_alignment', True, 'With prior_alignment: the alignment turns the prior rotation about the vertical only (gravity fixes the tilt of both panoramas); candidates more than gravity_v_px above or below are not matches')
-        gravity_v_px = p('gravity_v_px', 4.0, 'Vertical tolerance of a match after the gravity-constrained alignment, map pixels', min_value=0.5, max_value=100.0)
-        parallax = p('parallax_model', True, 'With gravity_alignment: fit the heading residuals of the matches with the parallax of a displaced standing point and place again (extension of sec. 4.3)')
-        trim_sigmas = p('parallax_trim_sigmas', 3.0, 'Refit the parallax model once without the matches beyond this many robust standard deviations of its residuals (landmarks much nearer than the anchors); 0: off', min_value=0.0, max_value=100.0)
-        gate_sigmas = p('parallax_gate_sigmas', 3.0, 'After the parallax model, matches must lie within this many robust standard deviations of its leave-one-out residuals (between inlier_px and placement_px); 0: off', min_value=0.0, max_value=100.0)
-        self.use_landmarks = p('landmarks', True, "Load the source panoramas' landmarks with their annotations: matched and aligned like annotations, never shown")
-        min_ncc = p('min_ncc', 0.55, 'Smallest NCC of a candidate match', min_value=-1.0, max_value=1.0)
-        walsh_min = p('walsh_min', 0.5, 'Walsh pre-check threshold (sec. 3.2): positions below it get no NCC', min_value=-1.0, max_value=1.0)
-        self.marker_distance_m = p('marker_distance_m', 10.0, 'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0)
-        self.marker_height_m = p('marker_height_m', 0.5, 'Text height of the markers, m', min_value=0.01, max_value=100.0)
-        local_n = p('local_support_matches', 2, 'An inferred label (no match of its own) is shown as placed only with this many matches within local_support_deg of it', min_value=0, max_value=1000)
-        local_deg = p('local_support_deg', 30.0, 'Azimuth range of the local support of an inferred label, degrees', min_value=0.0, max_value=180.0)
-        bracket_deg = p('bracket_support_deg', 90.0, 'An inferred label with fewer local matches is shown as placed when matches lie on both sides of it within this azimuth (interpolated, not extrapolated), degrees; 0: off', min_value=0.0, max_value=180.0)
-        local_matched = p('local_support_matched', True, 'Matched labels too need local_support_matches other matches within local_support_deg (an isolated match is only approximate)')
-        lookalike = p('lookalike_margin', 0.1, 'Look-alike test after the parallax model: a match with another NCC peak in its gate (at least lookalike_sep_px away) within this NCC of its own is placed at its prediction instead (inferred); 0: off', min_value=0.0, max_value=2.0)
-        lookalike_sep = p('lookalike_sep_px', 6.0, 'Least distance of a rival peak in the look-alike test (about 1 deg), map pixels', min_value=0.0, max_value=100.0)
-        min_support = p('min_support_matches', 4, 'Labels are shown as placed only when at least this many annotations and landmarks matched the alignment', min_value=1, max_value=1000)
-        support_sigmas = p('support_prior_sigmas', 3.0, "...and the alignment is within this many standard deviations of the sensor prior (both panoramas' heading covariance), unless strong_support_matches matched", min_value=0.0, max_value=100.0)
-        strong_support = p('strong_support_matches', 10, 'This many matches support an alignment however far it is from the sensor prior', min_value=1, max_value=1000)
-        self.show_approximate: bool = p('show_approximate', True, "Before the alignment is supported, publish the labels in the 'approximate' namespace with their uncertainty (false: publish none)")
-        self.frame_id: str = p('frame_id', 'panorama', 'frame_id of the outputs (the current panorama)')
-        reset_s = p('reset_after_s', 1.0, 'A map stamp this much older than the previous one means a new panorama (bag loop): start over', min_value=0.0, max_value=3600.0)
+        self.radius_m = v['radius_m']
+        self.poor_gps_m = v['poor_gps_sigma_m']
+        self.reload_period_ns = int(1e9 * v['reload_period_s'])
+        self.budget_ms = v['budget_ms']
+        self.op_cost_ms = v['op_cost_ms']
+        prior = v['sensor_prior']
+        ransac = v['ransac']
+        self.use_landmarks = v['landmarks']
+        self.marker_distance_m = v['marker_distance_m']
+        self.marker_height_m = v['marker_height_m']
+        self.show_approximate: bool = v['show_approximate']
+        self.frame_id: str = v['frame_id']
+        reset_s = v['reset_after_s']
+        f = CylinderGeometry().f
 
         self.match_config = MatchConfig(
-            sensor_prior=prior, prior_window_px=math.radians(window_deg) * CylinderGeometry().f,
-            prior_outer_factor=outer, prior_penalty=penalty, ransac=ransac, inlier_px=inlier_px,
-            min_inlier_ratio=ratio, min_ncc=min_ncc, walsh_min=walsh_min,
-            placement_px=placement_px, guided_search=guided, placement_penalty=placement_penalty,
-            consensus_score=consensus, guided_all=guided_all, prior_alignment=prior_alignment,
-            gravity_alignment=gravity, gravity_v_px=gravity_v_px, parallax_model=parallax,
-            parallax_trim_sigmas=trim_sigmas, parallax_gate_sigmas=gate_sigmas,
-            min_support_matches=min_support, support_prior_sigmas=support_sigmas,
-            strong_support_matches=strong_support, local_support_matches=local_n,
-            local_support_px=math.radians(local_deg) * CylinderGeometry().f, local_support_matched=local_matched,
-            lookalike_margin=lookalike, lookalike_sep_px=lookalike_sep,
-            bracket_support_px=math.radians(bracket_deg) * CylinderGeometry().f)
+            sensor_prior=prior, prior_window_px=math.radians(v['prior_window_deg']) * f,
+            prior_outer_factor=v['prior_outer_factor'], prior_penalty=v['prior_penalty'], ransac=ransac,
+            inlier_px=v['inlier_px'], min_inlier_ratio=v['min_inlier_ratio'], min_ncc=v['min_ncc'],
+            walsh_min=v['walsh_min'], placement_px=v['placement_px'], guided_search=v['guided_search'],
+            placement_penalty=v['placement_penalty'], consensus_score=v['consensus_score'],
+            guided_all=v['guided_all'], prior_alignment=v['prior_alignment'],
+            gravity_alignment=v['gravity_alignment'], gravity_v_px=v['gravity_v_px'],
+            parallax_model=v['parallax_model'], parallax_trim_sigmas=v['parallax_trim_sigmas'],
+            parallax_gate_sigmas=v['parallax_gate_sigmas'], min_support_matches=v['min_support_matches'],
+            support_prior_sigmas=v['support_prior_sigmas'], strong_support_matches=v['strong_support_matches'],
+            local_support_matches=v['local_support_matches'],
+            local_support_px=math.radians(v['local_support_deg']) * f,
+            local_support_matched=v['local_support_matched'], lookalike_margin=v['lookalike_margin'],
+            lookalike_sep_px=v['lookalike_sep_px'], bracket_support_px=math.radians(v['bracket_support_deg']) * f)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []

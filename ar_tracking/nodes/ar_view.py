@@ -22,6 +22,16 @@ from ..core.annotations.overlay import Label, draw_labels, project_labels
 from ..ros.conversions import (ConversionError, array_to_image, compressed_to_array, image_to_array,
                                rotation_from_quaternion, stamp_ns, to_stamp)
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params
+
+
+#: The node's parameters.
+PARAMS = (
+    ParamSpec('max_orientation_gap_s', 0.05,
+              'Largest stamp difference between an image and the orientation used to draw it, s',
+              min_value=0.0, max_value=10.0),
+    ParamSpec('text_scale', 0.4, 'OpenCV font scale of the labels', min_value=0.1, max_value=5.0),
+)
 
 
 class ArViewNode(TrackingNode):
@@ -39,9 +49,9 @@ class ArViewNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('ar_view', **kwargs)
-        p = self.param
-        self.max_gap_ns = int(1e9 * p('max_orientation_gap_s', 0.05, 'Largest stamp difference between an image and the orientation used to draw it, s', min_value=0.0, max_value=10.0))
-        self.text_scale = p('text_scale', 0.4, 'OpenCV font scale of the labels', min_value=0.1, max_value=5.0)
+        v = declare_params(self, PARAMS)
+        self.max_gap_ns = int(1e9 * v['max_orientation_gap_s'])
+        self.text_scale = v['text_scale']
         self.labels: list[Label] = []
         self.K: np.ndarray | None = None
         self.pano_cam: dict[int, np.ndarray] = {}

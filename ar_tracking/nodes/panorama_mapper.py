@@ -35,6 +35,7 @@ from ..ros.conversions import (
     to_stamp,
 )
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.param_table import ParamSpec, declare_params, one_of
 from ..ros.stamp_guard import StampGuard, StampVerdict
 
 Frame = tuple[np.ndarray, np.ndarray]  # (grey uint8, RGB uint8 or None)
@@ -59,6 +60,69 @@ def to_gray_rgb(arr: np.ndarray, encoding: str) -> Frame:
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), rgb
 
 
+def _divides_512(v: Any) -> str | None:
+    """A tile side must divide the map height (512; the width 2048 then too)."""
+    return None if 512 % v == 0 else 'must divide 512'
+
+
+#: The node's parameters.
+PARAMS = (
+    ParamSpec('edr', True,
+              'Extended dynamic range map (Langlotz sec. 4.1): 16-bit map, each frame corrected for exposure before '
+              'it is mapped (edr_correction); false: plain 8-bit map', read_only=True),
+    ParamSpec('edr_smooth', True,
+              'EDR offsets filtered over frames (per-frame estimation noise would be a small step at every frame '
+              'boundary); false: each frame its own offset, as sec. 4.1 literally says', read_only=True),
+    ParamSpec('edr_correction', 'overlap',
+              'EDR correction of each frame before it is mapped: overlap (gain and offset fitted on every mapped '
+              'pixel the frame overlaps, robustly), offset (mean intensity difference of the matched keypoint pairs, '
+              'sec. 4.1) or gain (the same mean of log intensities)',
+              read_only=True, validate=one_of(EDR_CORRECTIONS)),
+    ParamSpec('color', False, 'Map colour (rgb16) instead of grey (mono16)', read_only=True),
+    ParamSpec('tile_size_px', 64,
+              'Side of a map tile, pixels (divides 2048 and 512); a tile whose pixels are all mapped is finished',
+              min_value=8, max_value=256, read_only=True, validate=_divides_512),
+    ParamSpec('fast_threshold', 12,
+              'FAST threshold for the keypoints of finished tiles, 8-bit grey levels',
+              min_value=1, max_value=255, read_only=True),
+    ParamSpec('keypoints_per_tile', 12,
+              'Strongest FAST keypoints kept per finished tile', min_value=1, max_value=200, read_only=True),
+    ParamSpec('search_radius_px', 4,
+              'Active search radius around the constant-motion prediction, pixels',
+              min_value=1, max_value=32, read_only=True),
+    ParamSpec('wide_radius_px', 10,
+              'Search radius of the second attempt and of re-localisation, pixels',
+              min_value=1, max_value=48, read_only=True),
+    ParamSpec('max_features', 60, 'Map keypoints searched per frame', min_value=10, max_value=1000, read_only=True),
+    ParamSpec('min_inliers', 10,
+              'A frame is tracked with at least this many inlier matches', min_value=3, max_value=1000, read_only=True),
+    ParamSpec('min_inlier_ratio', 0.7,
+              'and at least this fraction of the searched keypoints being inliers',
+              min_value=0.0, max_value=1.0, read_only=True),
+    ParamSpec('inlier_px', 1.5, 'RANSAC inlier threshold, pixels', min_value=0.1, max_value=20.0, read_only=True),
+    ParamSpec('min_ncc', 0.75,
+              'Smallest accepted normalised cross-correlation of a patch match',
+              min_value=0.0, max_value=1.0, read_only=True),
+    ParamSpec('background_tiles', 4,
+              'Finished tiles whose keypoints are computed after each frame (off the critical path)',
+              min_value=1, max_value=1024, read_only=True),
+    ParamSpec('publish_rate_hz', 1.0,
+              'Rate of panorama/image and panorama/tiles, by image stamps, Hz',
+              min_value=0.01, max_value=100.0, read_only=True),
+    ParamSpec('fallback_hfov_deg', 0.0,
+              'Horizontal field of view used when no camera_info is received, degrees (0: frames without camera_info '
+              'are skipped)', min_value=0.0, max_value=170.0, read_only=True),
+    ParamSpec('camera_info_max_gap_s', 0.005,
+              'Largest stamp difference between an image and the camera_info paired with it, s',
+              min_value=0.0, max_value=1.0, read_only=True),
+    ParamSpec('reset_after_s', 1.0,
+              'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a '
+              'new panorama', min_value=0.0, max_value=3600.0),
+    ParamSpec('frame_id', 'panorama', 'frame_id of the outputs (the panorama frame)'),
+    ParamSpec('child_frame_id', 'camera_optical', 'child_frame_id of panorama/orientation'),
+)
+
+
 class PanoramaMapperNode(TrackingNode):
     INPUTS = {
         'camera/image_raw': 'sensor_msgs/msg/Image',
@@ -75,34 +139,25 @@ class PanoramaMapperNode(TrackingNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('panorama_mapper', **kwargs)
-        p = self.param
-        edr = p('edr', True, 'Extended dynamic range map (Langlotz sec. 4.1): 16-bit map, each frame corrected for exposure before it is mapped (edr_correction); false: plain 8-bit map', read_only=True)
-        smooth = p('edr_smooth', True, 'EDR offsets filtered over frames (per-frame estimation noise would be a small step at every frame boundary); false: each frame its own offset, as sec. 4.1 literally says', read_only=True)
-        correction = p('edr_correction', 'overlap', 'EDR correction of each frame before it is mapped: overlap (gain and offset fitted on every mapped pixel the frame overlaps, robustly), offset (mean intensity difference of the matched keypoint pairs, sec. 4.1) or gain (the same mean of log intensities)', read_only=True, validate=lambda v: None if v in EDR_CORRECTIONS else f"must be one of {', '.join(EDR_CORRECTIONS)}")
-        color = p('color', False, 'Map colour (rgb16) instead of grey (mono16)', read_only=True)
-        tile = p('tile_size_px', 64, 'Side of a map tile, pixels (divides 2048 and 512); a tile whose pixels are all mapped is finished', min_value=8, max_value=256, read_only=True, validate=lambda v: None if 512 % v == 0 else 'must divide 512')
-        fast = p('fast_threshold', 12, 'FAST threshold for the keypoints of finished tiles, 8-bit grey levels', min_value=1, max_value=255, read_only=True)
-        per_tile = p('keypoints_per_tile', 12, 'Strongest FAST keypoints kept per finished tile', min_value=1, max_value=200, read_only=True)
-        radius = p('search_radius_px', 4, 'Active search radius around the constant-motion prediction, pixels', min_value=1, max_value=32, read_only=True)
-        wide = p('wide_radius_px', 10, 'Search radius of the second attempt and of re-localisation, pixels', min_value=1, max_value=48, read_only=True)
-        feats = p('max_features', 60, 'Map keypoints searched per frame', min_value=10, max_value=1000, read_only=True)
-        min_inl = p('min_inliers', 10, 'A frame is tracked with at least this many inlier matches', min_value=3, max_value=1000, read_only=True)
-        ratio = p('min_inlier_ratio', 0.7, 'and at least this fraction of the searched keypoints being inliers', min_value=0.0, max_value=1.0, read_only=True)
-        inl_px = p('inlier_px', 1.5, 'RANSAC inlier threshold, pixels', min_value=0.1, max_value=20.0, read_only=True)
-        min_ncc = p('min_ncc', 0.75, 'Smallest accepted normalised cross-correlation of a patch match', min_value=0.0, max_value=1.0, read_only=True)
-        budget = p('background_tiles', 4, 'Finished tiles whose keypoints are computed after each frame (off the critical path)', min_value=1, max_value=1024, read_only=True)
-        self.publish_period_ns = int(1e9 / p('publish_rate_hz', 1.0, 'Rate of panorama/image and panorama/tiles, by image stamps, Hz', min_value=0.01, max_value=100.0, read_only=True))
-        self.fallback_hfov_rad = math.radians(p('fallback_hfov_deg', 0.0, 'Horizontal field of view used when no camera_info is received, degrees (0: frames without camera_info are skipped)', min_value=0.0, max_value=170.0, read_only=True))
-        self.max_info_gap_ns = int(1e9 * p('camera_info_max_gap_s', 0.005, 'Largest stamp difference between an image and the camera_info paired with it, s', min_value=0.0, max_value=1.0, read_only=True))
-        reset_s = p('reset_after_s', 1.0, 'An image stamp this much older than the previous one means the clock jumped back (bag loop): start a new panorama', min_value=0.0, max_value=3600.0)
-        self.frame_id: str = p('frame_id', 'panorama', 'frame_id of the outputs (the panorama frame)')
-        self.child_frame_id: str = p('child_frame_id', 'camera_optical', 'child_frame_id of panorama/orientation')
+        v = declare_params(self, PARAMS)
+        edr = v['edr']
+        color = v['color']
+        tile = v['tile_size_px']
+        self.publish_period_ns = int(1e9 / v['publish_rate_hz'])
+        self.fallback_hfov_rad = math.radians(v['fallback_hfov_deg'])
+        self.max_info_gap_ns = int(1e9 * v['camera_info_max_gap_s'])
+        reset_s = v['reset_after_s']
+        self.frame_id: str = v['frame_id']
+        self.child_frame_id: str = v['child_frame_id']
 
         self.config = MapperConfig(
-            map=MapConfig(tile_size=tile, edr=edr, channels=3 if color else 1, fast_threshold=fast, keypoints_per_tile=per_tile),
-            tracker=TrackerConfig(search_radius_px=radius, max_features=feats, min_inliers=min_inl, min_inlier_ratio=ratio, inlier_px=inl_px, min_ncc=min_ncc),
-            wide_radius_px=wide, background_tiles=budget,
-            offset_exposure=replace(OFFSET_EXPOSURE, smooth=smooth), edr_correction=correction,
+            map=MapConfig(tile_size=tile, edr=edr, channels=3 if color else 1, fast_threshold=v['fast_threshold'],
+                          keypoints_per_tile=v['keypoints_per_tile']),
+            tracker=TrackerConfig(search_radius_px=v['search_radius_px'], max_features=v['max_features'],
+                                  min_inliers=v['min_inliers'], min_inlier_ratio=v['min_inlier_ratio'],
+                                  inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
+            wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'],
+            offset_exposure=replace(OFFSET_EXPOSURE, smooth=v['edr_smooth']), edr_correction=v['edr_correction'],
         )
         self.core = PanoramaMapper(self.config)
         self.color = color
