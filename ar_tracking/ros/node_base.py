@@ -19,6 +19,7 @@ import sys
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -377,12 +378,17 @@ def _params_files(args: Sequence[str]) -> list[str]:
     return files
 
 
+#: The node modules' directory, ar_tracking/nodes beside this package (listed, never imported).
+_NODES_DIR = Path(__file__).resolve().parent.parent / 'nodes'
+
+
 def _known_node_names() -> list[str]:
+    """The node module names (the modules of ar_tracking/nodes), for the misspelt-section hint
+    of :func:`params_file_warnings`. Listed from the files, so that the ros layer does not
+    import the nodes package above it."""
     import pkgutil
 
-    from .. import nodes
-
-    return [m.name for m in pkgutil.iter_modules(nodes.__path__)]
+    return [m.name for m in pkgutil.iter_modules([str(_NODES_DIR)])]
 
 
 def params_file_warnings(node: Node, files: Sequence[str]) -> list[str]:
