@@ -48,7 +48,7 @@ from ..ros.conversions import (
     to_stamp,
 )
 from ..ros.node_base import RELIABLE_QOS, RELIABLE_STREAM_QOS, STREAM_QOS, TrackingNode, run_node
-from ..ros.param_table import ParamSpec, declare_params, frame_name
+from ..ros.param_table import IMU_CALIBRATION_PARAMS, ParamSpec, declare_params, frame_name, imu_calibration
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamped
 
@@ -67,7 +67,7 @@ def _unit_quat(v: Any) -> str | None:
 _ALIGN = WorldAlignmentConfig()
 _GYRO = GyroBackupConfig()
 
-#: The node's parameters (the IMU calibration ones come from TrackingNode.imu_calibration_params).
+#: The node's parameters (with the shared IMU calibration, param_table.IMU_CALIBRATION_PARAMS).
 PARAMS = (
     ParamSpec('relative_input_type', 'transform',
               'Message type of panorama/orientation: transform (TransformStamped reference -> camera) or pose '
@@ -86,6 +86,7 @@ PARAMS = (
     ParamSpec('publish_mount_tf', True,
               'Publish the IMU mount (imu_frame_id -> camera_frame_id) on /tf_static while it comes from '
               'imu_to_camera_quat_xyzw (not when /tf_static gave it)'),
+    *IMU_CALIBRATION_PARAMS,
     ParamSpec('accel_bias_sigma_m_s2', _ALIGN.accel_bias_sigma_m_s2,
               'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2 (tight: a loose bias absorbs '
               'scale errors)', min_value=1e-6, max_value=10.0),
@@ -194,7 +195,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.imu_frame: str = v['imu_frame_id']
         self.publish_tf: bool = v['publish_tf']
         self.publish_mount_tf: bool = v['publish_mount_tf']
-        self.calibration = self.imu_calibration_params()
+        self.calibration = imu_calibration(v)
         config = WorldAlignmentConfig(
             accel_bias_sigma_m_s2=v['accel_bias_sigma_m_s2'],
             hard_iron_sigma=v['hard_iron_sigma'],

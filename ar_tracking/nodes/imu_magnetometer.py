@@ -50,14 +50,14 @@ from ..ros.conversions import (
 )
 from ..ros.frames import WORLD_FROM_ENU, check_world_frame
 from ..ros.node_base import RELIABLE_QOS, STREAM_QOS, TrackingNode, run_node
-from ..ros.param_table import ParamSpec, declare_params
+from ..ros.param_table import IMU_CALIBRATION_PARAMS, ParamSpec, declare_params, imu_calibration
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster
 
 METHODS = ('vqf', 'compass')
 _AHRS = AhrsConfig()
 
-#: The node's parameters (the IMU calibration ones come from TrackingNode.imu_calibration_params).
+#: The node's parameters (with the shared IMU calibration, param_table.IMU_CALIBRATION_PARAMS).
 PARAMS = (
     ParamSpec('method', 'vqf',
               'Orientation method: vqf (gyro-aided AHRS with rest and magnetic-disturbance handling) or compass '
@@ -66,6 +66,7 @@ PARAMS = (
     *(ParamSpec(f'mag_bias_{axis}', 0.0,
                 f'imu_filter_madgwick name: field bias along {axis}, tesla (added to hard_iron_offset)',
                 min_value=-1e-3, max_value=1e-3) for axis in 'xyz'),
+    *IMU_CALIBRATION_PARAMS,
     ParamSpec('declination_rad', 0.0,
               'Magnetic declination, rad, positive when magnetic north is east of true north',
               min_value=-3.1416, max_value=3.1416),
@@ -142,7 +143,7 @@ class ImuMagnetometerNode(TrackingNode):
             'reset_after_s': self._set_reset_after,
         })
         self.method: str = v['method']
-        calibration = self.imu_calibration_params(extra_hard_iron=[v[f'mag_bias_{axis}'] for axis in 'xyz'])
+        calibration = imu_calibration(v, extra_hard_iron=[v[f'mag_bias_{axis}'] for axis in 'xyz'])
         self._declination_parts = {'declination_rad': v['declination_rad'], 'declination': v['declination']}
         declination = sum(self._declination_parts.values())
         #: The filter is built with the starting declination; a live change turns its output

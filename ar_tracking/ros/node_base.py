@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -58,20 +57,6 @@ LATCHED_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
     history=HistoryPolicy.KEEP_LAST,
 )
-
-
-def length_is(n: int) -> Callable[[Any], str | None]:
-    """Parameter validator: a list of exactly n values."""
-    return lambda v: None if len(v) == n else f'needs {n} values, got {len(v)}'
-
-
-def invertible_3x3(v: Any) -> str | None:
-    """Parameter validator: a row-major 3x3 matrix that can be inverted."""
-    if len(v) != 9:
-        return f'needs 9 values (row-major 3x3), got {len(v)}'
-    if abs(float(np.linalg.det(np.reshape(np.asarray(v, float), (3, 3))))) < 1e-6:
-        return 'matrix is singular'
-    return None
 
 
 #: set once the BLAS thread pools are limited (see :func:`limit_blas_threads`)
@@ -245,21 +230,6 @@ class TrackingNode(Node):
     def unknown_parameters(self) -> list[str]:
         """Overrides (params file, ``-p``) that name no declared parameter: rclpy ignores them."""
         return sorted(n for n in self._parameter_overrides if not self.has_parameter(n))
-
-    def imu_calibration_params(self, extra_hard_iron: Any = (0.0, 0.0, 0.0)) -> Any:
-        """Declare the device calibration every node that reads raw IMU samples shares
-        (``gyro_bias``, ``accel_bias``, ``hard_iron_offset``, ``soft_iron_matrix``) and return
-        it as a core ImuCalibration (``extra_hard_iron`` is added to the offset)."""
-        from ..core.imu_orientation import ImuCalibration
-
-        p = self.param
-        hard_iron = np.asarray(p('hard_iron_offset', [0.0, 0.0, 0.0], 'Hard-iron offset subtracted from the raw field, tesla', validate=length_is(3)), dtype=float)
-        return ImuCalibration(
-            gyro_bias=p('gyro_bias', [0.0, 0.0, 0.0], 'Gyro bias subtracted from angular_velocity, rad/s (x, y, z)', validate=length_is(3)),
-            accel_bias=p('accel_bias', [0.0, 0.0, 0.0], 'Accelerometer bias subtracted from linear_acceleration, m/s^2', validate=length_is(3)),
-            hard_iron_offset=hard_iron + np.asarray(extra_hard_iron, dtype=float),
-            soft_iron_matrix=p('soft_iron_matrix', [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], 'Soft-iron correction, row-major 3x3: field = M (raw - hard_iron_offset)', validate=invertible_3x3),
-        )
 
     def _coerce_override(self, name: str, default: Any) -> None:
         """Accept 1 for 1.0 (and [0, 0, 0] for a float array) in params files."""

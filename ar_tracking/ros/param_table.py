@@ -16,7 +16,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping
 
+import numpy as np
+
 if TYPE_CHECKING:
+    from ..core.imu_orientation import ImuCalibration
     from .node_base import TrackingNode
 
 Validator = Callable[[Any], 'str | None']
@@ -33,6 +36,20 @@ def frame_name(v: Any) -> str | None:
     if v and v.strip() == v and not v.startswith('/'):
         return None
     return 'a frame name: not empty, no leading slash or spaces'
+
+
+def length_is(n: int) -> Validator:
+    """Parameter validator: a list of exactly n values."""
+    return lambda v: None if len(v) == n else f'needs {n} values, got {len(v)}'
+
+
+def invertible_3x3(v: Any) -> str | None:
+    """Parameter validator: a row-major 3x3 matrix that can be inverted."""
+    if len(v) != 9:
+        return f'needs 9 values (row-major 3x3), got {len(v)}'
+    if abs(float(np.linalg.det(np.reshape(np.asarray(v, float), (3, 3))))) < 1e-6:
+        return 'matrix is singular'
+    return None
 
 
 @dataclass(frozen=True)
@@ -116,3 +133,33 @@ def with_defaults(table: Iterable[ParamSpec], **defaults: Any) -> tuple[ParamSpe
     if unknown:
         raise KeyError(f'defaults for parameters not in the table: {", ".join(sorted(unknown))}')
     return tuple(replace(s, default=defaults[s.name]) if s.name in defaults else s for s in specs)
+
+
+#: The device calibration every node that reads raw IMU samples shares (imu_magnetometer,
+#: hybrid_orientation_filter), in the order it was always declared: a node splices it into its
+#: table where the calibration belongs (``PARAMS = (..., *IMU_CALIBRATION_PARAMS, ...)``) and
+#: builds the core calibration from the declared values with :func:`imu_calibration`.
+IMU_CALIBRATION_PARAMS = (
+    ParamSpec('hard_iron_offset', [0.0, 0.0, 0.0], 'Hard-iron offset subtracted from the raw field, tesla',
+              validate=length_is(3)),
+    ParamSpec('gyro_bias', [0.0, 0.0, 0.0], 'Gyro bias subtracted from angular_velocity, rad/s (x, y, z)',
+              validate=length_is(3)),
+    ParamSpec('accel_bias', [0.0, 0.0, 0.0], 'Accelerometer bias subtracted from linear_acceleration, m/s^2',
+              validate=length_is(3)),
+    ParamSpec('soft_iron_matrix', [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+              'Soft-iron correction, row-major 3x3: field = M (raw - hard_iron_offset)', validate=invertible_3x3),
+)
+
+
+def imu_calibration(values: Mapping[str, Any], extra_hard_iron: Any = (0.0, 0.0, 0.0)) -> ImuCalibration:
+    """The core ImuCalibration of the declared :data:`IMU_CALIBRATION_PARAMS` values (name ->
+    value, as :func:`declare_params` returns them); ``extra_hard_iron`` is added to the offset
+    (imu_magnetometer's imu_filter_madgwick-named mag_bias_x/y/z)."""
+    from ..core.imu_orientation import ImuCalibration
+
+    return ImuCalibration(
+        gyro_bias=values['gyro_bias'],
+        accel_bias=values['accel_bias'],
+        hard_iron_offset=np.asarray(values['hard_iron_offset'], dtype=float) + np.asarray(extra_hard_iron, dtype=float),
+        soft_iron_matrix=values['soft_iron_matrix'],
+    )
