@@ -151,3 +151,34 @@ def test_truth_is_seen_from_the_standing_spot_not_the_camera_on_its_lever_arm(tm
     R[:, :, 2] = h
     assert np.allclose(standing_spot(spot + 0.3 * h, R), spot, atol=1e-6)
     assert np.allclose(standing_spot(spot + 0.3 * h[:5], R[:5]), (spot + 0.3 * h[:5]).mean(0))
+
+
+def test_simulated_user_clicks_only_on_what_the_panorama_saw_from_the_spot(tmp_path):
+    """A quarter turn from north to east with the camera 0.3 m on its lever arm: the anchor to the
+    north-east is offered at its direction from the spot, the one to the south (never in a frame)
+    is not."""
+    from ar_tracking.eval.annotation_metrics import simulated_user_positions
+    from ar_tracking.sim.world import PinholeCamera
+
+    m = _Msgs()
+    cam = PinholeCamera()
+    spot = np.array([0.5, 0.2, 0.0])
+    anchors = [np.array([20.0, 20.0, 1.0]), np.array([0.0, -30.0, 1.0])]
+    R_enu_cam0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # facing north
+    path = tmp_path / 'u.mcap'
+    with BagWriter(path) as bag:
+        bag.write('/ground_truth/annotations', T0, m.markers(T0, ['ne', 'south'], anchors))
+        for k in range(31):
+            t = T0 + k * 33_333_333
+            R_enu_cam = R_enu_cam0 @ rot_y(np.pi / 2 * k / 30)
+            h = R_enu_cam[:2, 2] / np.linalg.norm(R_enu_cam[:2, 2])
+            tf = truth_msg(t, R_enu_cam)
+            c = spot + 0.3 * np.array([h[0], h[1], 0.0])
+            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(x) for x in c)
+            bag.write('/ground_truth/orientation', t, tf)
+            bag.write('/camera/camera_info', t, m.camera_info(t, cam))
+    rows = simulated_user_positions(path)(T0)
+    assert [r.text for r in rows] == ['ne']
+    d = R_enu_cam0.T @ (anchors[0] - spot)  # from the spot, in the panorama (first camera) frame
+    assert abs(rows[0].a - np.degrees(np.arctan2(d[0], d[2]))) < 0.01
+    assert abs(rows[0].b - np.degrees(np.arctan2(-d[1], np.hypot(d[0], d[2])))) < 0.01
