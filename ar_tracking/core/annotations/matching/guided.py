@@ -1,0 +1,199 @@
+"""Guided re-detection after the alignment (Langlotz 2011 sec. 4.3): each annotation searched
+by NCC around where the alignment puts it, the parallax model fitted on the matches (a browsing
+spot 0.4-1.5 m from the authoring one), and the look-alike test of a match. A mixin of
+:class:`.redetector.ReDetector`, which holds the state named below."""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ...panorama.cylinder import CylinderGeometry
+from ..parallax import ParallaxModel, fit_parallax
+from .config import MatchConfig
+from .placement import Alignment, Placement, place_annotations
+from .tiles import Candidate
+
+Array = NDArray[np.float64]
+
+
+class GuidedSearch:
+    """The re-detector's steps after an alignment: :meth:`_finish` (guided search, parallax
+    model, look-alike test)."""
+
+    config: MatchConfig
+    geometry: CylinderGeometry
+    source_dirs: Array
+    landmark: NDArray[np.bool_]
+    R_enu_target: Array | None
+    _patches: dict[int, NDArray[np.float32]]
+    _map: tuple[NDArray[np.float32], NDArray[np.bool_] | None] | None
+
+    def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
+                v_tol: float | None = None, config: MatchConfig | None = None) -> None:
+        """Guided re-detection around where the alignment puts an annotation (``predicted``,
+        default the placement itself, i.e. an inferred one): NCC in a +-``placement_px``
+        window (+-``v_tol`` vertically after a gravity-constrained alignment), minus
+        ``guided_penalty`` x distance / ``placement_px``; the best position with an NCC of at
+        least ``guided_min_ncc`` becomes the placement when its penalised score beats that of
+        the current match (an inferred placement has none)."""
+        cfg, geo = config or self.config, self.geometry
+        cu, cv_ = predicted if predicted is not None else (p.u, p.v)
+        win = self._window_ncc(p.index, cu, cv_, cfg.placement_px, v_tol)
+        if win is None:
+            return
+        res, xs, ys, inside = win
+        dist = np.hypot(xs[None, :], ys[:, None])
+        score = np.where(inside, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
+        y, x = np.unravel_index(int(np.argmax(score)), score.shape)
+        if res[y, x] < cfg.guided_min_ncc:
+            return
+        if p.status == 'matched':
+            d_now = float(geo.map_distance(np.array(p.u), np.array(p.v), cu, cv_))
+            if score[y, x] <= p.score - cfg.guided_penalty * d_now / cfg.placement_px + 1e-6:
+                return
+        p.u = float((cu + xs[x]) % geo.width)
+        p.v = float(cv_ + ys[y])
+        p.direction = geo.unproject(np.array(p.u), np.array(p.v))
+        p.status = 'matched'
+        p.score = float(res[y, x])
+
+    def _window_ncc(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
+                    ) -> tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]] | None:
+        """NCC (TM_CCOEFF_NORMED) of patch ``index`` at every position within ``radius_px`` of
+        (cu, cv_) (and ``v_tol`` above or below): (ncc, column offsets, row offsets from (cu, cv_),
+        inside mask); positions not fully mapped get -1. None without a map, outside the rows or
+        for an unknown index."""
+        if self._map is None:
+            return None
+        gray, mapped = self._map
+        patch = self._patches.get(index)
+        if patch is None:
+            return None
+        P = patch.shape[0]
+        r = int(math.ceil(radius_px))
+        rv = r if v_tol is None else int(math.ceil(min(v_tol, radius_px)))
+        x0 = int(round(cu - (P - 1) / 2)) - r
+        y0 = int(round(cv_ - (P - 1) / 2)) - rv
+        if y0 < 0 or y0 + P + 2 * rv > gray.shape[0]:
+            return None
+        # The window's columns (wrapping at the map's seam: gathered, else a slice - same pixels).
+        cols: slice | Array = slice(x0, x0 + P + 2 * r)
+        if x0 < 0 or x0 + P + 2 * r > self.geometry.width:
+            cols = np.arange(x0, x0 + P + 2 * r) % self.geometry.width
+        reg = gray[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
+        if mapped is not None:
+            m = mapped[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
+            full = cv2.boxFilter(m, -1, (P, P), anchor=(0, 0), normalize=True,
+                                 borderType=cv2.BORDER_CONSTANT)[:2 * rv + 1, :2 * r + 1]
+        else:
+            full = np.ones((2 * rv + 1, 2 * r + 1), np.float32)
+        res: NDArray[np.float32] = np.asarray(
+            cv2.matchTemplate(reg, patch, cv2.TM_CCOEFF_NORMED), np.float32)
+        res[(full < 0.999) | ~np.isfinite(res)] = -1.0
+        # Offsets from the predicted position (sub-pixel: x0, y0 were rounded).
+        c = (P - 1) / 2.0
+        xs: Array = x0 + c + np.arange(2 * r + 1, dtype=float) - cu
+        ys: Array = y0 + c + np.arange(2 * rv + 1, dtype=float) - cv_
+        inside: NDArray[np.bool_] = (np.hypot(xs[None, :], ys[:, None]) <= radius_px) & (
+            np.abs(ys)[:, None] <= (v_tol if v_tol is not None else np.inf))
+        return res, xs, ys, inside
+
+    def _lookalike(self, p: Placement, predicted: Array, v_tol: float | None, gate_px: float) -> None:
+        """The look-alike test of a matched placement (:attr:`MatchConfig.lookalike_margin`):
+        another local NCC maximum (3 x 3) inside the gate around its prediction, at least
+        ``lookalike_sep_px`` from the match, with an NCC within the margin of the match's makes
+        the placement the prediction itself (inferred)."""
+        cfg, geo = self.config, self.geometry
+        cu, cv_ = (float(x) for x in geo.project(predicted))
+        win = self._window_ncc(p.index, cu, cv_, gate_px, v_tol)
+        if win is None:
+            return
+        res, xs, ys, inside = win
+        peak = (res >= cv2.dilate(res, np.ones((3, 3), np.uint8))) & inside & (res > -1.0)
+        far = geo.map_distance(cu + xs[None, :], cv_ + ys[:, None], p.u, p.v) >= cfg.lookalike_sep_px
+        rivals = res[peak & far]
+        # The match's own NCC on the current map (the candidate's may be from an earlier map).
+        own = res[inside & ~far]
+        score = float(own.max()) if own.size else p.score
+        if rivals.size == 0 or float(rivals.max()) < score - cfg.lookalike_margin:
+            return
+        p.u, p.v = cu, cv_
+        p.direction = np.asarray(predicted, float).copy()
+        p.status = 'inferred'
+        p.score = float('nan')
+
+    def _finish(self, al: Alignment, ids: list[int], cands: list[list[Candidate]]) -> None:
+        """Make the placements' indices global and re-detect them guided; with a gravity-
+        constrained alignment and enough matches, the parallax model: fitted on the matches,
+        then every annotation placed and guided again around its corrected position."""
+        cfg, geo = self.config, self.geometry
+        R = al.R_target_source
+        src = self.source_dirs[ids]
+        predicted = None if R is None else src @ R.T
+        self._guide_all(al.placements, ids, predicted, al.v_tol)
+        matched = [ids.index(p.index) for p in al.placements if p.status == 'matched']
+        up = self._up()
+        if (R is None or al.v_tol is None or up is None or not cfg.parallax_model
+                or len(matched) < cfg.parallax_min_matches):
+            return
+        assert predicted is not None  # R is set
+        found = {p.index: p.direction for p in al.placements}
+        observed = np.array([found[ids[k]] for k in matched])
+
+        def fit(rows: Array | slice) -> ParallaxModel:
+            return fit_parallax(predicted[matched][rows], observed[rows], up, cfg.parallax_sigma_match,
+                                cfg.parallax_sigma, cfg.parallax_trim_sigmas)
+
+        model = fit(slice(None))
+        corrected = model.apply(predicted)
+        # A matched annotation's own position comes from the others only (leave-one-out): a
+        # look-alike match must not pull the prediction it is judged against towards itself.
+        for r, k in enumerate(matched):
+            corrected[k] = fit(np.arange(len(matched)) != r).apply(predicted[k])[0]
+        post = cfg
+        if cfg.parallax_gate_sigmas > 0:
+            al.parallax_gate_px = self._parallax_gate(corrected[matched], observed)
+            post = replace(cfg, placement_px=al.parallax_gate_px)
+        al.placements = place_annotations(R, src, cands, post, geo, al.v_tol, predicted=corrected)
+        al.parallax = model
+        self._guide_all(al.placements, ids, corrected, al.v_tol, post)
+        if cfg.lookalike_margin > 0:
+            local = {i: k for k, i in enumerate(ids)}
+            for p in al.placements:
+                if p.status == 'matched' and not self.landmark[p.index]:
+                    self._lookalike(p, corrected[local[p.index]], al.v_tol, post.placement_px)
+
+    def _parallax_gate(self, predicted: Array, observed: Array) -> float:
+        """Placement gate after the parallax model (``parallax_gate_sigmas``): that many robust
+        standard deviations (1.4826 x median absolute) of the horizontal distances between the
+        matches and their leave-one-out predictions, clipped to [inlier_px, placement_px]."""
+        cfg, geo = self.config, self.geometry
+        du = geo.column_distance(geo.project(predicted)[0], geo.project(observed)[0])
+        scale = 1.4826 * float(np.median(du))
+        return float(np.clip(cfg.parallax_gate_sigmas * scale, cfg.inlier_px, cfg.placement_px))
+
+    def _guide_all(self, placements: list[Placement], ids: list[int], predicted: Array | None,
+                   v_tol: float | None, config: MatchConfig | None = None) -> None:
+        """Placement indices from the group's (local) to the annotations' (``ids``), then the
+        guided re-detection (``guided_search``) of inferred placements and, with ``guided_all``,
+        of matched ones around their ``predicted`` direction (local order); ``config`` (default
+        the detector's) sets the window."""
+        cfg = config or self.config
+        for p in placements:
+            local = p.index
+            p.index = ids[local]
+            if not cfg.guided_search:
+                continue
+            if p.status == 'inferred':
+                self._guided(p, v_tol=v_tol, config=cfg)
+            elif cfg.guided_all and predicted is not None:
+                u, v = self.geometry.project(predicted[local])
+                self._guided(p, (float(u), float(v)), v_tol, cfg)
+
+    def _up(self) -> Array | None:
+        """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
+        return None if self.R_enu_target is None else self.R_enu_target[2].copy()

@@ -1,0 +1,77 @@
+"""Whether an alignment may be shown (Langlotz 2011 sec. 4.3; issue 17: no label the matcher is
+not sure of): enough matches, agreement with the sensor prior within its uncertainty, and per
+placement local support by nearby matched landmarks. A mixin of
+:class:`.redetector.ReDetector`, which holds the state named below."""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...panorama.cylinder import CylinderGeometry
+from ...rotations import trace_angle
+from .config import MatchConfig
+from .placement import Alignment
+
+Array = NDArray[np.float64]
+
+
+class SupportTest:
+    """:meth:`_support` of an alignment and the sensor prior it is judged against."""
+
+    config: MatchConfig
+    geometry: CylinderGeometry
+    landmark: NDArray[np.bool_]
+    R_enu_source: Sequence[Array | None]
+    R_enu_target: Array | None
+    source_sigma: Array
+    target_sigma: float
+
+    def _support(self, al: Alignment, ids: list[int]) -> None:
+        """Whether the alignment supports showing its placements (:attr:`MatchConfig.min_support_matches`)."""
+        cfg = self.config
+        al.support = sum(p.status == 'matched' for p in al.placements + al.landmarks)
+        al.supported = False
+        if al.R_target_source is None:
+            al.support_reason = 'no alignment'
+            return
+        if al.support < cfg.min_support_matches:
+            al.support_reason = f'{al.support} matches (fewer than {cfg.min_support_matches})'
+            return
+        R_prior = self._prior_rotation(ids)
+        if R_prior is not None:
+            al.prior_correction_rad = float(trace_angle(R_prior.T @ al.R_target_source))
+            sigma = math.hypot(float(self.source_sigma[ids[0]]), self.target_sigma)
+            limit = cfg.support_prior_sigmas * sigma + cfg.inlier_px / self.geometry.f
+            if math.isfinite(sigma) and al.prior_correction_rad > limit and al.support < cfg.strong_support_matches:
+                al.support_reason = (f'{math.degrees(al.prior_correction_rad):.1f} deg from the sensor prior '
+                                     f'(> {math.degrees(limit):.1f}) with {al.support} matches')
+                return
+        al.supported = True
+        al.support_reason = ''
+        matched = [p for p in al.placements + al.landmarks if p.status == 'matched']
+        mu = np.array([p.u for p in matched])
+        local = bool(self.landmark[ids].any())  # the local tests need landmarks' density
+        W = self.geometry.width
+        for p in al.placements:
+            near = int(np.sum(self.geometry.column_distance(mu, p.u) <= cfg.local_support_px)) if len(mu) else 0
+            if not local:
+                p.supported = True
+            elif p.status == 'matched':
+                p.supported = not cfg.local_support_matched or near - 1 >= cfg.local_support_matches
+            else:
+                p.supported = near >= cfg.local_support_matches
+                if not p.supported and cfg.bracket_support_px > 0 and len(mu):
+                    du = (mu - p.u + W / 2) % W - W / 2  # signed column offsets of the matches
+                    p.supported = bool(((du < 0) & (du >= -cfg.bracket_support_px)).any()
+                                       and ((du > 0) & (du <= cfg.bracket_support_px)).any())
+
+    def _prior_rotation(self, ids: list[int]) -> Array | None:
+        """R_target_source from the absolute orientations of both panoramas (sec. 4.2), None
+        without the sensor prior or either orientation."""
+        R_src = self.R_enu_source[ids[0]] if ids else None
+        if not self.config.sensor_prior or self.R_enu_target is None or R_src is None:
+            return None
+        return self.R_enu_target.T @ np.asarray(R_src, float)
