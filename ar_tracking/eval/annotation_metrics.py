@@ -38,7 +38,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
+from ..core.rotations import interpolate_rotations, nearest_rotation, quat_xyzw_to_matrix
 from ..io.bags import BagReader
 
 TOPIC_MARKERS = '/annotations/markers'
@@ -62,18 +62,19 @@ class _Truth:
     """The ground-truth orientation and position, slerped / interpolated at header stamps."""
 
     def __init__(self, samples: list[tuple[int, np.ndarray, tuple[float, float, float]]]) -> None:
-        from scipy.spatial.transform import Rotation, Slerp
-
         samples = sorted(samples, key=lambda s: s[0])
         self.t = np.array([s[0] for s in samples], np.int64)
         self.p = np.array([s[2] for s in samples], float)
-        self.slerp = Slerp(self.t.astype(float), Rotation.from_quat(np.array([s[1] for s in samples])))
+        self.R_samples = quat_xyzw_to_matrix(np.array([s[1] for s in samples]))
 
     def inside(self, t: int) -> bool:
         return bool(self.t[0] <= t <= self.t[-1])
 
     def R(self, ts: list[int]) -> np.ndarray:
-        return self.slerp(np.asarray(ts, float)).as_matrix()
+        R, inside = interpolate_rotations(self.t.astype(float), self.R_samples, np.asarray(ts, float))
+        if not inside.all():
+            raise ValueError('truth orientation asked outside its time span')
+        return R
 
     def position(self, t: int) -> np.ndarray:
         return np.array([np.interp(float(t), self.t.astype(float), self.p[:, i]) for i in range(3)])
