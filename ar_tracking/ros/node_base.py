@@ -423,16 +423,23 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
             print(f'error: {exc}', file=sys.stderr)
             return 2
 
-    def on_term(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+    stop_requested: list[int] = []
+
+    def on_signal(signum: int, frame: Any) -> None:
+        # Ctrl-C / SIGTERM asks the spin loop below to stop (it looks every 0.2 s). Raising
+        # KeyboardInterrupt here instead could land inside rclpy's take of a message, where
+        # pybind11 turns it into a RuntimeError traceback and exit code 1. A second signal
+        # interrupts at once (a callback that does not return).
+        if stop_requested:
+            raise KeyboardInterrupt
+        stop_requested.append(signum)
 
     node = None
     code = 0
     try:
-        signal.signal(signal.SIGTERM, on_term)
-        # Ctrl-C as a KeyboardInterrupt even where the launcher left SIGINT ignored (as rclpy's
-        # own handler would take it).
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, on_signal)
+        # Even where the launcher left SIGINT ignored (as rclpy's own handler would take it).
+        signal.signal(signal.SIGINT, on_signal)
         try:
             # rclpy's own SIGINT handler shuts the context down at once, under the feet of
             # threads still publishing; here Ctrl-C is a KeyboardInterrupt handled below.
@@ -453,7 +460,7 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
 
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
-        while node.context.ok() and getattr(node, 'exit_code', None) is None:
+        while not stop_requested and node.context.ok() and getattr(node, 'exit_code', None) is None:
             executor.spin_once(timeout_sec=0.2)
         code = getattr(node, 'exit_code', None) or 0
     except (KeyboardInterrupt, ExternalShutdownException):
