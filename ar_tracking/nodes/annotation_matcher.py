@@ -108,6 +108,10 @@ PARAMS = (
     ParamSpec('parallax_trim_sigmas', 3.0,
               'Refit the parallax model once without the matches beyond this many robust standard deviations of its '
               'residuals (landmarks much nearer than the anchors); 0: off', min_value=0.0, max_value=100.0),
+    ParamSpec('parallax_scale_sigma', 0.3,
+              "The annotations' parallax as a factor of the model's, fitted on the matched annotations and pulled "
+              'to 1 with this sigma (facades farther than the landmarks the model is fitted on); 0: off',
+              min_value=0.0, max_value=100.0),
     ParamSpec('parallax_gate_sigmas', 3.0,
               'After the parallax model, matches must lie within this many robust standard deviations of its '
               'leave-one-out residuals (between inlier_px and placement_px); 0: off', min_value=0.0, max_value=100.0),
@@ -120,7 +124,7 @@ PARAMS = (
     ParamSpec('marker_distance_m', 10.0,
               'Markers are placed at this distance along their direction, m', min_value=0.01, max_value=10000.0),
     ParamSpec('marker_height_m', 0.5, 'Text height of the markers, m', min_value=0.01, max_value=100.0),
-    ParamSpec('local_support_matches', 2,
+    ParamSpec('local_support_matches', 1,
               'An inferred label (no match of its own) is shown as placed only with this many matches within '
               'local_support_deg of it', min_value=0, max_value=1000),
     ParamSpec('local_support_deg', 30.0,
@@ -205,6 +209,7 @@ class AnnotationMatcherNode(TrackingNode):
             guided_all=v['guided_all'], prior_alignment=v['prior_alignment'],
             gravity_alignment=v['gravity_alignment'], gravity_v_px=v['gravity_v_px'],
             parallax_model=v['parallax_model'], parallax_trim_sigmas=v['parallax_trim_sigmas'],
+            parallax_scale_sigma=v['parallax_scale_sigma'],
             parallax_gate_sigmas=v['parallax_gate_sigmas'], min_support_matches=v['min_support_matches'],
             support_prior_sigmas=v['support_prior_sigmas'], strong_support_matches=v['strong_support_matches'],
             local_support_matches=v['local_support_matches'],

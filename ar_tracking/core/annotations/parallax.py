@@ -16,6 +16,11 @@ with a Gaussian prior on ``(a, b)`` (``sigma_parallax``: about 1 m at 50 m), it 
 annotations - whose placement otherwise carries the mean parallax the rotation absorbed from the
 matched ones - and the positions around which candidates are chosen.
 
+The common depth is fitted mostly on landmarks (:mod:`.landmarks`), nearer on the whole than the
+facades the annotations are on; :func:`fit_depth_scale` gives the annotations' parallax as a
+factor of the model's from the matched annotations (``MatchConfig.parallax_scale_sigma``), so an
+inferred label is not moved as far as a tree in front of it would be.
+
 Azimuths are measured about ``up`` (the browsing panorama's vertical from gravity), so the model
 applies after the gravity-constrained alignment (``MatchConfig.gravity_alignment``).
 """
@@ -27,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..rotations import rotations_about_axis
+from ..rotations import cross3, rotations_about_axis
 
 Array = NDArray[np.float64]
 
@@ -35,9 +40,10 @@ Array = NDArray[np.float64]
 def _horizontal_axes(up: Array) -> tuple[Array, Array]:
     """Two unit vectors completing ``up`` to a right-handed frame (e1, e2, up)."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
-    e1 = np.cross(up, helper)
+    # cross3: the same products as np.cross, without its ~10 us of overhead per call.
+    e1 = cross3(up, helper)
     e1 /= np.linalg.norm(e1)
-    return e1, np.cross(up, e1)
+    return e1, cross3(up, e1)
 
 
 @dataclass(frozen=True)
@@ -64,6 +70,11 @@ class ParallaxModel:
         """(n, 3) directions turned about ``up`` by their shift."""
         dirs = np.asarray(dirs, float).reshape(-1, 3)
         return np.einsum('nij,nj->ni', rotations_about_axis(self.up, self.shift(dirs)), dirs)
+
+    def scaled(self, scale: float) -> ParallaxModel:
+        """The same heading ``c`` with the parallax ``(a, b)`` times ``scale`` (a depth ratio:
+        anchors ``1 / scale`` times as far as the matches the model was fitted on)."""
+        return ParallaxModel(self.up, self.c, scale * self.a, scale * self.b)
 
     @property
     def amplitude(self) -> float:
@@ -98,3 +109,29 @@ def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: floa
         keep = res <= max(trim_sigmas * 1.4826 * float(np.median(res)), sigma_match / 5)
     c, a, b = coef
     return ParallaxModel(k, float(c), float(a), float(b))
+
+
+def heading_residuals(model: ParallaxModel, predicted: Array, observed: Array) -> Array:
+    """(n,) heading residuals (rad, wrapped) of matches left by ``model``: observed azimuth
+    minus the predicted azimuth minus the model's shift there."""
+    th = model.azimuth(predicted)
+    r = (model.azimuth(observed) - th + math.pi) % (2 * math.pi) - math.pi
+    return np.asarray((r - model.shift(predicted) + math.pi) % (2 * math.pi) - math.pi, float)
+
+
+def fit_depth_scale(model: ParallaxModel, predicted: Array, observed: Array, sigma_match: float = 0.01,
+                    sigma_scale: float = 0.5, bounds: tuple[float, float] = (0.0, 2.0)) -> float:
+    """The factor on the parallax of ``model`` that fits a subset of its matches best (``predicted``
+    where the rotation puts them, ``observed`` where they were found; n >= 0): least squares of
+    their heading residuals over the model's parallax term ``a cos + b sin`` at them, pulled to 1
+    with ``sigma_scale`` (``sigma_match`` rad per residual), clipped to ``bounds``.
+
+    The model is fitted mostly on landmarks, among which trees, poles and near corners pull the
+    common depth nearer than the facades the annotations are on: on the development spots the
+    anchors' parallax is ~0.75 of the model's (0.2-1.7). The matched annotations of a spot tell
+    that ratio for its inferred ones, which have no match of their own."""
+    p = model.shift(predicted) - model.c
+    r = heading_residuals(model, predicted, observed)
+    w = 1.0 / sigma_match ** 2
+    s = 1.0 + float(w * (r @ p)) / (w * float(p @ p) + 1.0 / sigma_scale ** 2)
+    return float(np.clip(s, *bounds))

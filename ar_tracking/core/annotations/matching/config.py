@@ -81,6 +81,11 @@ class MatchConfig:
     #: One refit of the model without the matches beyond this many robust standard deviations
     #: of its residuals (landmarks far nearer than the anchors); 0: plain least squares.
     parallax_trim_sigmas: float = 3.0
+    #: The annotations' parallax as a factor of the model's (:func:`.parallax.fit_depth_scale`),
+    #: fitted on the matched annotations (leave-one-out for each of them), pulled to 1 with this
+    #: sigma; 0: one common depth. The model is fitted mostly on landmarks, nearer on the whole
+    #: than the facades the annotations are on (trees, poles, corners).
+    parallax_scale_sigma: float = 0.3
     #: After the parallax model, matches must lie within this many robust standard deviations
     #: of the model's leave-one-out residuals of the matches (horizontal; between inlier_px and
     #: placement_px): fitted on tens of landmark matches the model predicts to a pixel or two,
@@ -100,8 +105,10 @@ class MatchConfig:
     #: of it: early on, with the matches all in the first finished tiles, the heading and the
     #: parallax fitted there are extrapolated to the far side of the panorama (1-3 deg off on the
     #: sample bag for the first seconds). The local tests apply to source panoramas with
-    #: landmarks only (a handful of annotations alone is too sparse for them).
-    local_support_matches: int = 2
+    #: landmarks only (a handful of annotations alone is too sparse for them). 1 (was 2) since the
+    #: annotations' own depth ratio (``parallax_scale_sigma``) keeps inferred labels within 1 deg
+    #: (docs/annotations.md, "Session 11, later").
+    local_support_matches: int = 1
     local_support_px: float = 171.0
     #: Matched labels too need ``local_support_matches`` other matches within ``local_support_px``
     #: (an isolated look-alike is then only approximate).

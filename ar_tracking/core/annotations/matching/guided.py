@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...panorama.cylinder import CylinderGeometry
-from ..parallax import ParallaxModel, fit_parallax
+from ..parallax import ParallaxModel, fit_depth_scale, fit_parallax
 from .config import MatchConfig
 from .placement import Alignment, Placement, place_annotations
 from .tiles import Candidate
@@ -148,12 +148,30 @@ class GuidedSearch:
             return fit_parallax(predicted[matched][rows], observed[rows], up, cfg.parallax_sigma_match,
                                 cfg.parallax_sigma, cfg.parallax_trim_sigmas)
 
+        # The annotations' parallax as a factor of the model's (their facades are farther than
+        # the landmarks it is mostly fitted on), from the matched annotations - without the one
+        # being predicted; landmarks keep the common depth.
+        shown = ~self.landmark[ids]
+        ann = shown[matched]
+
+        def scaled(m: ParallaxModel, rows: NDArray[np.bool_]) -> ParallaxModel:
+            if cfg.parallax_scale_sigma <= 0:
+                return m
+            return m.scaled(fit_depth_scale(m, predicted[matched][rows & ann], observed[rows & ann],
+                                            cfg.parallax_sigma_match, cfg.parallax_scale_sigma))
+
+        every = np.ones(len(matched), bool)
         model = fit(slice(None))
         corrected = model.apply(predicted)
+        if cfg.parallax_scale_sigma > 0:
+            corrected[shown] = scaled(model, every).apply(predicted[shown])
         # A matched annotation's own position comes from the others only (leave-one-out): a
         # look-alike match must not pull the prediction it is judged against towards itself.
         for r, k in enumerate(matched):
-            corrected[k] = fit(np.arange(len(matched)) != r).apply(predicted[k])[0]
+            others = every.copy()
+            others[r] = False
+            loo = fit(others)
+            corrected[k] = (scaled(loo, others) if shown[k] else loo).apply(predicted[k])[0]
         post = cfg
         if cfg.parallax_gate_sigmas > 0:
             al.parallax_gate_px = self._parallax_gate(corrected[matched], observed)

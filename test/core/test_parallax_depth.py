@@ -1,0 +1,74 @@
+"""The annotations' own depth ratio on top of the common-depth parallax model
+(core/annotations/parallax.py: fit_depth_scale; MatchConfig.parallax_scale_sigma).."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from annotation_synth import M_ENU_PANO, UP, displaced_spot_case, rotated_by
+from ar_tracking.core.annotations.matching import Candidate, MatchConfig, ReDetector
+from ar_tracking.core.annotations.parallax import (_horizontal_axes, fit_depth_scale, fit_parallax,
+                                                   heading_residuals)
+
+
+def test_horizontal_axes_equal_numpys_cross_products():
+    rng = np.random.default_rng(5)
+    for up in [*rng.normal(size=(200, 3)), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])]:
+        up = up / np.linalg.norm(up)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+        e1 = np.cross(up, helper)
+        e1 /= np.linalg.norm(e1)
+        got1, got2 = _horizontal_axes(up)
+        assert np.array_equal(got1, e1) and np.array_equal(got2, np.cross(up, e1))
+
+
+def _near_and_far(seed: int, t: np.ndarray, n: int, near: float, far: float):
+    """n points around the panorama, every third at ``far`` (the mask), the others at ``near``."""
+    is_far = np.arange(n) % 3 == 2
+    case, truth, uv = displaced_spot_case(seed, t, np.where(is_far, far, near))
+    return case, truth, uv, case.dirs @ case.R_target_source.T, is_far
+
+
+def test_depth_scale_is_the_ratio_of_the_depths():
+    # The model fitted on 12 points at 20 m; 6 anchors at 40 m turn half as far.
+    t = np.array([1.2, -0.7, 0.0])
+    _, truth, _, predicted, far = _near_and_far(40, t, 18, 20.0, 40.0)
+    model = fit_parallax(predicted[~far], truth[~far], UP, sigma_match=0.001, sigma_parallax=1.0)
+    s = fit_depth_scale(model, predicted[far], truth[far], sigma_match=0.001, sigma_scale=10.0)
+    assert s == pytest.approx(0.5, abs=0.03)
+    # Fitted on the near points themselves: 1; with none: the prior, 1.
+    assert fit_depth_scale(model, predicted[~far], truth[~far], 0.001, 10.0) == pytest.approx(1.0, abs=0.03)
+    assert fit_depth_scale(model, predicted[:0], truth[:0]) == 1.0
+    # The prior pulls a poorly determined ratio towards 1.
+    weak = fit_depth_scale(model, predicted[far], truth[far], sigma_match=0.05, sigma_scale=0.1)
+    assert s < weak < 1.0
+    # And the scaled model moves the far anchors to their true headings (to the 0.2 deg the
+    # elevated points' small-angle azimuths leave).
+    before = np.degrees(np.abs(heading_residuals(model, predicted[far], truth[far])))
+    after = np.degrees(np.abs(heading_residuals(model.scaled(s), predicted[far], truth[far])))
+    assert after.max() < 0.3 and before.max() > 1.5
+
+
+def test_depth_scale_moves_an_inferred_annotation_on_a_far_facade():
+    # 16 landmarks at 22 m (trees, near corners) set the common depth; 8 annotations on facades
+    # at 45 m, one without a candidate (inferred).
+    t = np.array([1.0, 0.5, 0.0])
+    n = 24
+    case, truth, uv, _, far = _near_and_far(42, t, n, 22.0, 45.0)
+    gone = int(np.flatnonzero(far)[1])
+    errors = {}
+    for sigma in (0.0, 0.5):
+        det = ReDetector(case.patches, case.dirs, ['p'] * n, MatchConfig(parallax_scale_sigma=sigma),
+                         R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * n,
+                         landmark=list(~far))
+        det.set_orientation(M_ENU_PANO)
+        for i in set(range(n)) - {gone}:
+            det.candidates[i].items = [Candidate(float(uv[i, 0]), float(uv[i, 1]), 0.9, 0.9)]
+        det.dirty = True
+        _, al = det.result()
+        assert al.parallax is not None
+        p = next(p for p in al.placements if p.index == gone)
+        assert p.status == 'inferred'
+        errors[sigma] = float(np.degrees(np.arccos(np.clip(p.direction @ truth[gone], -1, 1))))
+        assert all(q.status == 'matched' for q in al.placements if q.index != gone)
+    assert errors[0.0] > 1.0 and errors[0.5] < 0.3
