@@ -104,6 +104,12 @@ def test_graph_run_serves_its_topics(tmp_path) -> None:
 
     params = [SAMPLE_BAG.with_name(SAMPLE_BAG.stem + '.params.yaml')]
     with FoxgloveBridge(port=0) as bridge, FoxgloveProbe(bridge.url, keep_first=False) as probe:
+        # The channels exist before the run (as the run's taps make them) and the client has
+        # subscribed: a lockstep run of 700 messages takes well under a second, quicker than a
+        # subscription made after the run's start would reach the server.
+        channels = [bridge.advertise(t, m) for t, m in (('/panorama/image', 'sensor_msgs/msg/Image'),
+                                                          ('/panorama/orientation', 'geometry_msgs/msg/TransformStamped'))]
+        assert wait_for(lambda: all(c.has_sinks() for c in channels))
         result = GraphRunner(SAMPLE_BAG, tmp_path / 'out.mcap', params_files=params, max_messages=700,
                              nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter'],
                              output_taps=[bridge.tap]).run()
