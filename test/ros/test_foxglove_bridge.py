@@ -102,22 +102,29 @@ def test_graph_run_serves_its_topics(tmp_path) -> None:
     pytest.importorskip('rclpy')
     from ar_tracking.ros.runner import GraphRunner
 
+    from ar_tracking.ros.graph_plan import GRAPH_NODES, load_node_class
+
     params = [SAMPLE_BAG.with_name(SAMPLE_BAG.stem + '.params.yaml')]
-    with FoxgloveBridge(port=0) as bridge, FoxgloveProbe(bridge.url, keep_first=False) as probe:
-        # The channels exist before the run (as the run's taps make them) and the client has
-        # subscribed: a lockstep run of 700 messages takes well under a second, quicker than a
-        # subscription made after the run's start would reach the server.
-        channels = [bridge.advertise(t, m) for t, m in (('/panorama/image', 'sensor_msgs/msg/Image'),
-                                                          ('/panorama/orientation', 'geometry_msgs/msg/TransformStamped'))]
-        assert wait_for(lambda: all(c.has_sinks() for c in channels))
-        result = GraphRunner(SAMPLE_BAG, tmp_path / 'out.mcap', params_files=params, max_messages=700,
-                             nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter'],
-                             output_taps=[bridge.tap]).run()
-        assert wait_for(lambda: probe.counts['/orientation/global'] > 0 and probe.counts[TRANSFORMS_TOPIC] > 0)
-        time.sleep(0.2)
+    nodes = ['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter']
+    with FoxgloveBridge(port=0) as bridge:
+        # Every channel exists before the client connects, so that it is advertised with the
+        # server's hello: a channel made while a client is connected can be advertised before
+        # the server can take a subscription to it ('attempted to subscribe to unknown channel'),
+        # and a lockstep run of 700 messages is over in well under a second.
+        channels = [bridge.advertise(topic, msgtype) for name in nodes
+                    for topic, msgtype in load_node_class(GRAPH_NODES[name]).OUTPUTS.items()]
+        probe = FoxgloveProbe(bridge.url, keep_first=False).start()
+        try:
+            assert wait_for(lambda: all(c.has_sinks() for c in channels))
+            result = GraphRunner(SAMPLE_BAG, tmp_path / 'out.mcap', params_files=params, max_messages=700,
+                                 nodes=nodes, output_taps=[bridge.tap]).run()
+            assert wait_for(lambda: probe.counts['/orientation/global'] > 0 and probe.counts[TRANSFORMS_TOPIC] > 0)
+            time.sleep(0.2)
+        finally:
+            probe.stop()
     assert {'/orientation/global', '/panorama/image', '/panorama/orientation', TRANSFORMS_TOPIC} <= probe.topics()
     assert probe.error is None and result.output_messages > 0
-    # Subscribed only once the channel was advertised (at the run's start): everything after it arrives.
+    # Subscribed before the run: everything the run published arrives.
     assert probe.counts['/panorama/orientation'] > 10 and probe.counts['/panorama/image'] >= 1
 
 
