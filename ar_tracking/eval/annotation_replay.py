@@ -1,0 +1,79 @@
+"""Replay the annotation matcher alone on a recorded graph output, with other parameters.
+
+Measuring a matcher change end to end means simulating the spots again and running the whole
+graph on each (``bench_graph_spots``: minutes per spot). The matcher's inputs - the browsing
+panorama (``panorama/image``, ``panorama/tiles``), its orientation (``panorama/orientation``,
+``orientation/global``, ``orientation/panorama_in_world``) and the GPS fix - are all in that run's
+output bag, so the matcher can be fed them again in log-time order, with other parameters or
+other code, in seconds. The replayed ``annotations/markers`` replace the recorded ones in a copy
+of the bag, which :func:`~ar_tracking.eval.annotation_metrics.evaluate_annotations` scores as
+usual.
+
+The replay is a guide, not the figure: in the graph the matcher's callbacks of one lockstep step
+can come in another order than the bag's log times, so a label can differ from the run's. Tune
+on replays of development spots and report a fresh end-to-end run.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Iterable
+
+from ..io.bags import BagReader, BagWriter
+from .annotation_metrics import evaluate_annotations
+
+#: The recorded topics the matcher takes, and the ones it publishes (replaced in the copy).
+MATCHER_INPUTS = ('/panorama/image', '/panorama/tiles', '/gps/fix', '/orientation/panorama_in_world',
+                  '/orientation/global', '/panorama/orientation')
+MATCHER_OUTPUTS = ('/annotations/markers', '/annotations/alignment')
+
+
+def replay_matcher(out_bag: str | Path, store_path: str | Path, replayed_bag: str | Path,
+                   params: dict[str, Any] | None = None, labels: Iterable[str] | None = None,
+                   context: Any = None) -> dict[str, Any] | None:
+    """Feed ``annotation_matcher`` (store ``store_path``, node parameters ``params``) the matcher
+    inputs recorded in ``out_bag``, write ``replayed_bag`` (``out_bag`` with the replayed matcher
+    outputs) and score it (``evaluate_annotations``; ``labels``: only these anchors). ``context``:
+    an initialised rclpy Context (default: one made and shut down here). Needs rclpy."""
+    import rclpy
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from ..nodes.annotation_matcher import AnnotationMatcherNode
+    from ..ros.conversions import message_class
+    from ..ros.params import params_for_node, to_overrides
+
+    own = context is None
+    if own:
+        from rclpy.context import Context
+
+        context = Context()
+        rclpy.init(context=context)
+    node = None
+    try:
+        prm = params_for_node('annotation_matcher', [])
+        prm.update({'store_path': str(store_path), **(params or {})})
+        node = AnnotationMatcherNode(context=context, parameter_overrides=to_overrides(prm))
+        published: list[tuple[str, Any]] = []
+        node.pub_markers.publish = lambda m: published.append(('/annotations/markers', m))  # type: ignore[method-assign]
+        node.pub_alignment.publish = lambda m: published.append(('/annotations/alignment', m))  # type: ignore[method-assign]
+        callbacks = {'/panorama/image': node.on_map, '/panorama/tiles': node.on_tiles, '/gps/fix': node.on_fix,
+                     '/orientation/panorama_in_world': node.on_panorama_in_world,
+                     '/orientation/global': node.on_global, '/panorama/orientation': node.on_panorama_orientation}
+        with BagReader(out_bag) as bag, BagWriter(replayed_bag, overwrite=True) as writer:
+            types = bag.topics
+            for msg in bag.messages():
+                if msg.topic in MATCHER_OUTPUTS:
+                    continue
+                writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
+                if msg.topic in callbacks:
+                    callbacks[msg.topic](deserialize_message(bytes(msg.rawdata), message_class(msg.msgtype)))
+                    for topic, out in published:
+                        msgtype = types.get(topic) or ('visualization_msgs/msg/MarkerArray' if topic.endswith('markers')
+                                                       else 'geometry_msgs/msg/TransformStamped')
+                        writer.write(topic, msg.log_time_ns, serialize_message(out), msgtype=msgtype)
+                    published.clear()
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if own:
+            rclpy.try_shutdown(context=context)
+    return evaluate_annotations(replayed_bag, labels=labels)
