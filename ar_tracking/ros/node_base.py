@@ -14,7 +14,6 @@ A node subclasses :class:`TrackingNode` and uses
 """
 from __future__ import annotations
 
-import os
 import sys
 import time
 from collections import defaultdict
@@ -32,6 +31,9 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+
+from ..blas import limit_blas_threads
+from .signals import StopOnSignal
 
 #: Sensor subscriptions: best effort, keep last 5 (a reliable publisher still reaches them).
 SENSOR_QOS = qos_profile_sensor_data
@@ -57,56 +59,6 @@ LATCHED_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
     history=HistoryPolicy.KEEP_LAST,
 )
-
-
-#: set once the BLAS thread pools are limited (see :func:`limit_blas_threads`)
-_blas_limited = False
-#: setters of the OpenBLAS builds that numpy, scipy and OpenCV bundle (symbol prefixes differ)
-_BLAS_SETTERS = ('scipy_openblas_set_num_threads64_', 'scipy_openblas_set_num_threads',
-                 'openblas_set_num_threads64_', 'openblas_set_num_threads')
-
-
-def limit_blas_threads(threads: int = 1) -> list[str]:
-    """Limit every OpenBLAS loaded in this process (numpy's, scipy's, OpenCV's) to ``threads``;
-    returns the libraries changed. Done once per process, unless OPENBLAS_NUM_THREADS is set
-    (the user's choice wins).
-
-    Why: the nodes multiply small matrices (the matcher's Walsh scores, 54 x 6 by 6 x 4,096,
-    the trackers' batched Kabsch fits), where a BLAS thread pool costs more than it saves - and
-    on a busy machine much more: with other processes on both cores, OpenBLAS's worker threads
-    wait for a core on every product (that one product took 14 ms instead of 0.1 ms, and the
-    annotation graph on the sample browsing bag spent 2.3 of its 3 s of tile matching there).
-    Each node already has a thread or a process of its own. Results are the same (the products
-    split rows among threads, never a sum).
-    """
-    global _blas_limited
-    if _blas_limited or 'OPENBLAS_NUM_THREADS' in os.environ:
-        return []
-    _blas_limited = True
-    import ctypes
-
-    import cv2  # noqa: F401  (OpenCV and scipy bring OpenBLAS builds of their own: load them
-    import scipy.linalg  # noqa: F401  now, so that they are limited too)
-
-    try:
-        with open('/proc/self/maps') as maps:
-            paths = sorted({line.split()[-1] for line in maps
-                            if 'openblas' in line.rsplit('/', 1)[-1].lower() and line.split()[-1].startswith('/')})
-    except OSError:  # not Linux: leave the defaults
-        return []
-    changed = []
-    for path in paths:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for name in _BLAS_SETTERS:
-            setter = getattr(lib, name, None)
-            if setter is not None:
-                setter(ctypes.c_int(threads))
-                changed.append(path)
-                break
-    return changed
 
 
 @dataclass
@@ -406,8 +358,6 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
     about; Ctrl-C (or SIGTERM) stops the node's threads before the context goes away, so it
     exits 0 without a KeyboardInterrupt traceback or "publisher's context is invalid".
     """
-    import signal
-
     import rclpy
     from rclpy.exceptions import NameValidationException, ParameterException
     from rclpy.executors import ExternalShutdownException
@@ -423,26 +373,16 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
             print(f'error: {exc}', file=sys.stderr)
             return 2
 
-    stop_requested: list[int] = []
-
-    def on_signal(signum: int, frame: Any) -> None:
-        # Ctrl-C / SIGTERM asks the spin loop below to stop (it looks every 0.2 s). Raising
-        # KeyboardInterrupt here instead could land inside rclpy's take of a message, where
-        # pybind11 turns it into a RuntimeError traceback and exit code 1. A second signal
-        # interrupts at once (a callback that does not return).
-        if stop_requested:
-            raise KeyboardInterrupt
-        stop_requested.append(signum)
-
     node = None
     code = 0
+    # Ctrl-C / SIGTERM: the spin loop below stops within 0.2 s. The handlers stay installed for
+    # the process's end (close and destroy_node below).
+    stop = StopOnSignal()
     try:
-        signal.signal(signal.SIGTERM, on_signal)
-        # Even where the launcher left SIGINT ignored (as rclpy's own handler would take it).
-        signal.signal(signal.SIGINT, on_signal)
+        stop.__enter__()
         try:
             # rclpy's own SIGINT handler shuts the context down at once, under the feet of
-            # threads still publishing; here Ctrl-C is a KeyboardInterrupt handled below.
+            # threads still publishing; here Ctrl-C sets the stop flag (a second one interrupts).
             rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
         except Exception as exc:  # RCLError: unparsable --ros-args
             print(f'error: {_first_line(exc)}', file=sys.stderr)
@@ -460,7 +400,7 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
 
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
-        while not stop_requested and node.context.ok() and getattr(node, 'exit_code', None) is None:
+        while not stop.requested.is_set() and node.context.ok() and getattr(node, 'exit_code', None) is None:
             executor.spin_once(timeout_sec=0.2)
         code = getattr(node, 'exit_code', None) or 0
     except (KeyboardInterrupt, ExternalShutdownException):

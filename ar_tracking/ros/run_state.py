@@ -7,7 +7,6 @@ share one :class:`RunSession`, and each part reads and books what it needs there
 from __future__ import annotations
 
 import math
-import signal
 import threading
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -15,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..io.bags import BagReader, BagWriter
+from .signals import StopOnSignal  # noqa: F401 - re-exported for the runner
 
 
 def header_stamp_ns(raw: bytes) -> int | None:
@@ -245,34 +245,6 @@ class Recorder:
         for _, _, topic, raw in items:
             self.writer.write(topic, log_time_ns, raw, msgtype=self.topic_types[topic])
             self.count += 1
-
-
-class StopOnSignal:
-    """Within the block, Ctrl-C (SIGINT) and SIGTERM ask the run to stop between two messages.
-
-    Raising KeyboardInterrupt from the handler could land inside the bag writer's bookkeeping
-    and leave a corrupt bag; a flag checked by the playback loops cannot. A second signal
-    raises KeyboardInterrupt at once (for a run stuck somewhere else).
-    """
-
-    def __init__(self) -> None:
-        self.requested = threading.Event()
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> 'StopOnSignal':
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        if self.requested.is_set():
-            raise KeyboardInterrupt
-        self.requested.set()
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, previous in self._previous.items():
-            signal.signal(sig, previous)
 
 
 @dataclass
