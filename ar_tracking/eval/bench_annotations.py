@@ -81,14 +81,12 @@ def _texture(seed: int) -> np.ndarray:
 
 def _as_the_nodes_run() -> None:
     """Limit this process's OpenBLAS pools to one thread, as every node does
-    (``ros/node_base.limit_blas_threads``): the matcher's Walsh product is a small matrix
+    (:func:`ar_tracking.blas.limit_blas_threads`): the matcher's Walsh product is a small matrix
     product, and with other processes on both cores OpenBLAS's worker threads wait for a core on
     every one (one tile took 51-56 ms instead of 0.8 ms on the loaded 2-core machine, session
-    11). Without rclpy (the helper lives with the nodes) the pools stay as they are."""
-    try:
-        from ..ros.node_base import limit_blas_threads
-    except ImportError:
-        return
+    11)."""
+    from ..blas import limit_blas_threads
+
     limit_blas_threads()
 
 

@@ -1,4 +1,4 @@
-"""TrackingNode limits the OpenBLAS thread pools of its process (ros/node_base.limit_blas_threads)."""
+"""TrackingNode limits the OpenBLAS thread pools of its process (ar_tracking/blas.limit_blas_threads)."""
 from __future__ import annotations
 
 import os
