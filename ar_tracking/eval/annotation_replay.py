@@ -21,12 +21,6 @@ from typing import Any, Iterable
 from ..io.bags import BagReader, BagWriter
 from .annotation_metrics import evaluate_annotations
 
-#: The recorded topics the matcher takes, and the ones it publishes (replaced in the copy).
-MATCHER_INPUTS = ('/panorama/image', '/panorama/tiles', '/gps/fix', '/orientation/panorama_in_world',
-                  '/orientation/global', '/panorama/orientation')
-MATCHER_OUTPUTS = ('/annotations/markers', '/annotations/alignment')
-
-
 def replay_matcher(out_bag: str | Path, store_path: str | Path, replayed_bag: str | Path,
                    params: dict[str, Any] | None = None, labels: Iterable[str] | None = None,
                    context: Any = None) -> dict[str, Any] | None:
@@ -52,6 +46,7 @@ def replay_matcher(out_bag: str | Path, store_path: str | Path, replayed_bag: st
         prm = params_for_node('annotation_matcher', [])
         prm.update({'store_path': str(store_path), **(params or {})})
         node = AnnotationMatcherNode(context=context, parameter_overrides=to_overrides(prm))
+        outputs = {'/' + t.lstrip('/'): ty for t, ty in AnnotationMatcherNode.OUTPUTS.items()}
         published: list[tuple[str, Any]] = []
         node.pub_markers.publish = lambda m: published.append(('/annotations/markers', m))  # type: ignore[method-assign]
         node.pub_alignment.publish = lambda m: published.append(('/annotations/alignment', m))  # type: ignore[method-assign]
@@ -59,17 +54,14 @@ def replay_matcher(out_bag: str | Path, store_path: str | Path, replayed_bag: st
                      '/orientation/panorama_in_world': node.on_panorama_in_world,
                      '/orientation/global': node.on_global, '/panorama/orientation': node.on_panorama_orientation}
         with BagReader(out_bag) as bag, BagWriter(replayed_bag, overwrite=True) as writer:
-            types = bag.topics
             for msg in bag.messages():
-                if msg.topic in MATCHER_OUTPUTS:
+                if msg.topic in outputs:
                     continue
                 writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
                 if msg.topic in callbacks:
                     callbacks[msg.topic](deserialize_message(bytes(msg.rawdata), message_class(msg.msgtype)))
                     for topic, out in published:
-                        msgtype = types.get(topic) or ('visualization_msgs/msg/MarkerArray' if topic.endswith('markers')
-                                                       else 'geometry_msgs/msg/TransformStamped')
-                        writer.write(topic, msg.log_time_ns, serialize_message(out), msgtype=msgtype)
+                        writer.write(topic, msg.log_time_ns, serialize_message(out), msgtype=outputs[topic])
                     published.clear()
     finally:
         if node is not None:
