@@ -53,13 +53,8 @@ class IntervalModel:
     a0: Array
     a1: Array
     tau: float | None = None
-    alpha_before: Array | None = None
-    alpha_after: Array | None = None
     jerk_before: Array | None = None
     jerk_after: Array | None = None
-
-    def rate_at(self, u: float) -> Array:
-        return _piecewise(u, self.dt, self.w0, self.w1, self.tau, self.alpha_before, self.alpha_after)
 
     def means(self, u0: float, u1: float) -> tuple[Array, Array]:
         """Mean rate (the straight line between the samples) and mean specific force (stepped
@@ -88,7 +83,7 @@ def interval_model(dt: float, w: tuple[Array | None, Array, Array, Array | None]
     # w1 - w0 = alpha_b tau + alpha_a (dt - tau)  ->  tau (least squares over the axes)
     tau = float(d_alpha @ (w1 - w0 - alpha_a * dt)) / n2
     tau = min(max(tau, 0.0), dt)
-    return IntervalModel(dt, w0, w1, a0, a1, tau, alpha_b, alpha_a, (a0 - am2) / dt, (ap1 - a1) / dt)
+    return IntervalModel(dt, w0, w1, a0, a1, tau, (a0 - am2) / dt, (ap1 - a1) / dt)
 
 
 def _piecewise(u: float, dt: float, y0: Array, y1: Array, tau: float | None,
