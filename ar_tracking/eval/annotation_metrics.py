@@ -76,9 +76,6 @@ class _Truth:
             raise ValueError('truth orientation asked outside its time span')
         return R
 
-    def position(self, t: int) -> np.ndarray:
-        return np.array([np.interp(float(t), self.t.astype(float), self.p[:, i]) for i in range(3)])
-
     def standing_spot(self) -> np.ndarray:
         """:func:`standing_spot` of these samples."""
         return standing_spot(self.p, self.R(list(self.t)))
@@ -274,27 +271,33 @@ def simulated_user_positions(bag_path: str | Path, border_px: float = 2.0) -> Ca
         raise BagError(f'{bag_path}: no ground-truth anchors or orientation to simulate the user with')
     spot = truth.standing_spot()
 
-    def seen(first_stamp_ns: int, p: np.ndarray) -> bool:
-        """Whether a frame from ``first_stamp_ns`` on sees ``p`` from the spot."""
+    def seen_by(first_stamp_ns: int) -> Callable[[np.ndarray], bool]:
+        """Whether a frame from ``first_stamp_ns`` on sees a point from the spot (the frames'
+        orientations slerped once for every anchor)."""
         if frames is None:
-            return True
+            return lambda p: True
         stamps, K, (h, w) = frames
         ts = stamps[(stamps >= first_stamp_ns) & (stamps <= truth.t[-1])]
         if ts.size == 0:
-            return False
-        d = truth.R(list(ts)).transpose(0, 2, 1) @ (p - spot)  # camera coordinates
-        z = d[:, 2]
-        with np.errstate(divide='ignore', invalid='ignore'):
-            x = K[0, 0] * d[:, 0] / z + K[0, 2]
-            y = K[1, 1] * d[:, 1] / z + K[1, 2]
-        return bool(np.any((z > 0) & (x >= border_px) & (x <= w - 1 - border_px)
-                           & (y >= border_px) & (y <= h - 1 - border_px)))
+            return lambda p: False
+        R_cam_enu = truth.R(list(ts)).transpose(0, 2, 1)
+
+        def seen(p: np.ndarray) -> bool:
+            d = R_cam_enu @ (p - spot)  # camera coordinates
+            z = d[:, 2]
+            with np.errstate(divide='ignore', invalid='ignore'):
+                x = K[0, 0] * d[:, 0] / z + K[0, 2]
+                y = K[1, 1] * d[:, 1] / z + K[1, 2]
+            return bool(np.any((z > 0) & (x >= border_px) & (x <= w - 1 - border_px)
+                               & (y >= border_px) & (y <= h - 1 - border_px)))
+        return seen
 
     def at(first_stamp_ns: int) -> list[Any]:
         R_enu_pano = truth.R([first_stamp_ns])[0]  # the panorama frame is the first frame's camera
+        seen = seen_by(first_stamp_ns)
         out = []
         for label, p in zip(labels, positions):
-            if not seen(first_stamp_ns, p):
+            if not seen(p):
                 continue
             d = R_enu_pano.T @ (p - spot)
             out.append(Position(label, math.degrees(math.atan2(d[0], d[2])),
