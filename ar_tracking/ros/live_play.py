@@ -13,6 +13,7 @@ import time
 from collections import defaultdict
 from typing import Any, Callable
 
+from .conversions import to_stamp
 from .node_process import NodeProcessError
 from .graph_plan import RunError
 from .run_state import Recorder, DeliveryLedger, RunResult, RunSession, header_stamp_ns
@@ -79,8 +80,6 @@ class RealtimePlayback:
 
     def _publish(self, msg: Any) -> None:
         """Publish one bag message: /clock, the copy to the output bag, the feed."""
-        from .conversions import to_stamp
-
         s = self.s
         s.clock_ns[0] = msg.log_time_ns
         s.clock_pub.publish(to_stamp(msg.log_time_ns, self.clock.clock) and self.clock)
