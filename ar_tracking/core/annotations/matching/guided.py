@@ -18,6 +18,8 @@ from .placement import Alignment, Placement, place_annotations
 from .tiles import Candidate
 
 Array = NDArray[np.float64]
+#: NCC of a patch around a position: (ncc, column offsets, row offsets, inside mask)
+NccWindow = tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]]
 
 
 class GuidedSearch:
@@ -31,6 +33,9 @@ class GuidedSearch:
     R_enu_target: Array | None
     _patches: dict[int, NDArray[np.float32]]
     _map: tuple[NDArray[np.float32], NDArray[np.bool_] | None] | None
+    #: :meth:`_window_ncc` results of the current :meth:`_finish` (the look-alike test asks for
+    #: the window the guided search of the same placement has just computed)
+    _ncc_windows: dict[tuple[int, float, float, float, float | None], NccWindow | None]
 
     def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
                 v_tol: float | None = None, config: MatchConfig | None = None) -> None:
@@ -62,6 +67,15 @@ class GuidedSearch:
         p.score = float(res[y, x])
 
     def _window_ncc(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
+                    ) -> tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]] | None:
+        """:meth:`_ncc_window`, once per arguments within one :meth:`_finish` (the map does not
+        change there; the callers do not modify the arrays)."""
+        key = (index, cu, cv_, radius_px, v_tol)
+        if key not in self._ncc_windows:
+            self._ncc_windows[key] = self._ncc_window(index, cu, cv_, radius_px, v_tol)
+        return self._ncc_windows[key]
+
+    def _ncc_window(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
                     ) -> tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]] | None:
         """NCC (TM_CCOEFF_NORMED) of patch ``index`` at every position within ``radius_px`` of
         (cu, cv_) (and ``v_tol`` above or below): (ncc, column offsets, row offsets from (cu, cv_),
@@ -130,6 +144,14 @@ class GuidedSearch:
         """Make the placements' indices global and re-detect them guided; with a gravity-
         constrained alignment and enough matches, the parallax model: fitted on the matches,
         then every annotation placed and guided again around its corrected position."""
+        self._ncc_windows = {}
+        try:
+            self._finish_on_map(al, ids, cands)
+        finally:
+            self._ncc_windows = {}
+
+    def _finish_on_map(self, al: Alignment, ids: list[int], cands: list[list[Candidate]]) -> None:
+        """:meth:`_finish` on the current map (its NCC windows memoised)."""
         cfg, geo = self.config, self.geometry
         R = al.R_target_source
         src = self.source_dirs[ids]
