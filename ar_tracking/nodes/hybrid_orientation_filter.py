@@ -48,20 +48,14 @@ from ..ros.conversions import (
     to_stamp,
 )
 from ..ros.node_base import RELIABLE_QOS, RELIABLE_STREAM_QOS, STREAM_QOS, TrackingNode, run_node
-from ..ros.param_table import IMU_CALIBRATION_PARAMS, ParamSpec, declare_params, frame_name, imu_calibration
+from ..ros.param_table import (IMU_CALIBRATION_PARAMS, ParamSpec, declare_params, frame_name, imu_calibration,
+                               unit_quaternion)
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamped
 
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
 _EXTRINSIC_WARN_RAD = np.radians(1.0)
-
-
-def _unit_quat(v: Any) -> str | None:
-    if len(v) != 4:
-        return f'needs 4 values (x, y, z, w), got {len(v)}'
-    norm = float(np.linalg.norm(np.asarray(v, dtype=float)))
-    return None if abs(norm - 1.0) < 1e-3 else f'not a unit quaternion (norm {norm:.4g})'
 
 
 _ALIGN = WorldAlignmentConfig()
@@ -75,7 +69,7 @@ PARAMS = (
               read_only=True, validate=lambda v: None if v in INPUT_TYPES else 'must be transform or pose'),
     ParamSpec('imu_to_camera_quat_xyzw', [1.0, 0.0, 0.0, 0.0],
               'Rotation imu -> camera_optical (R_imu_cam, x y z w), used when no /tf_static gives it; default the '
-              'phone: diag(1, -1, -1)', read_only=True, validate=_unit_quat),
+              'phone: diag(1, -1, -1)', read_only=True, validate=unit_quaternion),
     ParamSpec('camera_frame_id', 'camera_optical',
               'frame_id of orientation/global (the camera; the TF child frame)', validate=frame_name),
     ParamSpec('world_frame_id', 'enu',

@@ -44,7 +44,7 @@ from ..ros.conversions import (
     stamp_ns,
 )
 from ..ros.node_base import RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
-from ..ros.param_table import ParamSpec, declare_params, one_of
+from ..ros.param_table import ParamSpec, declare_params, length_is, one_of
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, transform_stamped
 
@@ -69,7 +69,7 @@ PARAMS = (
               read_only=True, validate=one_of(LENS_KINDS, 'use one of')),
     ParamSpec('eq2_k', [0.0, 0.0, 0.0],
               'k1, k2, k3 of the eq. 2 lens model on the normalised image plane',
-              validate=lambda v: None if len(v) == 3 else 'needs 3 values'),
+              validate=length_is(3)),
     ParamSpec('marker_map_file', '',
               'YAML marker map: frame_id, markers [{id, size_m, position, orientation_xyzw}]', read_only=True),
     ParamSpec('marker_map', '',

@@ -46,25 +46,13 @@ from ..ros.node_base import (
     TrackingNode,
     run_node,
 )
-from ..ros.param_table import ParamSpec, declare_params
+from ..ros.param_table import ParamSpec, declare_params, length_is, unit_quaternion
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import subscribe_static_transforms
 
 #: /tf_static and the parameters disagree enough for a warning (rotation rad, lever arm m).
 _MOUNT_WARN_RAD = np.radians(1.0)
 _MOUNT_WARN_M = 0.005
-
-
-def _unit_quat(v: Any) -> str | None:
-    if len(v) != 4:
-        return 'needs 4 values (x, y, z, w)'
-    if abs(float(np.linalg.norm(v)) - 1.0) > 1e-3:
-        return 'is not a unit quaternion'
-    return None
-
-
-def _len3(v: Any) -> str | None:
-    return None if len(v) == 3 else 'needs 3 values'
 
 
 _NOISE = FilterNoise()
@@ -95,8 +83,8 @@ PARAMS = (
               'Accelerometer bias 1-sigma at initialisation, m/s^2', min_value=1e-9, max_value=10.0),
     ParamSpec('imu_to_camera_xyzw', [0.0, 0.0, 0.0, 1.0],
               'R_imu_cam as a quaternion (x, y, z, w): rotates camera_optical vectors into the IMU frame (the '
-              '/tf_static imu -> camera_optical)', validate=_unit_quat),
-    ParamSpec('camera_in_imu_m', [0.0, 0.0, 0.0], 'Position of the camera origin in the IMU frame, m', validate=_len3),
+              '/tf_static imu -> camera_optical)', validate=unit_quaternion),
+    ParamSpec('camera_in_imu_m', [0.0, 0.0, 0.0], 'Position of the camera origin in the IMU frame, m', validate=length_is(3)),
     ParamSpec('position_sigma_m', _FUSION.position_sigma_m,
               'Camera position noise 1-sigma when markers/pose has no covariance, and added to it, m',
               min_value=1e-6, max_value=10.0),

@@ -43,6 +43,14 @@ def length_is(n: int) -> Validator:
     return lambda v: None if len(v) == n else f'needs {n} values, got {len(v)}'
 
 
+def unit_quaternion(v: Any) -> str | None:
+    """Parameter validator: a unit quaternion (x, y, z, w), norm within 1e-3 of one."""
+    if len(v) != 4:
+        return f'needs 4 values (x, y, z, w), got {len(v)}'
+    norm = float(np.linalg.norm(np.asarray(v, dtype=float)))
+    return None if abs(norm - 1.0) < 1e-3 else f'not a unit quaternion (norm {norm:.4g})'
+
+
 def invertible_3x3(v: Any) -> str | None:
     """Parameter validator: a row-major 3x3 matrix that can be inverted."""
     if len(v) != 9:
