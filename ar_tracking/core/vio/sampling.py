@@ -17,7 +17,9 @@ kinks there. With the slopes before (samples k-2, k-1) and after (k, k+1) the in
 gives the kink time tau. Where the rate kinks, the specific force steps: it is modelled as
 following its own trend before tau (from a_k-2, a_k-1) and after tau (from a_k, a_k+1), which
 is exact for the step of alpha x r and for anything linear on either side. The model needs the
-sample after the interval: the roll-back re-integrates the previous interval when it arrives.
+sample after the interval: until it arrives an interval is integrated as a trapezoid, and the
+roll-back integrates it again when that sample finds a kink there (without one the model is the
+same trapezoid, so the first integration stands).
 
 The rate itself keeps the straight line between its samples: it is continuous at the kink, so
 the trapezoid's error there is second order (alpha-step dt^2 / 8, ~0.05 deg per pan start),
