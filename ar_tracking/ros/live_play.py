@@ -16,7 +16,7 @@ from typing import Any, Callable
 from .conversions import to_stamp
 from .node_process import NodeProcessError
 from .graph_plan import RunError
-from .run_state import Recorder, DeliveryLedger, RunResult, RunSession, header_stamp_ns
+from .run_state import DRAIN_MAX_S, DRAIN_QUIET_S, DeliveryLedger, Recorder, RunResult, RunSession, header_stamp_ns
 
 # The runner's logger: users (and tests) filter the runner's messages by this name.
 logger = logging.getLogger('ar_tracking.ros.runner')
@@ -24,10 +24,6 @@ logger = logging.getLogger('ar_tracking.ros.runner')
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
 #: Realtime without a camera: the inputs whose stamps the latency is measured from.
 SENSOR_STAMP_TYPES = ('sensor_msgs/msg/Imu', 'sensor_msgs/msg/MagneticField')
-#: Realtime: after the last input, spin until the nodes have processed nothing more for
-#: this long (their queues are empty), at most DRAIN_MAX_S.
-DRAIN_QUIET_S = 0.5
-DRAIN_MAX_S = 10.0
 
 
 def latency_stamp_topics(feed_pubs: dict[str, Any], bag_types: dict[str, str]) -> set[str]:
@@ -54,9 +50,7 @@ class RealtimePlayback:
     """
 
     def __init__(self, session: RunSession, *, rate: float, max_messages: int | None,
-                 progress: Callable[[int, int], None] | None, stop: threading.Event,
-                 published_wall: dict[int, float], drain_quiet_s: float = DRAIN_QUIET_S,
-                 drain_max_s: float = DRAIN_MAX_S) -> None:
+                 progress: Callable[[int, int], None] | None, stop: threading.Event) -> None:
         from rosgraph_msgs.msg import Clock
 
         self.s = session
@@ -66,9 +60,9 @@ class RealtimePlayback:
         #: the run's stop request (a signal): ends the playback without a drain
         self.stop = stop
         #: input header stamp (ns) -> perf_counter when the player published it
-        self.published_wall = published_wall
-        self.drain_quiet_s = drain_quiet_s
-        self.drain_max_s = drain_max_s
+        self.published_wall = session.published_wall
+        self.drain_quiet_s = session.drain_quiet_s
+        self.drain_max_s = session.drain_max_s
         self.clock = Clock()
         self.finished = threading.Event()
         self.stop_nodes = threading.Event()

@@ -44,8 +44,7 @@ from typing import Any, Callable
 from ..io.bags import TF_STATIC_TOPIC, BagReader, BagWriter, static_transforms
 from .graph_plan import (EXECUTOR_CHOICES, GRAPH_CHOICES, GRAPH_NODES, NAMED_GRAPHS, ROTATION_IN_PLACE_TOPIC,
                          RunError, check_rate, choose_nodes, load_node_class, plan_nodes, transport_probe_graph)
-from .live_play import (DRAIN_MAX_S, DRAIN_QUIET_S, IMAGE_TYPES, SENSOR_STAMP_TYPES, RealtimePlayback,
-                        best_effort_outputs, connect_node_processes, latency_stamp_topics, live_report,
+from .live_play import (IMAGE_TYPES, SENSOR_STAMP_TYPES, RealtimePlayback, best_effort_outputs, connect_node_processes, latency_stamp_topics, live_report,
                         stop_node_processes)
 from .node_process import NodeProcess
 from .params import params_for_node, to_overrides
@@ -155,8 +154,6 @@ class GraphRunner:
         self._ledger = DeliveryLedger()
         self._stop = threading.Event()
         self._consecutive_losses: dict[str, int] = {}
-        #: realtime: input header stamp (ns) -> perf_counter when the player published it
-        self._published_wall: dict[int, float] = {}
 
     # -- setup ------------------------------------------------------------------------------
 
@@ -186,6 +183,7 @@ class GraphRunner:
         realtime = self.rate > 0
         session = RunSession(reader, result, realtime=realtime,
                              in_processes=realtime and self.executor_kind == 'processes')
+        session.lockstep_hooks = self._hooks()
         try:
             self._start_nodes(session, names, node_params, context, domain_id)
             self._wire(session, names, context)
@@ -217,7 +215,8 @@ class GraphRunner:
         return names, {**skipped, **ruled_out}, node_params
 
     def _hooks(self) -> Any:
-        """The lockstep hooks every in-process node reports deliveries through (None in realtime)."""
+        """The lockstep hooks every in-process node reports deliveries through (None in realtime):
+        built once per run into ``RunSession.lockstep_hooks``."""
         from .node_base import LockstepHooks
 
         ledger = self._ledger
@@ -228,7 +227,7 @@ class GraphRunner:
         """Build the processing nodes (or start their processes) into ``s.nodes``, and hand
         in-process nodes the bag's static transforms."""
         reader = s.reader
-        hooks = self._hooks()
+        hooks = s.lockstep_hooks
         transforms = static_transforms(reader) if s.in_processes and TF_STATIC_TOPIC in reader.topics else []
         for name in names:
             params = dict(node_params[name])
@@ -256,7 +255,7 @@ class GraphRunner:
         from .node_base import RELIABLE_QOS, TrackingNode
 
         bag_types = s.reader.topics
-        hooks = self._hooks()
+        hooks = s.lockstep_hooks
         consumed = {t for n in s.nodes for t in _node_class(n).INPUTS}
         produced = {t for n in s.nodes for t in _node_class(n).OUTPUTS}
         output_types: dict[str, str] = {}
@@ -306,7 +305,6 @@ class GraphRunner:
         })
         s.recorder = Recorder(writer, output_types)
         s.clock_ns = [s.reader.start_ns]
-        self._published_wall = {}
         # The recorder keeps every message (KEEP_ALL) with the reliability its publishers offer
         # (as rosbag2: a reliable reader never matches a best-effort publisher).
         best_effort = best_effort_outputs(s.nodes)
@@ -326,7 +324,7 @@ class GraphRunner:
             return lambda raw: recorder.add(topic, raw)
         measure = topic == LATENCY_TOPIC
         latencies = s.result.live_latency_ms
-        published_wall = self._published_wall
+        published_wall = s.published_wall
 
         def record_now(raw: bytes) -> None:
             if measure:  # before the writer lock: receipt, not recording, time
@@ -371,8 +369,7 @@ class GraphRunner:
                 if s.realtime:
                     s.stamp_topics = latency_stamp_topics(s.feed_pubs, s.reader.topics)
                     RealtimePlayback(s, rate=self.rate, max_messages=self.max_messages, progress=self.progress,
-                                     stop=self._stop, published_wall=self._published_wall,
-                                     drain_quiet_s=self.DRAIN_QUIET_S, drain_max_s=self.DRAIN_MAX_S).run()
+                                     stop=self._stop).run()
                 else:
                     self._play_lockstep(s)
             result.interrupted = stop.requested.is_set()
@@ -387,7 +384,7 @@ class GraphRunner:
         result, ledger = s.result, self._ledger
         assert s.recorder is not None
         if s.in_processes:
-            stop_node_processes(s.nodes, s.executor, s.recorder, self.DRAIN_QUIET_S, self.DRAIN_MAX_S)
+            stop_node_processes(s.nodes, s.executor, s.recorder, s.drain_quiet_s, s.drain_max_s)
         result.output_messages = s.recorder.count
         if s.realtime:
             live_report(s.nodes, result)
@@ -593,8 +590,3 @@ class GraphRunner:
             for topic, n in sorted(topics.items()):
                 logger.warning('%s: %d messages on %s dropped: a burst overflowed its queue', node, n, topic)
 
-    # -- realtime --------------------------------------------------------------------------
-    #: Realtime: after the last input, spin until the nodes have processed nothing more for
-    #: this long (their queues are empty), at most DRAIN_MAX_S (see live_play).
-    DRAIN_QUIET_S = DRAIN_QUIET_S
-    DRAIN_MAX_S = DRAIN_MAX_S
