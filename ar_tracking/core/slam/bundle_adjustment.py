@@ -282,6 +282,42 @@ def _ordering(prob: _Problem) -> gtsam.Ordering:
     return order
 
 
+@dataclass
+class _Start:
+    """A bundle-adjustment problem and its initial poses and points (arrays in the problem's
+    keyframe and point order): what :func:`bundle_adjust` and :func:`prepare_lm` both start from."""
+
+    prob: _Problem
+    R0: Array    # (K, 3, 3) R_c_w
+    t0: Array    # (K, 3) t_c_w
+    P0: Array    # (N, 3)
+
+
+def _start(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | Iterable[MapPoint],
+           fixed_kf_ids: Iterable[int]) -> _Start:
+    pts = _points_mapping(points)
+    prob = _build_problem(keyframes, pts, set(int(k) for k in fixed_kf_ids), set())
+    kf_by_id = {kf.id: kf for kf in keyframes}
+    R0 = np.array([np.asarray(kf_by_id[k].R_c_w, float) for k in prob.kf_ids]).reshape(-1, 3, 3)
+    t0 = np.array([np.asarray(kf_by_id[k].t_c_w, float) for k in prob.kf_ids]).reshape(-1, 3)
+    P0 = np.array([pts[p] for p in prob.point_ids], float).reshape(-1, 3)
+    return _Start(prob, R0, t0, P0)
+
+
+def _initial_values(start: _Start) -> gtsam.Values:
+    """The gtsam values of the start (poses as camera-in-world Pose3)."""
+    values = gtsam.Values()
+    for i, k in enumerate(start.prob.kf_ids):
+        values.insert(X(k), pose_to_gtsam(start.R0[i], start.t0[i]))
+    for i, p in enumerate(start.prob.point_ids):
+        values.insert(L(p), start.P0[i])
+    return values
+
+
+def _calibration(camera: Camera) -> gtsam.Cal3_S2:
+    return gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
+
+
 def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | Iterable[MapPoint],
                   camera: Camera, fixed_kf_ids: Iterable[int] = (), iterations: int = 10, *,
                   robust: str = 'tukey', tukey_c: float = TUKEY_C, huber_k: float = HUBER_K,
@@ -305,13 +341,8 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
     """
     step = checkpoint if checkpoint is not None else (lambda _s: None)
     t_start = time.perf_counter()
-    pts = _points_mapping(points)
-    fixed = set(int(k) for k in fixed_kf_ids)
-    prob = _build_problem(keyframes, pts, fixed, set())
-    kf_by_id = {kf.id: kf for kf in keyframes}
-    R0 = np.array([np.asarray(kf_by_id[k].R_c_w, float) for k in prob.kf_ids]).reshape(-1, 3, 3)
-    t0 = np.array([np.asarray(kf_by_id[k].t_c_w, float) for k in prob.kf_ids]).reshape(-1, 3)
-    P0 = np.array([pts[p] for p in prob.point_ids], float).reshape(-1, 3)
+    start = _start(keyframes, points, fixed_kf_ids)
+    prob, R0, t0, P0 = start.prob, start.R0, start.t0, start.P0
     d0 = _whitened_residuals(prob, camera, R0, t0, P0)
 
     def result(R: Array, t: Array, P: Array, d: Array, c: float, its: int, conv: bool,
@@ -319,7 +350,7 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
         w = robust_weights(d, robust, c)
         keys = [(prob.kf_ids[a], prob.point_ids[b]) for a, b in zip(prob.kf_index, prob.pt_index)]
         poses = {k: (R[i].copy(), t[i].copy()) for i, k in enumerate(prob.kf_ids)}
-        for k in fixed & set(prob.kf_ids):       # fixed poses are returned exactly as given
+        for k in prob.fixed & set(prob.kf_ids):       # fixed poses are returned exactly as given
             poses[k] = (R0[prob.kf_ids.index(k)].copy(), t0[prob.kf_ids.index(k)].copy())
         return BAResult(
             poses=poses, points={p: P[i].copy() for i, p in enumerate(prob.point_ids)},
@@ -334,12 +365,8 @@ def bundle_adjust(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | I
     if len(prob.point_ids) == 0 or iterations <= 0:
         return result(R0, t0, P0, d0, c, 0, True, False)
 
-    K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
-    values = gtsam.Values()
-    for i, k in enumerate(prob.kf_ids):
-        values.insert(X(k), pose_to_gtsam(R0[i], t0[i]))
-    for i, p in enumerate(prob.point_ids):
-        values.insert(L(p), P0[i])
+    K = _calibration(camera)
+    values = _initial_values(start)
     ordering = _ordering(prob)
 
     its = 0
@@ -422,16 +449,12 @@ class PreparedLM:
 def prepare_lm(keyframes: Sequence[Keyframe], points: Mapping[int, Array] | Iterable[MapPoint],
                camera: Camera, fixed_kf_ids: Iterable[int] = (), *, robust: str = 'tukey',
                c: float = TUKEY_C * 10.0) -> PreparedLM:
-    """The graph :func:`bundle_adjust` optimises in one stage, with the kernel width ``c``."""
-    pts = _points_mapping(points)
-    p = _build_problem(keyframes, pts, set(fixed_kf_ids), set())
-    values = gtsam.Values()
-    for kf in keyframes:
-        values.insert(X(kf.id), pose_to_gtsam(kf.R_c_w, kf.t_c_w))
-    for pid in p.point_ids:
-        values.insert(L(pid), pts[pid])
-    K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
-    graph = _build_graph(p, camera, K, robust, c, values)
+    """The graph :func:`bundle_adjust` optimises in one stage, with the kernel width ``c``
+    (built by the same steps: :func:`_start`, :func:`_initial_values`, :func:`_build_graph`)."""
+    start = _start(keyframes, points, fixed_kf_ids)
+    p = start.prob
+    values = _initial_values(start)
+    graph = _build_graph(p, camera, _calibration(camera), robust, c, values)
     return PreparedLM(graph, values, _ordering(p), len(p.kf_ids), len(p.point_ids), len(p.uv))
 
 
