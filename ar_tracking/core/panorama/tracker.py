@@ -23,6 +23,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from ..box_sums import window_box_sums
 from ..rotations import align_directions
 from .cylinder import camera_rays, project_to_image
 from .map import PanoramaMap
@@ -98,24 +99,6 @@ def _kabsch_batch(b: Array, d: Array) -> Array:
     return U @ Vt
 
 
-def _window_sums(windows: NDArray[np.uint8], P: int) -> tuple[Array, Array]:
-    """Sums of the values and of their squares of every P x P sub-window of n S x S windows
-    (``windows`` (n, S, S)): two (n, S - P + 1, S - P + 1) float64 arrays, from integral images
-    (integers: exact in float64, the same values as summing each sub-window). One cv2.integral2
-    of the windows stacked with a zero row above each (so that each block's integral starts
-    afresh), then four shifted views per keypoint."""
-    n, S, _ = windows.shape
-    side = S - P + 1
-    stacked = np.zeros((n, S + 1, S), np.uint8)
-    stacked[:, 1:] = windows
-    total, squares = cv2.integral2(stacked.reshape(n * (S + 1), S), sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-    out: list[Array] = []
-    for integral in (total, squares):
-        ii: Array = np.asarray(integral, np.float64)[1:].reshape(n, S + 1, S + 1)
-        out.append(ii[:, P:, P:] - ii[:, P:, :side] - ii[:, :side, P:] + ii[:, :side, :side])
-    return out[0], out[1]
-
-
 def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
     """Mean of the central 1 - 2 * trim of the values (robust to a few bad pairs) and its
     standard error (spread of the kept values / sqrt(kept))."""
@@ -186,7 +169,7 @@ class ActiveSearchTracker:
         num = np.matmul(views, Tz.astype(np.float32).reshape(n, P * P, 1)).reshape(n, side, side).astype(np.float64)
         # Window sums of the values and their squares from integral images: integers, exact in
         # float64 (the same values as summing each window, at a fifth of the time).
-        box, box2 = _window_sums(Wu, P)
+        box, box2 = window_box_sums(Wu, P)
         var = np.maximum(box2 - box * box / (P * P), 0.0)
         denom = np.sqrt(var) * t_norm[:, None, None]
         ncc = np.where(denom > 1e-6 * P * P, num / np.maximum(denom, 1e-12), -1.0)

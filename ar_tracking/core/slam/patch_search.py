@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from ..box_sums import window_box_sums
 from .camera import Camera, level0_to_level, level_to_level0
 
 log = logging.getLogger(__name__)
@@ -184,15 +185,6 @@ def _circle(radius: float) -> tuple[int, NDArray[np.bool_]]:
 _CIRCLES: dict[float, tuple[int, NDArray[np.bool_]]] = {}
 
 
-def _box_sums(ii: Array, m: int, W: int, P: int, k: int) -> Array:
-    """(m, k, k) sums of the P x P boxes at every offset of m (W, W) windows stacked vertically
-    whose integral image (m W + 1, W + 1) is ``ii`` (strided views, no gathers)."""
-    rs, cs = ii.strides
-    def view(r: int, c: int) -> Array:
-        return np.lib.stride_tricks.as_strided(ii[r:, c:], (m, k, k), (W * rs, rs, cs), writeable=False)
-    return view(P, P) - view(0, P) - view(P, 0) + view(0, 0)
-
-
 def search(image: Image, templates: NDArray[np.float32], uv_pred: Array, config: SearchConfig | None = None,
            coarse: bool = False, radius: float | None = None) -> tuple[NDArray[np.bool_], Array, Array]:
     """Exhaustive ZSSD search of (PATCH+2)^2 templates in a circle around ``uv_pred`` (level pixels).
@@ -237,10 +229,7 @@ def search(image: Image, templates: NDArray[np.float32], uv_pred: Array, config:
     for i in range(1, P):
         cross += R[:, i:i + k, :, i]
     # Window sums and sums of squares: one integral image of all windows stacked vertically.
-    ii, ii2 = cv2.integral2(win.reshape(m * W, W), sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-    # CV_64F integrals: np.asarray only narrows OpenCV's MatLike type (no copy).
-    s1 = _box_sums(np.asarray(ii, dtype=np.float64), m, W, P, k)
-    s2 = _box_sums(np.asarray(ii2, dtype=np.float64), m, W, P, k)
+    s1, s2 = window_box_sums(win, P)
     zssd = s2 - s1 * s1 / (P * P) - 2.0 * cross + (Tzi.astype(np.float64) ** 2).sum(1)[:, None, None]
     zssd = np.where(circle[None], zssd, np.inf)
     flat = zssd.reshape(m, -1).argmin(1)
