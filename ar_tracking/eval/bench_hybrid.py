@@ -25,13 +25,16 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..core.rotations import heading_tilt_error_deg, interpolate_rotations, quat_wxyz_to_xyzw, quat_xyzw_to_matrix
 from . import SHARED_DATA
+
+if TYPE_CHECKING:
+    from .metrics import BagOrientations
 
 logger = logging.getLogger(__name__)
 
@@ -435,15 +438,19 @@ def _nees(path: Path, topic: str = '/orientation/global') -> float | None:
     return round(float(np.mean(values)), 3) if values else None
 
 
-def heading_split(path: Path, split_s: float = 2.0,
+def heading_split(data: BagOrientations | str | Path, split_s: float = 2.0,
                   topics: tuple[str, ...] = ('/orientation/global', '/imu/data')) -> dict[str, Any]:
     """Heading RMSE (deg) of each topic before and after ``split_s`` seconds from the truth's first
     stamp: the first seconds are when the phone has barely turned, so the residual hard iron (an
     offset fixed in the phone) cannot yet be told apart from the field's own direction; past
-    them the figure shows what the estimator does once the session holds some rotation."""
-    from .metrics import load_orientations, orientation_errors
+    them the figure shows what the estimator does once the session holds some rotation.
 
-    data = load_orientations(path)
+    ``data``: the orientations already read from an output bag (:func:`.metrics.load_orientations`;
+    the bench has them from scoring the bag), or the bag's path (then read here)."""
+    from .metrics import BagOrientations, load_orientations, orientation_errors
+
+    if not isinstance(data, BagOrientations):
+        data = load_orientations(data)
     out: dict[str, Any] = {}
     for topic in topics:
         est = data.estimates.get(topic)
@@ -491,7 +498,9 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
     panorama_mapper, hybrid_orientation_filter), evaluate."""
     from ..ros.runner import GraphRunner
     from ..sim.bagmaker import make_bag
-    from .evaluate import evaluate_all
+    from .evaluate import source_bag_of
+    from .metrics import evaluate_orientations, load_orientations, score
+    from .reference_ahrs import vqf_reference
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -506,14 +515,20 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
         out = workdir / f'rotation_sweep_{tag}.out.mcap'
         GraphRunner(bag, out, params_files=[sidecar] if sidecar.exists() else [],
                     nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter']).run()
-        m = evaluate_all(out)['orientation']
+        # the orientation part of evaluate_all (the estimates and the VQF reference row), from
+        # one read of the output bag that heading_split below reuses
+        data = load_orientations(out)
+        m = evaluate_orientations(data)['orientation']
+        ref = vqf_reference(out, source_bag_of(out))
+        if ref is not None:
+            m['reference/vqf'] = score(data.truth, ref, 0, 'none')
         keys = ('heading_rmse_deg', 'tilt_rmse_deg', 'max_deg', 'n')
-        row = {name: {k: m.get(topic, {}).get(k) for k in keys}
+        row: dict[str, Any] = {name: {k: m.get(topic, {}).get(k) for k in keys}
                for name, topic in (('hybrid', 'orientation/global'), ('sensor_only', 'imu/data'), ('vqf', 'reference/vqf'))}
         row['hybrid_nees_mean'] = _nees(out)
         h, v = row['hybrid']['heading_rmse_deg'], row['vqf']['heading_rmse_deg']
         row['hybrid_over_vqf_heading'] = round(h / v, 4) if h is not None and v else None
-        row['heading_split'] = heading_split(out)
+        row['heading_split'] = heading_split(data)
         if profile in (None, 'hard'):
             row['compass_floor_first_1s_deg'] = compass_floor_deg(seed, duration_s)
         rows[str(seed)] = row
