@@ -43,6 +43,14 @@ EDR_SCALE = 64.0
 EDR_OFFSET = 256.0
 
 
+def _nonzero_2d(mask: NDArray[np.bool_]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """``np.nonzero`` of a 2-D mask (rows, columns, in row-major order), from the flat indices:
+    the same arrays at a fraction of the time (numpy's 2-D nonzero took ~120 us on a frame's
+    footprint of ~95,000 map pixels, even with none set; this ~6 us)."""
+    rows, cols = np.divmod(np.flatnonzero(mask), mask.shape[1])
+    return rows, cols
+
+
 @dataclass(frozen=True)
 class MapConfig:
     """Map layout and the mapping / keypoint parameters."""
@@ -289,7 +297,7 @@ class PanoramaMap:
         (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, gray.shape[:2])
         if v1 <= v0:
             return None
-        ri, ci = np.nonzero(self._columns(self.mapped, u0, u1, v0, v1)[::step, ::step] & seen[::step, ::step])
+        ri, ci = _nonzero_2d(self._columns(self.mapped, u0, u1, v0, v1)[::step, ::step] & seen[::step, ::step])
         if ri.size == 0:
             return None
         old = self._in_frame(K, R_pano_cam, gray.shape[:2], (u0 + ci * step) % self.config.width, v0 + ri * step)
@@ -303,7 +311,7 @@ class PanoramaMap:
         (u0, u1, v0, v1), seen = self.footprint_mask(K, R_pano_cam, size)
         if v1 <= v0:
             return None
-        vv, ii = np.nonzero(seen & ~self._columns(self.mapped, u0, u1, v0, v1))
+        vv, ii = _nonzero_2d(seen & ~self._columns(self.mapped, u0, u1, v0, v1))
         if vv.size == 0:
             return None
         return self._in_frame(K, R_pano_cam, size, (ii + u0) % self.config.width, vv + v0)
