@@ -136,6 +136,9 @@ class PanoramaMap:
         self._footprint: tuple[tuple[bytes, bytes, tuple[int, ...]],
                                tuple[tuple[int, int, int, int], NDArray[np.int32] | None]] | None = None
         self._mask: tuple[object, NDArray[np.bool_]] | None = None
+        #: (K bytes, size) -> the outline's rays in camera_optical (the same for every frame of
+        #: one camera: only their rotation into the panorama changes)
+        self._outline_rays: tuple[tuple[bytes, tuple[int, ...]], Array] | None = None
 
     # -- queries -----------------------------------------------------------------------------
 
@@ -229,18 +232,7 @@ class PanoramaMap:
         key = (K.tobytes(), np.asarray(R_pano_cam, float).tobytes(), tuple(size))
         if self._footprint is not None and self._footprint[0] == key:
             return self._footprint[1]
-        h, w = size
-        # The outline runs MARGIN pixels outside the frame: its chords cut the curved edges
-        # by well under a pixel, so no pixel of the frame falls outside the mask.
-        m = self.OUTLINE_MARGIN_PX
-        xs = np.linspace(-m, w - 1 + m, 9)
-        ys = np.linspace(-m, h - 1 + m, 7)[1:-1]
-        # The border as a ring: top left to right, right side down, bottom back, left side up.
-        bx = np.concatenate([xs, np.full_like(ys, w - 1 + m), xs[::-1], np.full_like(ys, -m)])
-        by = np.concatenate([np.full_like(xs, -m), ys, np.full_like(xs, h - 1 + m), ys[::-1]])
-        Kinv = np.linalg.inv(K)
-        rays = np.stack([bx, by, np.ones_like(bx)], -1) @ Kinv.T
-        d = rays @ R_pano_cam.T
+        d = self._outline(K, size) @ R_pano_cam.T
         u, v = self.geometry.project(d)
         uc, _ = self.geometry.project(R_pano_cam[:, 2])
         W = self.config.width
@@ -259,6 +251,26 @@ class PanoramaMap:
         out = ((u0, u1, v0, v1), ring)
         self._footprint = (key, out)
         return out
+
+    def _outline(self, K: Array, size: tuple[int, int]) -> Array:
+        """Rays (32, 3) in camera_optical through the frame's outline, kept for the camera."""
+        key = (K.tobytes(), tuple(size))
+        if self._outline_rays is not None and self._outline_rays[0] == key:
+            return self._outline_rays[1]
+        h, w = size
+        # The outline runs MARGIN pixels outside the frame: its chords cut the curved edges
+        # by well under a pixel, so no pixel of the frame falls outside the mask.
+        m = self.OUTLINE_MARGIN_PX
+        xs = np.linspace(-m, w - 1 + m, 9)
+        ys = np.linspace(-m, h - 1 + m, 7)[1:-1]
+        # The border as a ring: top left to right, right side down, bottom back, left side up.
+        bx = np.concatenate([xs, np.full_like(ys, w - 1 + m), xs[::-1], np.full_like(ys, -m)])
+        by = np.concatenate([np.full_like(xs, -m), ys, np.full_like(xs, h - 1 + m), ys[::-1]])
+        Kinv = np.linalg.inv(K)
+        rays: Array = np.stack([bx, by, np.ones_like(bx)], -1) @ Kinv.T
+        rays.flags.writeable = False
+        self._outline_rays = (key, rays)
+        return rays
 
     def _columns(self, a: NDArray, u0: int, u1: int, v0: int, v1: int) -> NDArray:
         """Rows v0:v1, columns u0:u1 of a map-sized array, columns wrapped (0 < u1 - u0 <= W):
