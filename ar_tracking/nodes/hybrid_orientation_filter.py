@@ -36,6 +36,7 @@ from sensor_msgs.msg import Imu, MagneticField
 from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig
+from ..ros.cdr_views import imu_view, magnetic_field_view, transform_stamped_view
 from ..ros.conversions import (
     ConversionError,
     covariance_is_known,
@@ -245,10 +246,12 @@ class HybridOrientationFilterNode(TrackingNode):
         if (self.publish_tf or self.publish_mount_tf) and not self.tf.available:
             self.get_logger().warning('publish_tf: tf2_msgs is not installed here; no TF is published')
         self.input_type = input_type
-        self.subscribe(INPUT_TYPES[input_type], 'panorama/orientation', self.on_visual, RELIABLE_STREAM_QOS)
-        self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS)
-        self.subscribe(MagneticField, 'imu/mag', self.on_mag, STREAM_QOS)
-        self.subscribe(Imu, 'imu/data', self.on_ahrs, STREAM_QOS)
+        # The streams are read as views of their CDR bytes (ros.cdr_views), not deserialised.
+        self.subscribe(INPUT_TYPES[input_type], 'panorama/orientation', self.on_visual, RELIABLE_STREAM_QOS,
+                       view=transform_stamped_view if input_type == 'transform' else None)
+        self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS, view=imu_view)
+        self.subscribe(MagneticField, 'imu/mag', self.on_mag, STREAM_QOS, view=magnetic_field_view)
+        self.subscribe(Imu, 'imu/data', self.on_ahrs, STREAM_QOS, view=imu_view)
         self._subscribe_tf_static()
         self.get_logger().info(f'hybrid_orientation_filter: panorama/orientation as {input_type}, imu/data_raw, imu/mag, imu/data')
 

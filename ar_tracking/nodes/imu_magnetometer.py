@@ -39,6 +39,7 @@ from ..core.ahrs import Ahrs, AhrsConfig, AhrsError
 from ..core.imu_orientation import FieldModel, GravityFieldOrientation
 from ..core.rotations import rot_z
 from ..io.replay import ReplayOptions, ScheduledMessage
+from ..ros.cdr_views import header_message, imu_view, magnetic_field_view
 from ..ros.conversions import (
     ConversionError,
     finite_vector3,
@@ -205,8 +206,9 @@ class ImuMagnetometerNode(TrackingNode):
             self.pub_mag = self.advertise(MagneticField, 'imu/mag', RELIABLE_QOS)
             self._start_replay(bag_path, ReplayOptions(rate=rate, loop=loop, topics=[]))
         else:
-            self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS)
-            self.subscribe(MagneticField, 'imu/mag', self._take_mag, STREAM_QOS)
+            # read as views of their CDR bytes (ros.cdr_views), not deserialised
+            self.subscribe(Imu, 'imu/data_raw', self.on_imu, STREAM_QOS, view=imu_view)
+            self.subscribe(MagneticField, 'imu/mag', self._take_mag, STREAM_QOS, view=magnetic_field_view)
         self.get_logger().info(
             f'imu_magnetometer ({self.method}{"" if self.use_mag else ", 6D"}): '
             f'{"replaying " + bag_path if bag_path else "listening on imu/data_raw, imu/mag"}'
@@ -302,7 +304,7 @@ class ImuMagnetometerNode(TrackingNode):
         if raw is None:
             return None
         out = MagneticField()
-        out.header = msg.header
+        out.header = header_message(msg.header)
         set_vector3(out.magnetic_field, self.calibration.mag(raw))
         out.magnetic_field_covariance = msg.magnetic_field_covariance
         return out
@@ -335,7 +337,7 @@ class ImuMagnetometerNode(TrackingNode):
         if not self._stamp_ok(self.imu_guard, msg, 'imu/data_raw'):
             return None
         calibrated = Imu()
-        calibrated.header = msg.header
+        calibrated.header = header_message(msg.header)
         if self.frame_id:
             calibrated.header.frame_id = self.frame_id
         set_vector3(calibrated.angular_velocity, self.calibration.gyro(gyro))

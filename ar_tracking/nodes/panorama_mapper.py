@@ -25,6 +25,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from ..core.panorama import EDR_CORRECTIONS, MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
 from ..core.panorama.exposure import OFFSET_EXPOSURE
 from ..core.stamp_pairing import NearestStampPairer
+from ..ros.cdr_views import image_view
 from ..ros.conversions import (
     ConversionError,
     array_to_image,
@@ -171,7 +172,8 @@ class PanoramaMapperNode(TrackingNode):
         self.pub_orientation = self.advertise(TransformStamped, 'panorama/orientation', RELIABLE_QOS)
         self.pub_image = self.advertise(Image, 'panorama/image', LATCHED_QOS)
         self.pub_tiles = self.advertise(Image, 'panorama/tiles', LATCHED_QOS)
-        self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS)
+        # read in place from the received bytes (ros.cdr_views), not copied into a message
+        self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS, view=image_view)
         self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
         self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, SENSOR_QOS)
         self.get_logger().info(f'panorama_mapper: {"EDR" if edr else "8-bit"} {"colour" if color else "grey"} map 2048x512, tiles {tile} px')

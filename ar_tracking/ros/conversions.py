@@ -152,7 +152,8 @@ def image_to_array(msg: Any) -> NDArray[Any]:
     if step < row_bytes:
         raise ConversionError(f'image step {step} is smaller than a row ({row_bytes} bytes)')
     data = msg.data
-    buf = data.tobytes() if hasattr(data, 'tobytes') else bytes(data)
+    # a memoryview (an Image view of the received bytes, ros.cdr_views) is read in place
+    buf = data if isinstance(data, memoryview) else data.tobytes() if hasattr(data, 'tobytes') else bytes(data)
     if len(buf) < step * height:
         raise ConversionError(
             f'image data has {len(buf)} bytes, expected step*height = {step * height}'

@@ -1,0 +1,212 @@
+"""Read-only views of a few message types straight from their CDR bytes, for raw subscriptions.
+
+rclpy deserialises a message by building the Python message object field by field through its
+checked setters: ~15 us for an Imu, ~9 us for a MagneticField, ~90 us for a 320x240 RGB Image
+(its pixels copied into an ``array.array``). The nodes only read these messages, so on the
+streams they get thousands of times per bag they subscribe with ``raw=True`` and read the
+fields they use from the bytes here (~2-4 us; an Image's pixels stay in the received buffer).
+
+A view has the attribute names of the message (``msg.header.stamp.sec``,
+``msg.linear_acceleration.x``, ``msg.orientation_covariance`` as a float64 array of 9, ...), so
+the node code reads a view and a real message alike, and the values are the same numbers
+(IEEE doubles copied bit for bit, strings decoded as UTF-8). Only little-endian CDR (what every
+ROS 2 middleware on x86/ARM writes) is read here; other bytes are deserialised by rclpy, as
+are types without a view.
+
+Layout (plain CDR, XCDR1, as ROS 2 writes it): a 4-byte encapsulation header, then the fields
+in order, each primitive aligned to its size relative to the end of the encapsulation header;
+a string is a uint32 length (the terminating NUL included) and its bytes; fixed arrays have no
+length, sequences a uint32 count.
+"""
+from __future__ import annotations
+
+import struct
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+_HEADER = struct.Struct('<iII')  # stamp.sec, stamp.nanosec, frame_id length
+_U32 = struct.Struct('<I')
+_IMU = struct.Struct('<37d')  # orientation 4, cov 9, angular_velocity 3, cov 9, linear_acceleration 3, cov 9
+_MAG = struct.Struct('<12d')  # magnetic_field 3, cov 9
+_TRANSFORM = struct.Struct('<7d')  # translation 3, rotation 4
+_IMAGE_DIMS = struct.Struct('<II')  # height, width
+_CDR_LE = 1  # second byte of the encapsulation header: 0 CDR_BE, 1 CDR_LE
+
+
+class StampView:
+    __slots__ = ('sec', 'nanosec')
+
+    def __init__(self, sec: int, nanosec: int) -> None:
+        self.sec = sec
+        self.nanosec = nanosec
+
+
+class HeaderView:
+    __slots__ = ('stamp', 'frame_id')
+
+    def __init__(self, stamp: StampView, frame_id: str) -> None:
+        self.stamp = stamp
+        self.frame_id = frame_id
+
+
+class Vector3View:
+    __slots__ = ('x', 'y', 'z')
+
+    def __init__(self, x: float, y: float, z: float) -> None:
+        self.x = x
+        self.y = y
+        self.z = z
+
+
+class QuaternionView:
+    __slots__ = ('x', 'y', 'z', 'w')
+
+    def __init__(self, x: float, y: float, z: float, w: float) -> None:
+        self.x = x
+        self.y = y
+        self.z = z
+        self.w = w
+
+
+class ImuView:
+    """sensor_msgs/Imu."""
+
+    __slots__ = ('header', 'orientation', 'orientation_covariance', 'angular_velocity',
+                 'angular_velocity_covariance', 'linear_acceleration', 'linear_acceleration_covariance')
+
+
+class MagneticFieldView:
+    """sensor_msgs/MagneticField."""
+
+    __slots__ = ('header', 'magnetic_field', 'magnetic_field_covariance')
+
+
+class TransformView:
+    __slots__ = ('translation', 'rotation')
+
+
+class TransformStampedView:
+    """geometry_msgs/TransformStamped."""
+
+    __slots__ = ('header', 'child_frame_id', 'transform')
+
+
+class ImageView:
+    """sensor_msgs/Image; ``data`` is a read-only memoryview of the received bytes."""
+
+    __slots__ = ('header', 'height', 'width', 'encoding', 'is_bigendian', 'step', 'data')
+
+
+def _string(raw: bytes, pos: int) -> tuple[str, int]:
+    """The string whose uint32 length is at ``pos`` (4-aligned) and the position after it."""
+    (n,) = _U32.unpack_from(raw, pos)
+    end = pos + 4 + n
+    if end > len(raw):
+        raise ValueError('CDR string runs past the end of the message')
+    return raw[pos + 4:end - 1 if n else end].decode('utf-8'), end
+
+
+def _align(pos: int, size: int) -> int:
+    """``pos`` moved to the next multiple of ``size`` counted from the end of the 4-byte
+    encapsulation header."""
+    return pos + (-(pos - 4) % size)
+
+
+def _header(raw: bytes) -> tuple[HeaderView, int]:
+    sec, nanosec, n = _HEADER.unpack_from(raw, 4)
+    end = 16 + n
+    if end > len(raw):
+        raise ValueError('CDR header frame_id runs past the end of the message')
+    frame_id = raw[16:end - 1 if n else end].decode('utf-8')
+    return HeaderView(StampView(sec, nanosec), frame_id), end
+
+
+def _array(values: tuple[float, ...]) -> NDArray[np.float64]:
+    return np.array(values, dtype=np.float64)
+
+
+def imu_view(raw: bytes) -> ImuView:
+    """An :class:`ImuView` of little-endian CDR bytes of a sensor_msgs/Imu."""
+    header, pos = _header(raw)
+    f = _IMU.unpack_from(raw, _align(pos, 8))
+    m = ImuView()
+    m.header = header
+    m.orientation = QuaternionView(f[0], f[1], f[2], f[3])
+    m.orientation_covariance = _array(f[4:13])
+    m.angular_velocity = Vector3View(f[13], f[14], f[15])
+    m.angular_velocity_covariance = _array(f[16:25])
+    m.linear_acceleration = Vector3View(f[25], f[26], f[27])
+    m.linear_acceleration_covariance = _array(f[28:37])
+    return m
+
+
+def magnetic_field_view(raw: bytes) -> MagneticFieldView:
+    """A :class:`MagneticFieldView` of little-endian CDR bytes of a sensor_msgs/MagneticField."""
+    header, pos = _header(raw)
+    f = _MAG.unpack_from(raw, _align(pos, 8))
+    m = MagneticFieldView()
+    m.header = header
+    m.magnetic_field = Vector3View(f[0], f[1], f[2])
+    m.magnetic_field_covariance = _array(f[3:12])
+    return m
+
+
+def transform_stamped_view(raw: bytes) -> TransformStampedView:
+    """A :class:`TransformStampedView` of little-endian CDR bytes of a
+    geometry_msgs/TransformStamped."""
+    header, pos = _header(raw)
+    child, pos = _string(raw, _align(pos, 4))
+    f = _TRANSFORM.unpack_from(raw, _align(pos, 8))
+    t = TransformView()
+    t.translation = Vector3View(f[0], f[1], f[2])
+    t.rotation = QuaternionView(f[3], f[4], f[5], f[6])
+    m = TransformStampedView()
+    m.header = header
+    m.child_frame_id = child
+    m.transform = t
+    return m
+
+
+def image_view(raw: bytes) -> ImageView:
+    """An :class:`ImageView` of little-endian CDR bytes of a sensor_msgs/Image (the pixels
+    are not copied)."""
+    header, pos = _header(raw)
+    pos = _align(pos, 4)
+    height, width = _IMAGE_DIMS.unpack_from(raw, pos)
+    encoding, pos = _string(raw, pos + 8)
+    is_bigendian = raw[pos]
+    pos = _align(pos + 1, 4)
+    step, n = _IMAGE_DIMS.unpack_from(raw, pos)  # step, then the data sequence's count
+    start = pos + 8
+    if start + n > len(raw):
+        raise ValueError('CDR image data runs past the end of the message')
+    m = ImageView()
+    m.header = header
+    m.height, m.width, m.encoding, m.is_bigendian, m.step = height, width, encoding, is_bigendian, step
+    m.data = memoryview(raw)[start:start + n]
+    return m
+
+
+def header_message(header: Any) -> Any:
+    """A std_msgs/Header with the fields of a :class:`HeaderView` (a Header is returned as it
+    is): for a node that passes its input's header on in an output message."""
+    if not isinstance(header, HeaderView):
+        return header
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header
+
+    return Header(stamp=Time(sec=header.stamp.sec, nanosec=header.stamp.nanosec), frame_id=header.frame_id)
+
+
+def viewer(msg_type: Any, view: Callable[[bytes], Any]) -> Callable[[bytes], Any]:
+    """``raw -> view(raw)`` for little-endian CDR, else the message rclpy deserialises (a
+    big-endian publisher): the decoder of a raw subscription to ``msg_type``."""
+    from rclpy.serialization import deserialize_message
+
+    def decode(raw: bytes) -> Any:
+        if len(raw) >= 4 and raw[1] == _CDR_LE:
+            return view(raw)
+        return deserialize_message(raw, msg_type)
+    return decode
