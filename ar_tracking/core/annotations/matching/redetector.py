@@ -27,10 +27,14 @@ def expected_positions(source_dirs: Array, R_enu_source: Sequence[Array | None],
     """(n, 2) expected map positions of the annotations in the target panorama from the
     absolute orientations of both panoramas (sec. 4.2); NaN where the source's is unknown."""
     out = np.full((len(source_dirs), 2), np.nan)
-    for i, (d, R) in enumerate(zip(source_dirs, R_enu_source)):
-        if R is not None:
-            u, v = geometry.project(R_enu_target.T @ (R @ d))
-            out[i] = (float(u), float(v))
+    known = [i for i, R in enumerate(R_enu_source) if R is not None]
+    if known:
+        Rs = np.stack([np.asarray(R_enu_source[i], float) for i in known])
+        # batched matrix-vector products: the same sums, bit for bit, as one R_t.T @ (R @ d) each
+        d = (R_enu_target.T @ (Rs @ np.asarray(source_dirs, float)[known][:, :, None]))[..., 0]
+        u, v = geometry.project(d)
+        out[known, 0] = u
+        out[known, 1] = v
     return out
 
 
