@@ -348,7 +348,8 @@ class HybridOrientationFilterNode(TrackingNode):
         self.pub_global.publish(out)
         self.published += 1
         if self.publish_tf:
-            self.tf.send(transform_stamped(t_ns, self.world_frame, self.camera_frame, R_enu_cam))
+            if self.tf.listened:
+                self.tf.send(transform_stamped(t_ns, self.world_frame, self.camera_frame, R_enu_cam))
             self._publish_mount(t_ns)
         if R_enu_pano is not None:
             tf = TransformStamped()

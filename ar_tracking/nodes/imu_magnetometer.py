@@ -408,7 +408,7 @@ class ImuMagnetometerNode(TrackingNode):
         set_covariance(out.orientation_covariance, R_world @ cov_enu @ R_world.T)
         self.pub_data.publish(out)
         self.published += 1
-        if self.publish_tf:
+        if self.publish_tf and self.tf.listened:
             tf = TransformStamped()
             tf.header.stamp = out.header.stamp
             tf.header.frame_id = self.fixed_frame

@@ -248,7 +248,7 @@ class KeyframeSlamMapperNode(TrackingNode):
             out.header.frame_id = self.frame_id
             _pose(R_w_c, p_w_c, out.pose)
             self.pub_pose.publish(out)
-            if self.publish_tf:
+            if self.publish_tf and self.tf.listened:
                 self.tf.send(transform_stamped(t, self.frame_id, self.camera_frame or self.image_frame or 'camera_optical', R_w_c, p_w_c))
             self.path.poses.append(out)
             if len(self.path.poses) > self.config.max_path:

@@ -277,7 +277,7 @@ class MarkerTrackerNode(TrackingNode):
         out.pose.covariance = [float(v) for v in est.cov.ravel()]
         self.pub_pose.publish(out)
         self.poses_published += 1
-        if self.publish_tf:
+        if self.publish_tf and self.tf.listened:
             self.tf.send(transform_stamped(stamp_ns(header), self.frame, header.frame_id.lstrip('/') or 'camera_optical',
                                            est.R_map_cam, est.p_map_cam))
 
