@@ -37,9 +37,9 @@ from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.ahrs import Ahrs, AhrsConfig, AhrsError
 from ..core.imu_orientation import FieldModel, GravityFieldOrientation
-from ..core.rotations import rot_z
+from ..core.rotations import matrix_to_quat_xyzw, rot_z
 from ..io.replay import ReplayOptions, ScheduledMessage
-from ..ros.cdr_views import header_message, imu_view, magnetic_field_view
+from ..ros.cdr_views import header_message, imu_cdr, imu_view, magnetic_field_view
 from ..ros.conversions import (
     ConversionError,
     finite_vector3,
@@ -125,6 +125,18 @@ PARAMS = (
 )
 
 
+
+class _Sample:
+    """A calibrated IMU sample of a subscribed node: what imu/data carries besides the
+    orientation (header fields, calibrated rate and specific force, their covariances)."""
+
+    __slots__ = ('sec', 'nanosec', 'frame_id', 'gyro', 'accel', 'gyro_cov', 'accel_cov')
+
+    def __init__(self, sec: int, nanosec: int, frame_id: str, gyro: np.ndarray, accel: np.ndarray,
+                 gyro_cov: Any, accel_cov: Any) -> None:
+        self.sec, self.nanosec, self.frame_id = sec, nanosec, frame_id
+        self.gyro, self.accel, self.gyro_cov, self.accel_cov = gyro, accel, gyro_cov, accel_cov
+
 class ImuMagnetometerNode(TrackingNode):
     INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu', 'imu/mag': 'sensor_msgs/msg/MagneticField'}
     #: The magnetometer is optional (6D without it).
@@ -193,7 +205,7 @@ class ImuMagnetometerNode(TrackingNode):
         self.mag_guard = StampGuard(reset_s)
         self.mag_raw: np.ndarray | None = None
         self.mag_ns: int | None = None
-        self.held: tuple[int, np.ndarray, np.ndarray, Imu] | None = None
+        self.held: tuple[int, np.ndarray, np.ndarray, Imu | _Sample] | None = None
         self.published = 0
 
         self.pub_data = self.advertise(Imu, 'imu/data', RELIABLE_QOS)
@@ -336,15 +348,23 @@ class ImuMagnetometerNode(TrackingNode):
             return None
         if not self._stamp_ok(self.imu_guard, msg, 'imu/data_raw'):
             return None
-        calibrated = Imu()
-        calibrated.header = header_message(msg.header)
-        if self.frame_id:
-            calibrated.header.frame_id = self.frame_id
-        set_vector3(calibrated.angular_velocity, self.calibration.gyro(gyro))
-        set_vector3(calibrated.linear_acceleration, self.calibration.accel(accel))
-        calibrated.angular_velocity_covariance = msg.angular_velocity_covariance
-        calibrated.linear_acceleration_covariance = msg.linear_acceleration_covariance
-        set_covariance(calibrated.orientation_covariance, None)
+        calibrated: Imu | _Sample
+        if self.player is None:
+            # Subscribed: the sample's fields only, published as CDR bytes by _publish
+            stamp = msg.header.stamp
+            calibrated = _Sample(int(stamp.sec), int(stamp.nanosec), self.frame_id or msg.header.frame_id,
+                                 self.calibration.gyro(gyro), self.calibration.accel(accel),
+                                 msg.angular_velocity_covariance, msg.linear_acceleration_covariance)
+        else:  # replay: the calibrated message is published as imu/data_raw too
+            calibrated = Imu()
+            calibrated.header = header_message(msg.header)
+            if self.frame_id:
+                calibrated.header.frame_id = self.frame_id
+            set_vector3(calibrated.angular_velocity, self.calibration.gyro(gyro))
+            set_vector3(calibrated.linear_acceleration, self.calibration.accel(accel))
+            calibrated.angular_velocity_covariance = msg.angular_velocity_covariance
+            calibrated.linear_acceleration_covariance = msg.linear_acceleration_covariance
+            set_covariance(calibrated.orientation_covariance, None)
         t_ns = stamp_ns(msg.header)
         # A field sample with the IMU sample's stamp may come just after it: hold this one
         # sample until that field sample or the next IMU sample, whichever comes first (at
@@ -356,9 +376,9 @@ class ImuMagnetometerNode(TrackingNode):
             self.held = (t_ns, gyro, accel, calibrated)
         else:
             self._process(t_ns, gyro, accel, calibrated)
-        return calibrated
+        return calibrated if isinstance(calibrated, Imu) else None
 
-    def _process(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, calibrated: Imu) -> None:
+    def _process(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, calibrated: Imu | _Sample) -> None:
         """imu/data for one IMU sample with the newest field sample within max_mag_age_s."""
         mag = None
         if self.use_mag and self.mag_ns is not None and abs(t_ns - self.mag_ns) <= self.max_mag_age_ns:
@@ -375,7 +395,7 @@ class ImuMagnetometerNode(TrackingNode):
         else:
             self._emit_compass(accel, calibrated, mag)
 
-    def _emit_compass(self, accel: np.ndarray, calibrated: Imu, mag: np.ndarray | None) -> None:
+    def _emit_compass(self, accel: np.ndarray, calibrated: Imu | _Sample, mag: np.ndarray | None) -> None:
         """Eq. 3-4 for one IMU sample and the field sample paired with it."""
         if mag is None:
             self.warn_throttled(
@@ -390,22 +410,41 @@ class ImuMagnetometerNode(TrackingNode):
             return
         self._publish(calibrated, estimate.R_enu_body, estimate.covariance)
 
-    def _publish(self, calibrated: Imu, R_enu_body: np.ndarray, cov_enu: np.ndarray) -> None:
-        if self.player is None:
-            # Subscribed: nobody else holds the calibrated sample, so it becomes imu/data (its
-            # orientation and covariance are written below) instead of a copy into a new Imu.
-            out = calibrated
-        else:  # replay: on_imu's caller publishes the calibrated sample as it is
-            out = Imu()
-            out.header = calibrated.header
-            out.angular_velocity = calibrated.angular_velocity
-            out.linear_acceleration = calibrated.linear_acceleration
-            out.angular_velocity_covariance = calibrated.angular_velocity_covariance
-            out.linear_acceleration_covariance = calibrated.linear_acceleration_covariance
+    def _publish(self, calibrated: Imu | _Sample, R_enu_body: np.ndarray, cov_enu: np.ndarray) -> None:
         R_world = self.R_world_enu @ self.R_declination_change
         R = R_world @ R_enu_body
+        cov = R_world @ cov_enu @ R_world.T
+        if isinstance(calibrated, _Sample):
+            # Subscribed: imu/data as CDR bytes (ros.cdr_views.imu_cdr), the same bytes as the
+            # message set_quaternion / set_covariance / set_vector3 would fill, ~20 us sooner.
+            c = calibrated
+            q = matrix_to_quat_xyzw(R)
+            raw = imu_cdr(c.sec, c.nanosec, c.frame_id, (
+                float(q[0]), float(q[1]), float(q[2]), float(q[3]),
+                *(float(v) for v in np.asarray(cov, dtype=float).reshape(9)),
+                float(c.gyro[0]), float(c.gyro[1]), float(c.gyro[2]), *(float(v) for v in c.gyro_cov),
+                float(c.accel[0]), float(c.accel[1]), float(c.accel[2]), *(float(v) for v in c.accel_cov)))
+            self.pub_data.publish(raw)
+            self.published += 1
+            if self.publish_tf and self.tf.listened:
+                from builtin_interfaces.msg import Time
+
+                tf = TransformStamped()
+                tf.header.stamp = Time(sec=c.sec, nanosec=c.nanosec)
+                tf.header.frame_id = self.fixed_frame
+                tf.child_frame_id = c.frame_id or 'imu'
+                set_quaternion(tf.transform.rotation, R)
+                self.tf.send(tf)
+            return
+        # replay: on_imu's caller publishes the calibrated sample as it is; imu/data is a copy
+        out = Imu()
+        out.header = calibrated.header
+        out.angular_velocity = calibrated.angular_velocity
+        out.linear_acceleration = calibrated.linear_acceleration
+        out.angular_velocity_covariance = calibrated.angular_velocity_covariance
+        out.linear_acceleration_covariance = calibrated.linear_acceleration_covariance
         set_quaternion(out.orientation, R)
-        set_covariance(out.orientation_covariance, R_world @ cov_enu @ R_world.T)
+        set_covariance(out.orientation_covariance, cov)
         self.pub_data.publish(out)
         self.published += 1
         if self.publish_tf and self.tf.listened:

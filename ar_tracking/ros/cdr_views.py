@@ -1,4 +1,5 @@
-"""Read-only views of a few message types straight from their CDR bytes, for raw subscriptions.
+"""Read-only views of a few message types straight from their CDR bytes, for raw subscriptions;
+and the CDR bytes of the two message types the nodes publish per sample.
 
 rclpy deserialises a message by building the Python message object field by field through its
 checked setters: ~15 us for an Imu, ~9 us for a MagneticField, ~90 us for a 320x240 RGB Image
@@ -12,6 +13,12 @@ the node code reads a view and a real message alike, and the values are the same
 (IEEE doubles copied bit for bit, strings decoded as UTF-8). Only little-endian CDR (what every
 ROS 2 middleware on x86/ARM writes) is read here; other bytes are deserialised by rclpy, as
 are types without a view.
+
+The other way round, :func:`imu_cdr` and :func:`transform_stamped_cdr` give the bytes of an
+Imu or TransformStamped from its field values, which a publisher sends as they are (rclpy
+publishes raw CDR bytes unchanged): the bytes rclpy's middleware makes of the message object
+(padding zero), without building that object through its checked setters (~15-25 us a message
+with the node's conversions, ~2 us here).
 
 Layout (plain CDR, XCDR1, as ROS 2 writes it): a 4-byte encapsulation header, then the fields
 in order, each primitive aligned to its size relative to the end of the encapsulation header;
@@ -187,6 +194,41 @@ def image_view(raw: bytes) -> ImageView:
     m.height, m.width, m.encoding, m.is_bigendian, m.step = height, width, encoding, is_bigendian, step
     m.data = memoryview(raw)[start:start + n]
     return m
+
+
+_ENCAPSULATION_LE = b'\x00\x01\x00\x00'
+
+
+def _header_cdr(sec: int, nanosec: int, frame_id: str) -> bytes:
+    """Encapsulation header, std_msgs/Header (stamp, frame_id with its NUL); no padding after."""
+    name = frame_id.encode('utf-8')
+    return _ENCAPSULATION_LE + _HEADER.pack(sec, nanosec, len(name) + 1) + name + b'\x00'
+
+
+def _string_cdr(text: str, pos: int) -> bytes:
+    """A CDR string starting at absolute offset ``pos``: padding to 4, length, bytes, NUL."""
+    data = text.encode('utf-8')
+    return b'\x00' * (-(pos - 4) % 4) + _U32.pack(len(data) + 1) + data + b'\x00'
+
+
+def _pad(pos: int, size: int) -> bytes:
+    return b'\x00' * (-(pos - 4) % size)
+
+
+def imu_cdr(sec: int, nanosec: int, frame_id: str, values: Any) -> bytes:
+    """CDR bytes of a sensor_msgs/Imu; ``values`` the 37 doubles in field order: orientation
+    (x, y, z, w), its covariance (9), angular_velocity (3), its covariance (9),
+    linear_acceleration (3), its covariance (9)."""
+    head = _header_cdr(sec, nanosec, frame_id)
+    return head + _pad(len(head), 8) + _IMU.pack(*values)
+
+
+def transform_stamped_cdr(sec: int, nanosec: int, frame_id: str, child_frame_id: str, values: Any) -> bytes:
+    """CDR bytes of a geometry_msgs/TransformStamped; ``values`` the 7 doubles translation (x,
+    y, z) and rotation (x, y, z, w)."""
+    head = _header_cdr(sec, nanosec, frame_id)
+    head += _string_cdr(child_frame_id, len(head))
+    return head + _pad(len(head), 8) + _TRANSFORM.pack(*values)
 
 
 def header_message(header: Any) -> Any:

