@@ -24,14 +24,14 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from ..core.panorama import EDR_CORRECTIONS, MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
 from ..core.panorama.exposure import OFFSET_EXPOSURE
+from ..core.rotations import matrix_to_quat_xyzw
 from ..core.stamp_pairing import NearestStampPairer
-from ..ros.cdr_views import image_view
+from ..ros.cdr_views import image_view, transform_stamped_cdr
 from ..ros.conversions import (
     ConversionError,
     array_to_image,
     compressed_to_array,
     image_to_array,
-    set_quaternion,
     stamp_ns,
     to_stamp,
 )
@@ -249,12 +249,11 @@ class PanoramaMapperNode(TrackingNode):
             return
         R = res.R_pano_cam
         if R is not None and np.all(np.isfinite(R)):
-            out = TransformStamped()
-            out.header.stamp = to_stamp(t)
-            out.header.frame_id = self.frame_id
-            out.child_frame_id = self.child_frame_id
-            set_quaternion(out.transform.rotation, R)
-            self.pub_orientation.publish(out)
+            # as CDR bytes (ros.cdr_views): the TransformStamped set_quaternion would fill
+            sec, nanosec = divmod(int(t), 1_000_000_000)
+            q = matrix_to_quat_xyzw(R)
+            self.pub_orientation.publish(transform_stamped_cdr(sec, nanosec, self.frame_id, self.child_frame_id, (
+                0.0, 0.0, 0.0, float(q[0]), float(q[1]), float(q[2]), float(q[3]))))
             self.published += 1
         else:
             self.lost += 1
