@@ -7,7 +7,7 @@ import pytest
 
 from annotation_synth import M_ENU_PANO, UP, displaced_spot_case, rotated_by
 from ar_tracking.core.annotations.matching import Candidate, MatchConfig, ReDetector
-from ar_tracking.core.annotations.parallax import (_horizontal_axes, fit_depth_scale, fit_parallax,
+from ar_tracking.core.annotations.parallax import (_horizontal_axes, depth_scale_sigma, fit_depth_scale, fit_parallax,
                                                    heading_residuals)
 
 
@@ -72,3 +72,50 @@ def test_depth_scale_moves_an_inferred_annotation_on_a_far_facade():
         errors[sigma] = float(np.degrees(np.arccos(np.clip(p.direction @ truth[gone], -1, 1))))
         assert all(q.status == 'matched' for q in al.placements if q.index != gone)
     assert errors[0.0] > 1.0 and errors[0.5] < 0.3
+
+
+def test_depth_scale_sigma_is_the_posterior_of_the_ratio():
+    t = np.array([1.2, -0.7, 0.0])
+    _, truth, _, predicted, far = _near_and_far(40, t, 18, 20.0, 40.0)
+    model = fit_parallax(predicted[~far], truth[~far], UP, sigma_match=0.001, sigma_parallax=1.0)
+    # No match: the prior; each match narrows it, the more the larger the model's term at it.
+    assert depth_scale_sigma(model, predicted[:0], 0.01, 0.3) == pytest.approx(0.3)
+    one = depth_scale_sigma(model, predicted[far][:1], 0.01, 0.3)
+    every = depth_scale_sigma(model, predicted[far], 0.01, 0.3)
+    assert every < one < 0.3
+    # The linear least squares of fit_depth_scale: residual = (s - 1) x term, prior on s.
+    term = model.shift(predicted[far]) - model.c
+    A = np.concatenate([term / 0.01, [1.0 / 0.3]])[:, None]
+    assert every == pytest.approx(float(np.sqrt(np.linalg.inv(A.T @ A)[0, 0])), rel=1e-9)
+
+
+def test_inferred_label_is_approximate_while_few_annotations_pin_the_depth_ratio():
+    # 16 landmarks at 22 m, 8 annotations on facades at 45 m; annotation `gone` has no candidate.
+    t = np.array([1.0, 0.5, 0.0])
+    n = 24
+    case, truth, uv, _, far = _near_and_far(42, t, n, 22.0, 45.0)
+    ann = np.flatnonzero(far)
+    gone = int(ann[1])
+
+    def inferred(matched_annotations: int, limit: float):
+        det = ReDetector(case.patches, case.dirs, ['p'] * n,
+                         MatchConfig(parallax_scale_sigma=0.3, depth_ratio_support_rad=limit),
+                         R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * n,
+                         landmark=list(~far))
+        det.set_orientation(M_ENU_PANO)
+        with_candidate = set(np.flatnonzero(~far)) | set(ann[ann != gone][:matched_annotations])
+        for i in with_candidate:
+            det.candidates[i].items = [Candidate(float(uv[i, 0]), float(uv[i, 1]), 0.9, 0.9)]
+        det.dirty = True
+        _, al = det.result()
+        p = next(p for p in al.placements if p.index == gone)
+        assert al.supported and p.status == 'inferred' and np.isfinite(al.depth_ratio_sigma)
+        term = abs(float(al.parallax.shift(case.dirs[gone] @ al.R_target_source.T)[0] - al.parallax.c))
+        return p, term * al.depth_ratio_sigma
+
+    few, spread_few = inferred(1, np.radians(0.4))
+    many, spread_many = inferred(7, np.radians(0.4))
+    assert spread_many < np.radians(0.4) < spread_few
+    assert not few.supported and many.supported
+    off, _ = inferred(1, 0.0)
+    assert off.supported  # the rule off: the local matches alone decide

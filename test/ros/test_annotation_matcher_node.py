@@ -270,3 +270,29 @@ def test_params_shorthand_without_ros_parameters_is_rejected_loudly(tmp_path):
     good = tmp_path / 'g.yaml'
     good.write_text(yaml.safe_dump({'annotation_matcher': {'ros__parameters': {'store_path': 'notes.db'}}}))
     assert load_params_file(good) == {'annotation_matcher': {'store_path': 'notes.db'}}
+
+
+def test_sensor_prior_weighs_each_sample_by_its_inverse_heading_variance(ros_context):
+    from scipy.spatial.transform import Rotation
+    from sensor_msgs.msg import Imu
+
+    h = Harness(ros_context, {})
+    good = Rotation.from_euler('zyx', [30.0, 2.0, -1.0], degrees=True)
+    early = good * Rotation.from_euler('z', 3.0, degrees=True)  # the filter's first, poorer estimate
+    cam = Rotation.from_euler('zyx', [10.0, 0.0, 5.0], degrees=True)  # camera in the panorama
+    for k, (R, sigma_deg) in enumerate(((early, 3.0), (good, 0.3))):
+        t = T0 + k * 50_000_000
+        po = TransformStamped()
+        po.header.stamp = to_stamp(t)
+        x, y, z, w = cam.as_quat()
+        po.transform.rotation.x, po.transform.rotation.y, po.transform.rotation.z, po.transform.rotation.w = x, y, z, w
+        h.node.on_panorama_orientation(po)
+        imu = Imu()
+        imu.header.stamp = to_stamp(t)
+        x, y, z, w = (R * cam).as_quat()
+        imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = x, y, z, w
+        imu.orientation_covariance[0] = imu.orientation_covariance[4] = 1e-4
+        imu.orientation_covariance[8] = np.radians(sigma_deg) ** 2
+        h.node.on_global(imu)
+    err = np.degrees((Rotation.from_matrix(h.node.R_enu_pano) * good.inv()).magnitude())
+    assert err < 3.0 / 50  # weights 1:100 put it 3/101 deg from the good sample; equal ones 1.5

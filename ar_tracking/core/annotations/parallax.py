@@ -135,3 +135,12 @@ def fit_depth_scale(model: ParallaxModel, predicted: Array, observed: Array, sig
     w = 1.0 / sigma_match ** 2
     s = 1.0 + float(w * (r @ p)) / (w * float(p @ p) + 1.0 / sigma_scale ** 2)
     return float(np.clip(s, *bounds))
+
+
+def depth_scale_sigma(model: ParallaxModel, predicted: Array, sigma_match: float = 0.01,
+                      sigma_scale: float = 0.5) -> float:
+    """Standard deviation of :func:`fit_depth_scale`'s factor fitted on matches at ``predicted``
+    (n >= 0): the posterior of the same linear least squares, ``sigma_scale`` with no match. A
+    match where the model's parallax term is small says little about the factor."""
+    p = model.shift(predicted) - model.c if len(predicted) else np.zeros(0)
+    return float(1.0 / math.sqrt(float(p @ p) / sigma_match ** 2 + 1.0 / sigma_scale ** 2))

@@ -120,6 +120,12 @@ class MatchConfig:
     #: supports do not match under the changed lighting lies between matched ones. 512 px = 90
     #: deg: the heading and the sinusoid of the parallax model are then pinned on both sides.
     bracket_support_px: float = 512.0
+    #: An inferred annotation's placement carries the parallax model's term there times the
+    #: annotations' depth ratio (``parallax_scale_sigma``), which a handful of matched annotations
+    #: pin only loosely (a label on the far side of the model's sinusoid moves by a degree and
+    #: more). It is supported only while that ratio's standard deviation moves it by at most
+    #: this much (rad, 1 sigma; 0: off), whatever the local matches.
+    depth_ratio_support_rad: float = 0.00698  # 0.4 deg
     #: Look-alike test of a matched annotation after the parallax model (0: off): when another
     #: local NCC maximum at least ``lookalike_sep_px`` from its match, inside the placement gate
     #: around its leave-one-out prediction, has an NCC within ``lookalike_margin`` of the

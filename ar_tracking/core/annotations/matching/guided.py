@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...panorama.cylinder import CylinderGeometry
-from ..parallax import ParallaxModel, fit_depth_scale, fit_parallax
+from ..parallax import ParallaxModel, depth_scale_sigma, fit_depth_scale, fit_parallax
 from .config import MatchConfig
 from .placement import Alignment, Placement, place_annotations
 from .tiles import Candidate
@@ -187,6 +187,8 @@ class GuidedSearch:
         corrected = model.apply(predicted)
         if cfg.parallax_scale_sigma > 0:
             corrected[shown] = scaled(model, every).apply(predicted[shown])
+            al.depth_ratio_sigma = depth_scale_sigma(model, predicted[matched][ann], cfg.parallax_sigma_match,
+                                                     cfg.parallax_scale_sigma)
         # A matched annotation's own position comes from the others only (leave-one-out): a
         # look-alike match must not pull the prediction it is judged against towards itself.
         for r, k in enumerate(matched):

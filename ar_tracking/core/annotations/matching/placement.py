@@ -57,6 +57,9 @@ class Alignment:
     support_reason: str = 'no alignment'
     #: Angle between the alignment and the prior rotation, rad (NaN without a prior).
     prior_correction_rad: float = float('nan')
+    #: Standard deviation of the annotations' depth ratio to the parallax model
+    #: (:func:`.parallax.depth_scale_sigma`; NaN: no ratio fitted).
+    depth_ratio_sigma: float = float('nan')
 
 
 def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],

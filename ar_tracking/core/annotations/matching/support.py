@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from ...panorama.cylinder import CylinderGeometry
 from ...rotations import trace_angle
 from .config import MatchConfig
-from .placement import Alignment
+from .placement import Alignment, Placement
 
 Array = NDArray[np.float64]
 
@@ -28,6 +28,7 @@ class SupportTest:
     R_enu_target: Array | None
     source_sigma: Array
     target_sigma: float
+    source_dirs: Array
 
     def _support(self, al: Alignment, ids: list[int]) -> None:
         """Whether the alignment supports showing its placements (:attr:`MatchConfig.min_support_matches`)."""
@@ -67,6 +68,19 @@ class SupportTest:
                     du = (mu - p.u + W / 2) % W - W / 2  # signed column offsets of the matches
                     p.supported = bool(((du < 0) & (du >= -cfg.bracket_support_px)).any()
                                        and ((du > 0) & (du <= cfg.bracket_support_px)).any())
+                if p.supported and not self._depth_ratio_pins(al, p):
+                    p.supported = False
+
+    def _depth_ratio_pins(self, al: Alignment, p: Placement) -> bool:
+        """Whether the depth ratio's uncertainty moves the inferred placement ``p`` by at most
+        :attr:`MatchConfig.depth_ratio_support_rad` (1 sigma): the parallax model's term at it
+        times the ratio's standard deviation."""
+        limit = self.config.depth_ratio_support_rad
+        if limit <= 0 or al.parallax is None or al.R_target_source is None or not math.isfinite(al.depth_ratio_sigma):
+            return True
+        m = al.parallax
+        term = float(m.shift(self.source_dirs[p.index] @ al.R_target_source.T)[0]) - m.c
+        return abs(term) * al.depth_ratio_sigma <= limit
 
     def _prior_rotation(self, ids: list[int]) -> Array | None:
         """R_target_source from the absolute orientations of both panoramas (sec. 4.2), None
