@@ -239,19 +239,26 @@ class TrackingNode(Node):
         ``view``: a reader of the message's CDR bytes (:mod:`ar_tracking.ros.cdr_views`); the
         subscription is then raw and the callback gets the view (with the message's field
         names and values) instead of the message rclpy would build, at a fraction of the cost
-        of rclpy's deserialisation. The time to read the view counts as callback time."""
+        of rclpy's deserialisation. Bytes that do not read as the type are dropped before the
+        callback, as rclpy drops a message it cannot deserialise: never delivered (the lockstep
+        runner's step times out on them and books them lost), one throttled error line."""
         stats = self.callback_stats[topic]
         logger = self.get_logger()
+        decode = None
         if view is not None:
             from .cdr_views import viewer
 
-            decode, takes_view = viewer(msg_type, view), callback
-
-            def callback(raw_msg: Any) -> None:
-                takes_view(decode(raw_msg))
+            decode = viewer(msg_type, view)
             raw = True
 
         def guarded(msg: Any) -> None:
+            if decode is not None:
+                try:
+                    msg = decode(msg)
+                except Exception as exc:  # not the declared type: dropped, as rclpy would
+                    logger.error(f'{topic}: message does not read as {msg_type.__name__} '
+                                 f'({type(exc).__name__}: {exc}), dropped', throttle_duration_sec=5.0)
+                    return
             hooks = self.lockstep_hooks
             if hooks is not None and hooks.taken is not None:
                 hooks.taken(subscription)
