@@ -133,10 +133,13 @@ PARAMS = (
     ParamSpec('bracket_support_deg', 90.0,
               'An inferred label with fewer local matches is shown as placed when matches lie on both sides of it '
               'within this azimuth (interpolated, not extrapolated), degrees; 0: off', min_value=0.0, max_value=180.0),
-    ParamSpec('depth_ratio_support_deg', 0.4,
-              'An inferred label is shown as placed only while the uncertainty of the annotations\' depth ratio to '
-              'the parallax model moves it by at most this much (1 sigma), degrees; 0: off', min_value=0.0,
-              max_value=180.0),
+    ParamSpec('depth_ratio_support_deg', 0.55,
+              'An inferred label is shown as placed only while the uncertainty of its depth ratio to the parallax '
+              'model (the fitted ratio\'s and depth_ratio_scatter) moves it by at most this much (1 sigma), degrees; '
+              '0: off', min_value=0.0, max_value=180.0),
+    ParamSpec('depth_ratio_scatter', 0.2,
+              'Spread (1 sigma) of one annotation\'s depth ratio about the ratio fitted on the matched ones',
+              min_value=0.0, max_value=10.0),
     ParamSpec('local_support_matched', True,
               'Matched labels too need local_support_matches other matches within local_support_deg (an isolated '
               'match is only approximate)'),
@@ -221,7 +224,8 @@ class AnnotationMatcherNode(TrackingNode):
             local_support_px=math.radians(v['local_support_deg']) * f,
             local_support_matched=v['local_support_matched'], lookalike_margin=v['lookalike_margin'],
             lookalike_sep_px=v['lookalike_sep_px'], bracket_support_px=math.radians(v['bracket_support_deg']) * f,
-            depth_ratio_support_rad=math.radians(v['depth_ratio_support_deg']))
+            depth_ratio_support_rad=math.radians(v['depth_ratio_support_deg']),
+            depth_ratio_scatter=v['depth_ratio_scatter'])
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []

@@ -97,9 +97,10 @@ def test_inferred_label_is_approximate_while_few_annotations_pin_the_depth_ratio
     ann = np.flatnonzero(far)
     gone = int(ann[1])
 
-    def inferred(matched_annotations: int, limit: float):
+    def inferred(matched_annotations: int, limit: float, scatter: float = 0.0):
         det = ReDetector(case.patches, case.dirs, ['p'] * n,
-                         MatchConfig(parallax_scale_sigma=0.3, depth_ratio_support_rad=limit),
+                         MatchConfig(parallax_scale_sigma=0.3, depth_ratio_support_rad=limit,
+                                     depth_ratio_scatter=scatter),
                          R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * n,
                          landmark=list(~far))
         det.set_orientation(M_ENU_PANO)
@@ -119,3 +120,7 @@ def test_inferred_label_is_approximate_while_few_annotations_pin_the_depth_ratio
     assert not few.supported and many.supported
     off, _ = inferred(1, 0.0)
     assert off.supported  # the rule off: the local matches alone decide
+    # The label's own facade may differ from the fitted ratio whatever the matches: with that
+    # scatter its term alone keeps it approximate.
+    scattered, _ = inferred(7, np.radians(0.4), scatter=0.5)
+    assert not scattered.supported

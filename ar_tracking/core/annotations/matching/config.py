@@ -122,10 +122,13 @@ class MatchConfig:
     bracket_support_px: float = 512.0
     #: An inferred annotation's placement carries the parallax model's term there times the
     #: annotations' depth ratio (``parallax_scale_sigma``), which a handful of matched annotations
-    #: pin only loosely (a label on the far side of the model's sinusoid moves by a degree and
-    #: more). It is supported only while that ratio's standard deviation moves it by at most
-    #: this much (rad, 1 sigma; 0: off), whatever the local matches.
-    depth_ratio_support_rad: float = 0.00698  # 0.4 deg
+    #: pin only loosely, and its own facade's depth differs from that common ratio by
+    #: ``depth_ratio_scatter`` (1 sigma) whatever the matches. It is supported only while the two
+    #: move it by at most ``depth_ratio_support_rad`` (1 sigma; 0: off), whatever the local
+    #: matches: a label on the far side of the model's sinusoid is otherwise shown a degree off.
+    #: 0.55 deg and 0.2 chosen on the matcher replay of development spots 371-504.
+    depth_ratio_support_rad: float = 0.0096  # 0.55 deg
+    depth_ratio_scatter: float = 0.2
     #: Look-alike test of a matched annotation after the parallax model (0: off): when another
     #: local NCC maximum at least ``lookalike_sep_px`` from its match, inside the placement gate
     #: around its leave-one-out prediction, has an NCC within ``lookalike_margin`` of the
