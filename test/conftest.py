@@ -12,7 +12,12 @@ import pytest
 #: Real recordings (../shared/data beside the repository) when present.
 SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
-_domain_ids = itertools.count(150 + os.getpid() % 50)
+#: DDS domains of the private contexts: 1-99, a block of 33 per pytest-xdist worker, so that
+#: two workers' tests never share a domain (with one count per process they did, and a latched
+#: topic of one worker's test reached the other's); the runner's graphs use 101-200.
+_WORKER = os.environ.get('PYTEST_XDIST_WORKER', 'gw0')
+_BLOCK = int(_WORKER[2:]) % 3 if _WORKER[2:].isdigit() else 0
+_domain_ids = (1 + 33 * _BLOCK + k % 33 for k in itertools.count(os.getpid() % 33))
 
 
 @pytest.fixture
@@ -23,7 +28,7 @@ def ros_context() -> Iterator[Any]:
 
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     context = Context()
-    rclpy.init(context=context, domain_id=next(_domain_ids) % 230)
+    rclpy.init(context=context, domain_id=next(_domain_ids))
     try:
         yield context
     finally:
