@@ -140,6 +140,9 @@ PARAMS = (
     ParamSpec('depth_ratio_scatter', 0.2,
               'Spread (1 sigma) of one annotation\'s depth ratio about the ratio fitted on the matched ones',
               min_value=0.0, max_value=10.0),
+    ParamSpec('prediction_support', True,
+              'depth_ratio_support_deg also counts the parallax model\'s own uncertainty at the label (matches '
+              'bunched in one sector pin the model there only)'),
     ParamSpec('local_support_matched', True,
               'Matched labels too need local_support_matches other matches within local_support_deg (an isolated '
               'match is only approximate)'),
@@ -225,7 +228,7 @@ class AnnotationMatcherNode(TrackingNode):
             local_support_matched=v['local_support_matched'], lookalike_margin=v['lookalike_margin'],
             lookalike_sep_px=v['lookalike_sep_px'], bracket_support_px=math.radians(v['bracket_support_deg']) * f,
             depth_ratio_support_rad=math.radians(v['depth_ratio_support_deg']),
-            depth_ratio_scatter=v['depth_ratio_scatter'])
+            depth_ratio_scatter=v['depth_ratio_scatter'], prediction_support=v['prediction_support'])
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []

@@ -8,7 +8,7 @@ import pytest
 from annotation_synth import M_ENU_PANO, UP, displaced_spot_case, rotated_by
 from ar_tracking.core.annotations.matching import Candidate, MatchConfig, ReDetector
 from ar_tracking.core.annotations.parallax import (_horizontal_axes, depth_scale_sigma, fit_depth_scale, fit_parallax,
-                                                   heading_residuals)
+                                                   heading_residuals, prediction_sigma)
 
 
 def test_horizontal_axes_equal_numpys_cross_products():
@@ -124,3 +124,21 @@ def test_inferred_label_is_approximate_while_few_annotations_pin_the_depth_ratio
     # scatter its term alone keeps it approximate.
     scattered, _ = inferred(7, np.radians(0.4), scatter=0.5)
     assert not scattered.supported
+
+
+def test_prediction_sigma_grows_away_from_bunched_matches():
+    # Matches only in one 60-deg sector: the model is pinned there, extrapolated on the far side.
+    t = np.array([1.0, 0.5, 0.0])
+    _, truth, _, predicted, _ = _near_and_far(44, t, 24, 25.0, 25.0)
+    model0 = fit_parallax(predicted, truth, UP)
+    az = np.degrees(model0.azimuth(predicted))
+    sector = np.abs(((az - az[0]) + 180.0) % 360.0 - 180.0) <= 30.0
+    assert 3 <= sector.sum() < 24
+    model = fit_parallax(predicted[sector], truth[sector], UP, 0.01, 0.02)
+    sig = prediction_sigma(model, predicted[sector], truth[sector], predicted, 0.01, 0.02)
+    inside = sig[sector].max()
+    opposite = np.abs(((az - az[0]) + 180.0) % 360.0 - 180.0) >= 150.0
+    assert sig[opposite].min() > 2.0 * inside
+    # Matches all around: small everywhere.
+    spread = prediction_sigma(model0, predicted, truth, predicted, 0.01, 0.02)
+    assert spread.max() < sig[opposite].min()

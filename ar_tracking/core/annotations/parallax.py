@@ -144,3 +144,21 @@ def depth_scale_sigma(model: ParallaxModel, predicted: Array, sigma_match: float
     match where the model's parallax term is small says little about the factor."""
     p = model.shift(predicted) - model.c if len(predicted) else np.zeros(0)
     return float(1.0 / math.sqrt(float(p @ p) / sigma_match ** 2 + 1.0 / sigma_scale ** 2))
+
+
+def prediction_sigma(model: ParallaxModel, predicted: Array, observed: Array, at: Array,
+                     sigma_match: float = 0.01, sigma_parallax: float = 0.02) -> Array:
+    """(m,) standard deviation (rad) of the model's heading shift at the (m, 3) directions ``at``:
+    the posterior covariance of ``(c, a, b)`` in :func:`fit_parallax`'s least squares on the
+    matches (``predicted`` / ``observed``), with their robust residual scale (1.4826 x median
+    absolute, at least ``sigma_match``) for the per-match sigma. Matches bunched in one sector
+    of the panorama pin the sinusoid there only: far from them it is extrapolated."""
+    th = model.azimuth(predicted)
+    X = np.stack([np.ones_like(th), np.cos(th), np.sin(th)], axis=1)
+    r = heading_residuals(model, predicted, observed)
+    s = max(sigma_match, 1.4826 * float(np.median(np.abs(r)))) if r.size else sigma_match
+    info = X.T @ X / s ** 2 + np.diag([0.0, 1.0, 1.0]) / sigma_parallax ** 2
+    cov = np.linalg.pinv(info)
+    ta = model.azimuth(at)
+    Xa = np.stack([np.ones_like(ta), np.cos(ta), np.sin(ta)], axis=1)
+    return np.sqrt(np.maximum(np.einsum('ni,ij,nj->n', Xa, cov, Xa), 0.0))

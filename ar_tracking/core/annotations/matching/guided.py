@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...panorama.cylinder import CylinderGeometry
-from ..parallax import ParallaxModel, depth_scale_sigma, fit_depth_scale, fit_parallax
+from ..parallax import ParallaxModel, depth_scale_sigma, fit_depth_scale, fit_parallax, prediction_sigma
 from .config import MatchConfig
 from .placement import Alignment, Placement, place_annotations
 from .tiles import Candidate
@@ -189,6 +189,10 @@ class GuidedSearch:
             corrected[shown] = scaled(model, every).apply(predicted[shown])
             al.depth_ratio_sigma = depth_scale_sigma(model, predicted[matched][ann], cfg.parallax_sigma_match,
                                                      cfg.parallax_scale_sigma)
+        if cfg.prediction_support:
+            sig = prediction_sigma(model, predicted[matched], observed, predicted, cfg.parallax_sigma_match,
+                                   cfg.parallax_sigma)
+            al.prediction_sigma = {ids[k]: float(x) for k, x in enumerate(sig)}
         # A matched annotation's own position comes from the others only (leave-one-out): a
         # look-alike match must not pull the prediction it is judged against towards itself.
         for r, k in enumerate(matched):

@@ -60,6 +60,9 @@ class Alignment:
     #: Standard deviation of the annotations' depth ratio to the parallax model
     #: (:func:`.parallax.depth_scale_sigma`; NaN: no ratio fitted).
     depth_ratio_sigma: float = float('nan')
+    #: Standard deviation (rad) of the parallax model's heading at each annotation (global
+    #: index; :func:`.parallax.prediction_sigma`), with ``MatchConfig.prediction_support``.
+    prediction_sigma: dict[int, float] = field(default_factory=dict)
 
 
 def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],

@@ -80,7 +80,8 @@ class SupportTest:
             return True
         m = al.parallax
         term = float(m.shift(self.source_dirs[p.index] @ al.R_target_source.T)[0]) - m.c
-        return abs(term) * math.hypot(al.depth_ratio_sigma, self.config.depth_ratio_scatter) <= limit
+        ratio = abs(term) * math.hypot(al.depth_ratio_sigma, self.config.depth_ratio_scatter)
+        return math.hypot(ratio, al.prediction_sigma.get(p.index, 0.0)) <= limit
 
     def _prior_rotation(self, ids: list[int]) -> Array | None:
         """R_target_source from the absolute orientations of both panoramas (sec. 4.2), None
