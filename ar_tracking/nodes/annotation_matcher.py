@@ -20,7 +20,9 @@ No label is shown as placed before the alignment supports it (``min_support_matc
 annotations and landmarks, and a rotation within ``support_prior_sigmas`` of the sensor prior
 given both panoramas' heading covariances - the store's panorama record and
 ``orientation/global``'s covariance - unless ``strong_support_matches`` outvote it; an inferred
-label also needs ``local_support_matches`` matches within ``local_support_deg`` of it): until then
+label also needs ``local_support_matches`` matches within ``local_support_deg`` of it, or matches on
+both sides within ``bracket_support_deg``, and its placement uncertainty - the depth ratio's and
+the parallax model's - within ``depth_ratio_support_deg``): until then
 the labels go to the namespace ``approximate`` (grey, ``scale.x`` = the 3-sigma direction
 uncertainty in rad; ``show_approximate: false`` publishes nothing instead), and
 ``annotations/alignment`` is not published. The algorithm is :mod:`ar_tracking.core.annotations`; this node converts.
