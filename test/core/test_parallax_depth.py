@@ -142,3 +142,38 @@ def test_prediction_sigma_grows_away_from_bunched_matches():
     # Matches all around: small everywhere.
     spread = prediction_sigma(model0, predicted, truth, predicted, 0.01, 0.02)
     assert spread.max() < sig[opposite].min()
+
+
+def test_inferred_label_far_from_bunched_matches_is_approximate_with_prediction_support():
+    # Landmarks and annotations matched only within 50 deg of one azimuth; the label opposite.
+    t = np.array([1.0, 0.5, 0.0])
+    n = 24
+    case, truth, uv, predicted, far = _near_and_far(46, t, n, 22.0, 45.0)
+    model = fit_parallax(predicted, truth, UP)
+    az = np.degrees(model.azimuth(predicted))
+    ann = np.flatnonzero(far)
+    gone = int(ann[0])
+    off = np.abs(((az - az[gone]) + 180.0) % 360.0 - 180.0)
+    bunch = [i for i in range(n) if off[i] >= 130.0 and i != gone]
+    assert sum(far[bunch]) >= 2 and sum(~far[bunch]) >= 3
+
+    def label(prediction_support: bool):
+        cfg = MatchConfig(parallax_scale_sigma=0.3, local_support_matches=0, bracket_support_px=0.0,
+                          depth_ratio_scatter=0.0, depth_ratio_support_rad=np.radians(0.55),
+                          prediction_support=prediction_support)
+        det = ReDetector(case.patches, case.dirs, ['p'] * n, cfg,
+                         R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * n,
+                         landmark=list(~far))
+        det.set_orientation(M_ENU_PANO)
+        for i in bunch:
+            det.candidates[i].items = [Candidate(float(uv[i, 0]), float(uv[i, 1]), 0.9, 0.9)]
+        det.dirty = True
+        _, al = det.result()
+        assert al.supported
+        return next(p for p in al.placements if p.index == gone), al
+
+    without, _ = label(False)
+    with_it, al = label(True)
+    assert without.status == with_it.status == 'inferred'
+    assert al.prediction_sigma[gone] > np.radians(0.55)
+    assert without.supported and not with_it.supported
