@@ -84,7 +84,9 @@ class TfBroadcaster:
         return self._pub is not None and (self.static or self._pub.get_subscription_count() > 0)
 
     def send(self, transforms: TransformStamped | list[TransformStamped]) -> None:
-        if not self.listened:
+        """Publish (``/tf_static``: with every transform sent before). Callers on ``/tf`` ask
+        :attr:`listened` first, before building the transforms."""
+        if self._pub is None:
             return
         items = [transforms] if isinstance(transforms, TransformStamped) else list(transforms)
         if self.static:

@@ -142,7 +142,7 @@ def depth_scale_sigma(model: ParallaxModel, predicted: Array, sigma_match: float
     """Standard deviation of :func:`fit_depth_scale`'s factor fitted on matches at ``predicted``
     (n >= 0): the posterior of the same linear least squares, ``sigma_scale`` with no match. A
     match where the model's parallax term is small says little about the factor."""
-    p = model.shift(predicted) - model.c if len(predicted) else np.zeros(0)
+    p = model.shift(predicted) - model.c
     return float(1.0 / math.sqrt(float(p @ p) / sigma_match ** 2 + 1.0 / sigma_scale ** 2))
 
 

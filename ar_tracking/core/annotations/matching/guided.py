@@ -189,7 +189,7 @@ class GuidedSearch:
             corrected[shown] = scaled(model, every).apply(predicted[shown])
             al.depth_ratio_sigma = depth_scale_sigma(model, predicted[matched][ann], cfg.parallax_sigma_match,
                                                      cfg.parallax_scale_sigma)
-        if cfg.prediction_support:
+        if cfg.prediction_support and cfg.depth_ratio_support_rad > 0:  # read by the support rule only
             sig = prediction_sigma(model, predicted[matched], observed, predicted, cfg.parallax_sigma_match,
                                    cfg.parallax_sigma)
             al.prediction_sigma = {ids[k]: float(x) for k, x in enumerate(sig)}

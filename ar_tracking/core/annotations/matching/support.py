@@ -72,15 +72,18 @@ class SupportTest:
                     p.supported = False
 
     def _depth_ratio_pins(self, al: Alignment, p: Placement) -> bool:
-        """Whether the depth ratio's uncertainty moves the inferred placement ``p`` by at most
+        """Whether the inferred placement ``p`` is pinned to within
         :attr:`MatchConfig.depth_ratio_support_rad` (1 sigma): the parallax model's term at it
-        times the ratio's standard deviation."""
+        times the depth ratio's standard deviation (the fitted ratio's, none without
+        ``parallax_scale_sigma``, and ``depth_ratio_scatter``), with the model's own heading
+        uncertainty there (``prediction_support``)."""
         limit = self.config.depth_ratio_support_rad
-        if limit <= 0 or al.parallax is None or al.R_target_source is None or not math.isfinite(al.depth_ratio_sigma):
+        if limit <= 0 or al.parallax is None or al.R_target_source is None:
             return True
         m = al.parallax
         term = float(m.shift(self.source_dirs[p.index] @ al.R_target_source.T)[0]) - m.c
-        ratio = abs(term) * math.hypot(al.depth_ratio_sigma, self.config.depth_ratio_scatter)
+        fitted = al.depth_ratio_sigma if math.isfinite(al.depth_ratio_sigma) else 0.0
+        ratio = abs(term) * math.hypot(fitted, self.config.depth_ratio_scatter)
         return math.hypot(ratio, al.prediction_sigma.get(p.index, 0.0)) <= limit
 
     def _prior_rotation(self, ids: list[int]) -> Array | None:
