@@ -122,11 +122,9 @@ def _align(pos: int, size: int) -> int:
 
 
 def _header(raw: bytes) -> tuple[HeaderView, int]:
-    sec, nanosec, n = _HEADER.unpack_from(raw, 4)
-    end = 16 + n
-    if end > len(raw):
-        raise ValueError('CDR header frame_id runs past the end of the message')
-    frame_id = raw[16:end - 1 if n else end].decode('utf-8')
+    """The std_msgs/Header after the encapsulation header and the position after it."""
+    sec, nanosec, _ = _HEADER.unpack_from(raw, 4)
+    frame_id, end = _string(raw, 12)
     return HeaderView(StampView(sec, nanosec), frame_id), end
 
 
@@ -208,7 +206,7 @@ def _header_cdr(sec: int, nanosec: int, frame_id: str) -> bytes:
 def _string_cdr(text: str, pos: int) -> bytes:
     """A CDR string starting at absolute offset ``pos``: padding to 4, length, bytes, NUL."""
     data = text.encode('utf-8')
-    return b'\x00' * (-(pos - 4) % 4) + _U32.pack(len(data) + 1) + data + b'\x00'
+    return _pad(pos, 4) + _U32.pack(len(data) + 1) + data + b'\x00'
 
 
 def _pad(pos: int, size: int) -> bytes:
