@@ -65,7 +65,7 @@ def _merged_chunks(stream: Any, chunks: list[Any], channels: dict[int, tuple[str
         stream.seek(offset + 1 + 8)
         chunk_data, size = get_chunk_data_stream(Chunk.read(ReadDataStream(stream)), validate_crc=True)
         data = chunk_data.read(size)
-        found: list[tuple[int, int, int, int]] = []
+        found: list[tuple[int, int, int, int, int]] = []
         pos = 0
         while pos < size:
             opcode, length = _RECORD_HEAD(data, pos)
@@ -73,12 +73,11 @@ def _merged_chunks(stream: Any, chunks: list[Any], channels: dict[int, tuple[str
             if opcode == _MESSAGE_OPCODE:
                 channel, _, log_time = _MESSAGE_HEAD(data, body)
                 if channel in channels and lo <= log_time < hi:
-                    found.append((log_time, pos, channel, body + 22))
+                    found.append((log_time, pos, channel, body + 22, body + length))
             pos = body + length
         found.sort(key=lambda m: m[0])  # stable: ties keep their order in the chunk
-        for log_time, place, channel, start in found:
+        for log_time, place, channel, start, end in found:
             topic, msgtype = channels[channel]
-            end = place + 9 + _RECORD_HEAD(data, place)[1]
             yield log_time, offset, place, make(topic, msgtype, log_time, data[start:end])
 
     try:
