@@ -46,6 +46,11 @@ def _horizontal_axes(up: Array) -> tuple[Array, Array]:
     return e1, cross3(up, e1)
 
 
+def _regressors(theta: Array) -> Array:
+    """(n, 3) columns of the model's heading shift ``c + a cos + b sin`` at azimuths ``theta``."""
+    return np.stack([np.ones_like(theta), np.cos(theta), np.sin(theta)], axis=1)
+
+
 @dataclass(frozen=True)
 class ParallaxModel:
     """Heading shift ``c + a cos(theta) + b sin(theta)`` (rad) about ``up``; theta from ``e1``."""
@@ -98,7 +103,7 @@ def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: floa
     model = ParallaxModel(k, 0.0, 0.0, 0.0)
     th = model.azimuth(predicted)
     r = (model.azimuth(observed) - th + math.pi) % (2 * math.pi) - math.pi
-    X = np.stack([np.ones_like(th), np.cos(th), np.sin(th)], axis=1)
+    X = _regressors(th)
     prior = np.diag([0.0, 1.0, 1.0])[1:] / sigma_parallax
     keep = np.ones(th.size, bool)
     for _ in range(2 if trim_sigmas > 0 else 1):
@@ -153,12 +158,10 @@ def prediction_sigma(model: ParallaxModel, predicted: Array, observed: Array, at
     matches (``predicted`` / ``observed``), with their robust residual scale (1.4826 x median
     absolute, at least ``sigma_match``) for the per-match sigma. Matches bunched in one sector
     of the panorama pin the sinusoid there only: far from them it is extrapolated."""
-    th = model.azimuth(predicted)
-    X = np.stack([np.ones_like(th), np.cos(th), np.sin(th)], axis=1)
+    X = _regressors(model.azimuth(predicted))
     r = heading_residuals(model, predicted, observed)
     s = max(sigma_match, 1.4826 * float(np.median(np.abs(r)))) if r.size else sigma_match
     info = X.T @ X / s ** 2 + np.diag([0.0, 1.0, 1.0]) / sigma_parallax ** 2
     cov = np.linalg.pinv(info)
-    ta = model.azimuth(at)
-    Xa = np.stack([np.ones_like(ta), np.cos(ta), np.sin(ta)], axis=1)
+    Xa = _regressors(model.azimuth(at))
     return np.sqrt(np.maximum(np.einsum('ni,ij,nj->n', Xa, cov, Xa), 0.0))

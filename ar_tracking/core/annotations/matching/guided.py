@@ -190,9 +190,10 @@ class GuidedSearch:
             al.depth_ratio_sigma = depth_scale_sigma(model, predicted[matched][ann], cfg.parallax_sigma_match,
                                                      cfg.parallax_scale_sigma)
         if cfg.prediction_support and cfg.depth_ratio_support_rad > 0:  # read by the support rule only
-            sig = prediction_sigma(model, predicted[matched], observed, predicted, cfg.parallax_sigma_match,
+            rows = np.flatnonzero(shown)  # the support rule judges annotations only
+            sig = prediction_sigma(model, predicted[matched], observed, predicted[rows], cfg.parallax_sigma_match,
                                    cfg.parallax_sigma)
-            al.prediction_sigma = {ids[k]: float(x) for k, x in enumerate(sig)}
+            al.prediction_sigma = {ids[k]: float(x) for k, x in zip(rows, sig)}
         # A matched annotation's own position comes from the others only (leave-one-out): a
         # look-alike match must not pull the prediction it is judged against towards itself.
         for r, k in enumerate(matched):
