@@ -59,10 +59,6 @@ class RealtimePlayback:
         self.progress = progress
         #: the run's stop request (a signal): ends the playback without a drain
         self.stop = stop
-        #: input header stamp (ns) -> perf_counter when the player published it
-        self.published_wall = session.published_wall
-        self.drain_quiet_s = session.drain_quiet_s
-        self.drain_max_s = session.drain_max_s
         self.clock = Clock()
         self.finished = threading.Event()
         self.stop_nodes = threading.Event()
@@ -86,7 +82,7 @@ class RealtimePlayback:
             stamp = header_stamp_ns(msg.rawdata) if msg.topic in s.stamp_topics else None
             if stamp is not None:
                 # the first input of a stamp starts its clock (setdefault keeps it)
-                self.published_wall.setdefault(stamp, time.perf_counter())
+                self.s.published_wall.setdefault(stamp, time.perf_counter())
             pub.publish(msg.rawdata)
             s.result.input_messages += 1
 
@@ -147,16 +143,16 @@ class RealtimePlayback:
                 self.finished.set()
 
     def _drain(self) -> None:
-        """Let the nodes empty their queues (until nothing moves for drain_quiet_s)."""
+        """Let the nodes empty their queues (until nothing moves for DRAIN_QUIET_S)."""
         result = self.s.result
-        drain_until = time.monotonic() + self.drain_max_s
+        drain_until = time.monotonic() + DRAIN_MAX_S
         last, quiet_since = self._processed(), time.monotonic()
         while time.monotonic() < drain_until and not result.failed_nodes:
             self._spin_main()
             now_done = self._processed()
             if now_done != last:
                 last, quiet_since = now_done, time.monotonic()
-            elif time.monotonic() - quiet_since > self.drain_quiet_s:
+            elif time.monotonic() - quiet_since > DRAIN_QUIET_S:
                 break
 
     def run(self) -> None:

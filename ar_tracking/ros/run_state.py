@@ -14,11 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from ..io.bags import BagReader, BagWriter
-from .signals import StopOnSignal  # noqa: F401 - re-exported for the runner
 
 #: Realtime: after the last input, spin until the nodes have processed nothing more for
-#: this long (their queues are empty), at most DRAIN_MAX_S (the defaults of
-#: :attr:`RunSession.drain_quiet_s` and :attr:`RunSession.drain_max_s`).
+#: this long (their queues are empty), at most DRAIN_MAX_S.
 DRAIN_QUIET_S = 0.5
 DRAIN_MAX_S = 10.0
 
@@ -283,10 +281,6 @@ class RunSession:
     #: realtime: input header stamp (ns) -> perf_counter when the player published it (the
     #: start of the end-to-end latency of the recorded ``orientation/global`` with that stamp)
     published_wall: dict[int, float] = field(default_factory=dict)
-    #: realtime: after the last input, the nodes are drained until nothing moved for this long
-    drain_quiet_s: float = DRAIN_QUIET_S
-    #: ... and at most this long
-    drain_max_s: float = DRAIN_MAX_S
     #: lockstep: the one LockstepHooks (ros.node_base) every in-process node, the feeder and the
     #: recorder report through; None in realtime (each node counts only its own messages)
     lockstep_hooks: Any = None

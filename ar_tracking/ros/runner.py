@@ -48,7 +48,8 @@ from .live_play import (IMAGE_TYPES, SENSOR_STAMP_TYPES, RealtimePlayback, best_
                         stop_node_processes)
 from .node_process import NodeProcess
 from .params import params_for_node, to_overrides
-from .run_state import DeliveryLedger, Recorder, RunResult, RunSession, StopOnSignal, header_stamp_ns
+from .run_state import DeliveryLedger, Recorder, RunResult, RunSession, header_stamp_ns
+from .signals import StopOnSignal
 
 __all__ = [
     'COPY_PREFIXES', 'EXECUTOR_CHOICES', 'GRAPH_CHOICES', 'GRAPH_NODES', 'IMAGE_TYPES', 'LATENCY_TOPIC',
@@ -384,7 +385,7 @@ class GraphRunner:
         result, ledger = s.result, self._ledger
         assert s.recorder is not None
         if s.in_processes:
-            stop_node_processes(s.nodes, s.executor, s.recorder, s.drain_quiet_s, s.drain_max_s)
+            stop_node_processes(s.nodes, s.executor, s.recorder)
         result.output_messages = s.recorder.count
         if s.realtime:
             live_report(s.nodes, result)
