@@ -32,7 +32,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.ahrs import Ahrs, AhrsConfig, AhrsError
@@ -53,7 +52,7 @@ from ..ros.frames import WORLD_FROM_ENU, check_world_frame
 from ..ros.node_base import RELIABLE_QOS, STREAM_QOS, TrackingNode, run_node
 from ..ros.param_table import IMU_CALIBRATION_PARAMS, ParamSpec, declare_params, imu_calibration
 from ..ros.stamp_guard import StampGuard, StampVerdict
-from ..ros.tf import TfBroadcaster
+from ..ros.tf import TfBroadcaster, transform_stamped
 
 METHODS = ('vqf', 'compass')
 _AHRS = AhrsConfig()
@@ -425,18 +424,19 @@ class ImuMagnetometerNode(TrackingNode):
                 float(c.gyro[0]), float(c.gyro[1]), float(c.gyro[2]), *(float(v) for v in c.gyro_cov),
                 float(c.accel[0]), float(c.accel[1]), float(c.accel[2]), *(float(v) for v in c.accel_cov)))
             self.pub_data.publish(raw)
-            self.published += 1
-            if self.publish_tf and self.tf.listened:
-                from builtin_interfaces.msg import Time
+            t_ns, frame = c.sec * 1_000_000_000 + c.nanosec, c.frame_id
+        else:
+            # replay: on_imu's caller publishes the calibrated sample as it is; imu/data is a copy
+            out = self._imu_data(calibrated, R, cov)
+            self.pub_data.publish(out)
+            t_ns, frame = stamp_ns(out.header), out.header.frame_id
+        self.published += 1
+        if self.publish_tf and self.tf.listened:
+            self.tf.send(transform_stamped(t_ns, self.fixed_frame, frame or 'imu', R))
 
-                tf = TransformStamped()
-                tf.header.stamp = Time(sec=c.sec, nanosec=c.nanosec)
-                tf.header.frame_id = self.fixed_frame
-                tf.child_frame_id = c.frame_id or 'imu'
-                set_quaternion(tf.transform.rotation, R)
-                self.tf.send(tf)
-            return
-        # replay: on_imu's caller publishes the calibrated sample as it is; imu/data is a copy
+    @staticmethod
+    def _imu_data(calibrated: Imu, R: np.ndarray, cov: np.ndarray) -> Imu:
+        """imu/data of a replayed sample: the calibrated message with the orientation."""
         out = Imu()
         out.header = calibrated.header
         out.angular_velocity = calibrated.angular_velocity
@@ -445,15 +445,7 @@ class ImuMagnetometerNode(TrackingNode):
         out.linear_acceleration_covariance = calibrated.linear_acceleration_covariance
         set_quaternion(out.orientation, R)
         set_covariance(out.orientation_covariance, cov)
-        self.pub_data.publish(out)
-        self.published += 1
-        if self.publish_tf and self.tf.listened:
-            tf = TransformStamped()
-            tf.header.stamp = out.header.stamp
-            tf.header.frame_id = self.fixed_frame
-            tf.child_frame_id = out.header.frame_id or 'imu'
-            tf.transform.rotation = out.orientation
-            self.tf.send(tf)
+        return out
 
 
 def main(args: list[str] | None = None) -> int:
