@@ -438,7 +438,7 @@ def _nees(path: Path, topic: str = '/orientation/global') -> float | None:
     return round(float(np.mean(values)), 3) if values else None
 
 
-def heading_split(data: BagOrientations | str | Path, split_s: float = 2.0,
+def heading_split(data: BagOrientations, split_s: float = 2.0,
                   topics: tuple[str, ...] = ('/orientation/global', '/imu/data')) -> dict[str, Any]:
     """Heading RMSE (deg) of each topic before and after ``split_s`` seconds from the truth's first
     stamp: the first seconds are when the phone has barely turned, so the residual hard iron (an
@@ -446,11 +446,9 @@ def heading_split(data: BagOrientations | str | Path, split_s: float = 2.0,
     them the figure shows what the estimator does once the session holds some rotation.
 
     ``data``: the orientations already read from an output bag (:func:`.metrics.load_orientations`;
-    the bench has them from scoring the bag), or the bag's path (then read here)."""
-    from .metrics import BagOrientations, load_orientations, orientation_errors
+    the bench has them from scoring the bag)."""
+    from .metrics import orientation_errors
 
-    if not isinstance(data, BagOrientations):
-        data = load_orientations(data)
     out: dict[str, Any] = {}
     for topic in topics:
         est = data.estimates.get(topic)
@@ -498,9 +496,8 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
     panorama_mapper, hybrid_orientation_filter), evaluate."""
     from ..ros.runner import GraphRunner
     from ..sim.bagmaker import make_bag
-    from .evaluate import source_bag_of
-    from .metrics import evaluate_orientations, load_orientations, score
-    from .reference_ahrs import vqf_reference
+    from .evaluate import orientation_metrics
+    from .metrics import load_orientations
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -518,10 +515,7 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
         # the orientation part of evaluate_all (the estimates and the VQF reference row), from
         # one read of the output bag that heading_split below reuses
         data = load_orientations(out)
-        m = evaluate_orientations(data)['orientation']
-        ref = vqf_reference(out, source_bag_of(out))
-        if ref is not None:
-            m['reference/vqf'] = score(data.truth, ref, 0, 'none')
+        m = orientation_metrics(out, data)['orientation']
         keys = ('heading_rmse_deg', 'tilt_rmse_deg', 'max_deg', 'n')
         row: dict[str, Any] = {name: {k: m.get(topic, {}).get(k) for k in keys}
                for name, topic in (('hybrid', 'orientation/global'), ('sensor_only', 'imu/data'), ('vqf', 'reference/vqf'))}

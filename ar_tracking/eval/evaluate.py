@@ -49,6 +49,20 @@ def _load(spec: str) -> Callable[[Path], dict[str, Any] | None]:
     return getattr(importlib.import_module(module), func)
 
 
+def orientation_metrics(path: str | Path, data: Any, align: str = 'none', reference: bool = True) -> dict[str, Any]:
+    """The orientation section of :func:`evaluate_all` from the orientations already read from
+    the output bag ``path`` (``data``: :func:`.metrics.load_orientations`), with the row
+    ``reference/vqf`` (VQF on the bag's own IMU samples) when ``reference``."""
+    metrics = evaluate_orientations(data, align)
+    if reference and metrics.get('orientation'):
+        from .reference_ahrs import vqf_reference
+
+        ref = vqf_reference(path, source_bag_of(path))
+        if ref is not None:
+            metrics['orientation']['reference/vqf'] = score(data.truth, ref, 0, align)
+    return metrics
+
+
 def evaluate_all(path: str | Path, align: str = 'none', reference: bool = True) -> dict[str, Any]:
     """Orientation metrics plus every area whose topics the bag has (DESIGN sec. 8 names).
 
@@ -59,14 +73,7 @@ def evaluate_all(path: str | Path, align: str = 'none', reference: bool = True) 
     metrics: dict[str, Any] = {}
     missing_truth: EvaluationError | None = None
     try:
-        data = load_orientations(path)
-        metrics = evaluate_orientations(data, align)
-        if reference and metrics.get('orientation'):
-            from .reference_ahrs import vqf_reference
-
-            ref = vqf_reference(path, source_bag_of(path))
-            if ref is not None:
-                metrics['orientation']['reference/vqf'] = score(data.truth, ref, 0, align)
+        metrics = orientation_metrics(path, load_orientations(path), align, reference)
     except EvaluationError as exc:
         missing_truth = exc
     for area, spec in AREA_EVALUATORS.items():
