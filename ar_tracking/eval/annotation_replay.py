@@ -29,11 +29,11 @@ def replay_matcher(out_bag: str | Path, store_path: str | Path, replayed_bag: st
     outputs) and score it (``evaluate_annotations``; ``labels``: only these anchors). ``context``:
     an initialised rclpy Context (default: one made and shut down here). Needs rclpy."""
     import rclpy
-    from rclpy.serialization import deserialize_message, serialize_message
+    from rclpy.serialization import serialize_message
 
     from ..nodes.annotation_matcher import AnnotationMatcherNode
-    from ..ros.conversions import message_class
     from ..ros.params import params_for_node, to_overrides
+    from ..ros.player import decode
 
     own = context is None
     if own:
@@ -48,18 +48,18 @@ def replay_matcher(out_bag: str | Path, store_path: str | Path, replayed_bag: st
         node = AnnotationMatcherNode(context=context, parameter_overrides=to_overrides(prm))
         outputs = {'/' + t.lstrip('/'): ty for t, ty in AnnotationMatcherNode.OUTPUTS.items()}
         published: list[tuple[str, Any]] = []
-        node.pub_markers.publish = lambda m: published.append(('/annotations/markers', m))  # type: ignore[method-assign]
-        node.pub_alignment.publish = lambda m: published.append(('/annotations/alignment', m))  # type: ignore[method-assign]
-        callbacks = {'/panorama/image': node.on_map, '/panorama/tiles': node.on_tiles, '/gps/fix': node.on_fix,
-                     '/orientation/panorama_in_world': node.on_panorama_in_world,
-                     '/orientation/global': node.on_global, '/panorama/orientation': node.on_panorama_orientation}
+        for pub in node.publishers:
+            if pub.topic_name in outputs:
+                pub.publish = lambda m, t=pub.topic_name: published.append((t, m))  # type: ignore[method-assign, misc]
+        # the node's own (guarded) subscription callbacks: a message that raises is skipped, as in the graph
+        callbacks = {s.topic_name: s.callback for s in node.subscriptions}
         with BagReader(out_bag) as bag, BagWriter(replayed_bag, overwrite=True) as writer:
             for msg in bag.messages():
                 if msg.topic in outputs:
                     continue
                 writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
                 if msg.topic in callbacks:
-                    callbacks[msg.topic](deserialize_message(bytes(msg.rawdata), message_class(msg.msgtype)))
+                    callbacks[msg.topic](decode(bytes(msg.rawdata), msg.msgtype))
                     for topic, out in published:
                         writer.write(topic, msg.log_time_ns, serialize_message(out), msgtype=outputs[topic])
                     published.clear()
