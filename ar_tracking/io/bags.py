@@ -20,7 +20,7 @@ from typing import Any, Iterable, Iterator, Literal
 from rosbags.typesys import Stores, get_typestore
 
 from .errors import BagError
-from .mcap_reader import read_indexed_mcap
+from .mcap_reader import read_indexed_mcap, read_mcap_summary
 from .mcap_recovery import MCAP_MAGIC, RecoveredMcap, is_unfinished_mcap, scan_unfinished_mcap
 
 __all__ = [
@@ -119,6 +119,9 @@ class BagReader:
         self._recovered: RecoveredMcap | None = None
         #: read a single indexed .mcap file with io.mcap_reader (False: rosbags, e.g. to compare)
         self.fast_mcap = True
+        #: The MCAP summary for io.mcap_reader, read at the first :meth:`messages` of an open
+        #: reader (a list holding it, so that a file without a summary is read once too).
+        self._mcap_summary: list[Any] = []
 
     def __enter__(self) -> 'BagReader':
         self.open()
@@ -133,6 +136,7 @@ class BagReader:
 
         if not self.path.exists():
             raise BagError(f'{self.path}: no such bag')
+        self._mcap_summary = []
         if is_unfinished_mcap(self.path):
             try:
                 self._recovered = scan_unfinished_mcap(self.path)
@@ -150,6 +154,7 @@ class BagReader:
         self._reader = reader
 
     def close(self) -> None:
+        self._mcap_summary = []
         if self._recovered is not None:
             self._recovered = self._reader = None
             return
@@ -247,7 +252,8 @@ class BagReader:
         ros1 = not self._r.is2
         try:
             # rosbags' connection ids are the MCAP channel ids: the same channels and types
-            source = read_indexed_mcap(self.path, {c.id: c.msgtype for c in conns}, start_ns, stop_ns, _bag_message) \
+            source = read_indexed_mcap(self.path, self._summary(), {c.id: c.msgtype for c in conns}, start_ns, stop_ns,
+                                       _bag_message) \
                 if self.fast_mcap and self.path.is_file() and self.path.suffix == '.mcap' else None
             if source is not None:
                 for message in source:
@@ -271,6 +277,13 @@ class BagReader:
             raise BagError(
                 f'{self.path}: bag is damaged (only {count} of {expected} messages readable)'
             )
+
+    def _summary(self) -> Any | None:
+        """The MCAP file's summary, read once per open reader: a bench that asks for each topic
+        in turn would otherwise parse the footer and the whole summary on every call."""
+        if not self._mcap_summary:
+            self._mcap_summary.append(read_mcap_summary(self.path))
+        return self._mcap_summary[0]
 
     def _recovered_messages(
         self, wanted: set[str] | None, start_ns: int | None, stop_ns: int | None

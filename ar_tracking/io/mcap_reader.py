@@ -24,30 +24,36 @@ _MESSAGE_HEAD = struct.Struct('<HIQ').unpack_from
 _MESSAGE_OPCODE = 0x05
 
 
-def read_indexed_mcap(path: Path, msgtypes: dict[int, str], start_ns: int | None, stop_ns: int | None,
-                      make: Callable[[str, str, int, bytes], M]) -> Iterator[M] | None:
+def read_mcap_summary(path: Path) -> Any | None:
+    """The summary section of an MCAP file (an ``mcap`` Summary), or None when the file has
+    none or it does not parse. Reading it parses the footer and the whole summary (channels,
+    schemas, chunk indexes), so a reader asks once per opened bag and passes it on to
+    :func:`read_indexed_mcap`."""
+    from mcap.reader import make_reader
+
+    with open(path, 'rb') as stream:
+        try:
+            return make_reader(stream).get_summary()
+        except Exception:
+            return None
+
+
+def read_indexed_mcap(path: Path, summary: Any | None, msgtypes: dict[int, str], start_ns: int | None,
+                      stop_ns: int | None, make: Callable[[str, str, int, bytes], M]) -> Iterator[M] | None:
     """``make(topic, msgtype, log_time_ns, data)`` for every message of the channels
     ``msgtypes`` (channel id -> type) logged in [start_ns, stop_ns), in rosbags' order; None
     when the file has no summary with chunk indexes or lacks one of the channels (the caller
-    then reads it another way)."""
-    from mcap.reader import make_reader
-
-    stream = open(path, 'rb')
-    try:
-        summary = make_reader(stream).get_summary()
-    except Exception:
-        summary = None
+    then reads it another way). ``summary`` is the file's :func:`read_mcap_summary`."""
     channels = {} if summary is None else {cid: (ch.topic, msgtypes[cid]) for cid, ch in summary.channels.items()
                                            if cid in msgtypes}
     if summary is None or not summary.chunk_indexes or len(channels) != len(msgtypes):
-        stream.close()
         return None
     lo = -(1 << 63) if start_ns is None else start_ns
     hi = (1 << 63) if stop_ns is None else stop_ns
     # the chunks of the time window that hold a wanted channel (all, without message indexes)
     chunks = [c for c in summary.chunk_indexes if c.message_end_time >= lo and c.message_start_time < hi
               and (not c.message_index_offsets or any(cid in c.message_index_offsets for cid in channels))]
-    return _merged_chunks(stream, chunks, channels, lo, hi, make)
+    return _merged_chunks(open(path, 'rb'), chunks, channels, lo, hi, make)
 
 
 def _merged_chunks(stream: Any, chunks: list[Any], channels: dict[int, tuple[str, str]], lo: int, hi: int,
