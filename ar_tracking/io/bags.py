@@ -324,9 +324,13 @@ def _reason(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
-#: Chunk compressions of MCAP output: zstd packs tighter, lz4 costs a quarter of its time
-#: (raw camera-sized images: ~1.2 vs ~5 ms per MB on this machine; 2.8x vs 4.6x smaller).
-MCAP_COMPRESSIONS = ('zstd', 'lz4', 'none')
+#: Chunk compressions of MCAP output -> the ``mcap.writer.CompressionType`` member that writes
+#: them (by name: importing mcap.writer loads zstandard and lz4, ~50 ms, so only a writer does).
+#: zstd packs tighter, lz4 costs a quarter of its time (raw camera-sized images: ~1.2 vs ~5 ms
+#: per MB on this machine; 2.8x vs 4.6x smaller).
+MCAP_COMPRESSION_TYPES = {'zstd': 'ZSTD', 'lz4': 'LZ4', 'none': 'NONE'}
+#: The compression names, in the order of :data:`MCAP_COMPRESSION_TYPES`.
+MCAP_COMPRESSIONS = tuple(MCAP_COMPRESSION_TYPES)
 
 
 class BagWriter:
@@ -406,8 +410,8 @@ class BagWriter:
                 if target.suffix != '.mcap':
                     target = self.path = target.with_suffix('.mcap')
                 self._file = open(target, 'wb')
-                kind = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4, 'none': CompressionType.NONE}
-                self._impl = Writer(self._file, compression=kind[self.compression], chunk_size=self.chunk_size)
+                kind = CompressionType[MCAP_COMPRESSION_TYPES[self.compression]]
+                self._impl = Writer(self._file, compression=kind, chunk_size=self.chunk_size)
                 self._impl.start(profile='ros2', library='ar_tracking')
             else:
                 from rosbags.rosbag2 import StoragePlugin, Writer as Rosbag2Writer
