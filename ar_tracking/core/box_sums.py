@@ -46,7 +46,11 @@ def window_box_sums(windows: NDArray[np.uint8 | np.float32], P: int) -> tuple[Ar
         empty = np.zeros((0, S - P + 1, S - P + 1))
         return empty, empty.copy()
     stacked: NDArray[np.uint8 | np.float32] = np.ascontiguousarray(windows).reshape(n * S, S)
-    total, squares = cv2.integral2(stacked, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-    # CV_64F integrals: np.asarray only narrows OpenCV's MatLike type (no copy).
+    # uint8 windows: the sums as int32 (exact below 2**31, and OpenCV's 8u -> 32s integral is
+    # vectorised: 9 us for the tracker's 60 windows against 64 us for 8u -> 64f), then float64.
+    sdepth = cv2.CV_32S if stacked.dtype == np.uint8 else cv2.CV_64F
+    total, squares = cv2.integral2(stacked, sdepth=sdepth, sqdepth=cv2.CV_64F)
+    # float64 integrals: np.asarray only narrows OpenCV's MatLike type (no copy); the int32
+    # sums of uint8 windows are converted (exact integers either way).
     return (box_sums(np.asarray(total, dtype=np.float64), n, S, P),
             box_sums(np.asarray(squares, dtype=np.float64), n, S, P))

@@ -7,7 +7,8 @@ camera's perspective, scale and roll), then searched in the frame within a small
 normalised cross-correlation; the peak is refined to sub-pixel by a parabola through its
 neighbours. Matched frame pixels give bearing vectors b_i, the keypoints give directions d_i
 in the panorama frame, and the rotation R_pano_cam with d_i ~ R b_i is estimated robustly:
-RANSAC over two-point Kabsch (SVD) hypotheses, then a Kabsch fit on the inliers.
+RANSAC over two-point Kabsch hypotheses (closed form, they only vote), then a Kabsch (SVD) fit
+on the inliers.
 
 The same matches give the EDR exposure correction of sec. 4.1: the mean intensity difference
 between the map's patches (baseline units) and the frame's matched patches (``intensity_offset``,
@@ -90,13 +91,46 @@ def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
     return align_directions(b, d, w)
 
 
-def _kabsch_batch(b: Array, d: Array) -> Array:
-    """Kabsch for a batch of point sets: b, d (M, n, 3) -> R (M, 3, 3)."""
-    H = np.einsum('mni,mnj->mij', d, b)
-    U, _, Vt = np.linalg.svd(H)
-    det = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, 2] *= det[:, None]
-    return U @ Vt
+def _pair_frames(v: Array) -> Array:
+    """Orthonormal frames (M, 3, 3), as columns (s, t, s x t), of M pairs of unit directions
+    v (M, 2, 3), with s along v0 + v1 and t along v0 - v1 (orthogonal, as |v0| = |v1|); a
+    degenerate pair (v0 = +-v1) gives a non-finite frame."""
+    s = v[:, 0] + v[:, 1]
+    t = v[:, 0] - v[:, 1]
+    with np.errstate(invalid='ignore', divide='ignore'):
+        s /= np.sqrt((s * s).sum(axis=1))[:, None]
+        t /= np.sqrt((t * t).sum(axis=1))[:, None]
+    F = np.empty((v.shape[0], 3, 3))
+    F[:, :, 0] = s
+    F[:, :, 1] = t
+    F[:, 0, 2] = s[:, 1] * t[:, 2] - s[:, 2] * t[:, 1]
+    F[:, 1, 2] = s[:, 2] * t[:, 0] - s[:, 0] * t[:, 2]
+    F[:, 2, 2] = s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0]
+    return F
+
+
+def _hypothesis_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Array, thr: float
+                      ) -> NDArray[np.bool_]:
+    """(M + 1, n) inlier masks |R_m b_i - d_i| < thr of the two-point Kabsch rotations R_m of
+    the index ``pairs`` (M, 2) and of ``R_pred`` (the last row): the RANSAC hypotheses, which
+    only vote (the estimate is the Kabsch fit on the winner's inliers).
+
+    The two-point Kabsch rotation in closed form: with s = b0 + b1 and t = b0 - b1 the
+    correlation matrix is H = d0 b0^T + d1 b1^T = (s_d s_b^T + t_d t_b^T) / 2, whose singular
+    vectors are the unit s and t directions, so R = F_d F_b^T maps the frame F_b = (s, t, s x t)
+    of the bearings onto F_d of the directions. Then |R b - d| = |F_b^T b - F_d^T d|: every
+    hypothesis's residuals come from two matrix products, (n, 3) x (3, 3 M), with no batched
+    SVD (4 times the cost) and no rotation formed. A degenerate pair votes for nothing."""
+    Fb = _pair_frames(b[pairs])
+    Fd = _pair_frames(d[pairs])
+    m = pairs.shape[0] + 1
+    Fb = np.concatenate([Fb, np.eye(3)[None]])  # R_pred: |b - R_pred^T d|
+    Fd = np.concatenate([Fd, R_pred[None]])
+    n = b.shape[0]
+    diff = (b @ Fb.transpose(1, 0, 2).reshape(3, 3 * m) - d @ Fd.transpose(1, 0, 2).reshape(3, 3 * m))
+    diff = diff.reshape(n, m, 3)
+    with np.errstate(invalid='ignore'):
+        return (np.einsum('nmi,nmi->mn', diff, diff) < thr * thr)
 
 
 def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
@@ -121,6 +155,19 @@ class ActiveSearchTracker:
 
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.config.seed)
+
+    def _template_rays(self, K: Array, xr: NDArray[np.int64], yr: NDArray[np.int64]) -> Array:
+        """Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on (xr, yr): the values
+        of :func:`camera_rays` with ``unit=False``, written into one array (its broadcasts,
+        stack and division cost twice as much)."""
+        fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+        P = self._grid.size
+        yn = (yr[:, None, None] + self._grid[None, :, None] - cy) / fy
+        r = np.empty((xr.size, P, P, 3))
+        r[..., 0] = (xr[:, None, None] + self._grid[None, None, :] - cx - skew * yn) / fx
+        r[..., 1] = yn
+        r[..., 2] = 1.0
+        return r
 
     def track(self, frame: NDArray[np.uint8], K: Array, R_pred: Array, pano: PanoramaMap,
               radius_px: int | None = None) -> TrackResult:
@@ -148,10 +195,9 @@ class ActiveSearchTracker:
         px, py = x[idx], y[idx]
         xr, yr = np.rint(px).astype(np.int64), np.rint(py).astype(np.int64)
         # 2. Templates: the map warped into the predicted view around each keypoint.
-        gx = xr[:, None, None] + self._grid[None, None, :]
-        gy = yr[:, None, None] + self._grid[None, :, None]
-        gx, gy = np.broadcast_arrays(gx, gy)
-        u, v = pano.geometry.project(camera_rays(K, gx, gy, unit=False) @ R_pred.T)
+        # One (n P P, 3) x (3, 3) product (a stack of n P small ones costs more; same values).
+        rays = self._template_rays(K, xr, yr)
+        u, v = pano.geometry.project((rays.reshape(-1, 3) @ R_pred.T).reshape(rays.shape))
         T = cv2.remap(pano.gray, u.reshape(n * P, P).astype(np.float32),
                       v.reshape(n * P, P).astype(np.float32), cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_WRAP).reshape(n, P, P).astype(np.float64)
@@ -203,11 +249,8 @@ class ActiveSearchTracker:
         nk = k.size
         pairs = self._rng.integers(0, nk, size=(cfg.ransac_iterations, 2))
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-        Rs = _kabsch_batch(b[pairs], d[pairs])
-        Rs = np.concatenate([Rs, R_pred[None]], axis=0)
-        res = np.linalg.norm(np.einsum('mij,nj->mni', Rs, b) - d[None], axis=2)
-        counts = (res < thr).sum(axis=1)
-        inl = res[int(np.argmax(counts))] < thr
+        inside = _hypothesis_votes(b, d, pairs, R_pred, thr)
+        inl = inside[int(np.argmax(inside.sum(axis=1)))]
         R = R_pred
         for _ in range(2):
             if np.count_nonzero(inl) < 3:
@@ -255,9 +298,15 @@ class ActiveSearchTracker:
         cx = np.minimum((x * cfg.grid_cols / w).astype(np.int64), cfg.grid_cols - 1)
         cy = np.minimum((y * cfg.grid_rows / h).astype(np.int64), cfg.grid_rows - 1)
         cell = cy * cfg.grid_cols + cx
-        order = np.lexsort((-score, cell))
+        neg = -score
+        order = np.lexsort((neg, cell))
         cs = cell[order]
-        first = np.r_[0, np.flatnonzero(np.diff(cs)) + 1]
-        rank = np.arange(cs.size) - np.repeat(first, np.diff(np.r_[first, cs.size]))
-        pick = order[np.lexsort((-score[order], rank))][:cfg.max_features]
-        return idx[np.sort(pick)]
+        # Rank of each keypoint in its cell (0: the cell's strongest): its position in the
+        # sorted order minus the position where its cell starts.
+        start = np.zeros(cs.size, np.int64)
+        new_cell = np.flatnonzero(cs[1:] != cs[:-1]) + 1
+        start[new_cell] = new_cell
+        rank = np.arange(cs.size) - np.maximum.accumulate(start)
+        pick = order[np.lexsort((neg[order], rank))][:cfg.max_features]
+        pick.sort()
+        return idx[pick]

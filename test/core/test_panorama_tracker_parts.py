@@ -1,0 +1,93 @@
+"""The panorama tracker's vectorised parts against their plain definitions: the RANSAC votes
+of the closed-form two-point rotations, the template rays, and the keypoint spread."""
+from __future__ import annotations
+
+import numpy as np
+
+from ar_tracking.core.panorama.cylinder import camera_rays
+from ar_tracking.core.panorama.tracker import ActiveSearchTracker, _hypothesis_votes, kabsch
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def test_hypothesis_votes_are_those_of_the_two_point_kabsch_rotations() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        R_true = _rotation(rng)
+        n = 40
+        b = _unit(rng.normal(size=(n, 3)) + [0, 0, 3])
+        d = b @ R_true.T + rng.normal(scale=5e-4, size=(n, 3))
+        d[:8] = _unit(rng.normal(size=(8, 3)))  # outliers
+        d = _unit(d)
+        pairs = rng.integers(0, n, size=(32, 2))
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        R_pred = _rotation(rng)
+        thr = 4e-3
+        votes = _hypothesis_votes(b, d, pairs, R_pred, thr)
+        assert votes.shape == (pairs.shape[0] + 1, n)
+        Rs = [kabsch(b[p], d[p]) for p in pairs] + [R_pred]
+        expect = np.array([np.linalg.norm(b @ R.T - d, axis=1) < thr for R in Rs])
+        # the same masks up to residuals within rounding of the threshold
+        resid = np.array([np.linalg.norm(b @ R.T - d, axis=1) for R in Rs])
+        clear = np.abs(resid - thr) > 1e-9
+        np.testing.assert_array_equal(votes[clear], expect[clear])
+        assert votes[:-1].sum(axis=1).max() >= 30  # an outlier-free pair finds the 32 inliers
+
+
+def test_hypothesis_votes_of_a_degenerate_pair_are_empty() -> None:
+    b = _unit(np.array([[0.1, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.2, 1.0]]))
+    votes = _hypothesis_votes(b, b.copy(), np.array([[0, 1], [0, 2]]), np.eye(3), 1e-3)
+    assert not votes[0].any()  # b0 == b1: no rotation defined
+    assert votes[1].all() and votes[2].all()  # identity is exact
+
+
+def test_template_rays_equal_camera_rays_of_the_pixel_grids() -> None:
+    tracker = ActiveSearchTracker()
+    K = np.array([[300.0, 0.5, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]])
+    xr = np.array([10, 200, 311])
+    yr = np.array([15, 100, 230])
+    grid = tracker._grid
+    gx, gy = np.broadcast_arrays(xr[:, None, None] + grid[None, None, :], yr[:, None, None] + grid[None, :, None])
+    expect = camera_rays(K, gx, gy, unit=False)
+    got = tracker._template_rays(K, xr, yr)
+    assert got.tobytes() == expect.tobytes()
+
+
+def _spread_reference(tracker: ActiveSearchTracker, idx: np.ndarray, x: np.ndarray, y: np.ndarray,
+                      score: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Round-robin over the grid cells by strength, written as loops."""
+    cfg = tracker.config
+    if idx.size <= cfg.max_features:
+        return idx
+    cells: dict[int, list[int]] = {}
+    for i in range(idx.size):
+        c = min(int(y[i] * cfg.grid_rows / h), cfg.grid_rows - 1) * cfg.grid_cols \
+            + min(int(x[i] * cfg.grid_cols / w), cfg.grid_cols - 1)
+        cells.setdefault(c, []).append(i)
+    ranked = []
+    for c in sorted(cells):
+        for rank, i in enumerate(sorted(cells[c], key=lambda i: -score[i])):
+            ranked.append((rank, -score[i], c, i))
+    pick = [i for *_, i in sorted(ranked)[:cfg.max_features]]
+    return idx[np.sort(pick)]
+
+
+def test_spread_picks_the_strongest_of_each_cell_in_turn() -> None:
+    tracker = ActiveSearchTracker()
+    rng = np.random.default_rng(5)
+    for t in range(200):
+        m = int(rng.integers(1, 300))
+        idx = np.sort(rng.choice(5000, m, replace=False))
+        x, y = rng.uniform(0, 320, m), rng.uniform(0, 240, m)
+        score = rng.integers(0, 6, m).astype(float) if t % 2 else rng.uniform(0, 100, m)
+        got = tracker._spread(idx, x, y, score, 320, 240)
+        assert got.tolist() == _spread_reference(tracker, idx, x, y, score, 320, 240).tolist()
+        assert got.size == min(m, tracker.config.max_features)
