@@ -3,8 +3,10 @@ of the closed-form two-point rotations, the template rays, and the keypoint spre
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from ar_tracking.core.panorama.cylinder import camera_rays
+from ar_tracking.core.panorama.map import MapConfig, PanoramaMap
 from ar_tracking.core.panorama.tracker import ActiveSearchTracker, _hypothesis_votes, kabsch
 
 
@@ -91,3 +93,33 @@ def test_spread_picks_the_strongest_of_each_cell_in_turn() -> None:
         got = tracker._spread(idx, x, y, score, 320, 240)
         assert got.tolist() == _spread_reference(tracker, idx, x, y, score, 320, 240).tolist()
         assert got.size == min(m, tracker.config.max_features)
+
+
+def _tone_mapped_reference(pano: PanoramaMap, bits: int) -> np.ndarray:
+    """The tone mapping by boolean indexing: the range of the mapped values onto [0, 2^bits - 1]."""
+    top = (1 << bits) - 1
+    out = np.zeros(pano.stored.shape, np.uint16 if bits > 8 else np.uint8)
+    m = pano.mapped
+    vals = pano.stored[m].astype(np.float32)
+    if pano.config.edr:
+        lo, hi = float(vals.min()), float(vals.max())
+        vals = (vals - np.float32(lo)) * np.float32(top / max(hi - lo, 1.0))
+    else:
+        vals = vals * np.float32(top / 255.0)
+    out[m] = (np.clip(vals, 0, top) + np.float32(0.5)).astype(out.dtype)
+    return out
+
+
+@pytest.mark.parametrize('edr, channels', [(True, 1), (True, 3), (False, 1)])
+def test_tone_mapped_stretches_the_mapped_values_and_zeroes_the_rest(edr: bool, channels: int) -> None:
+    pano = PanoramaMap(MapConfig(edr=edr, channels=channels))
+    rng = np.random.default_rng(1)
+    assert not pano.tone_mapped(16).any()  # nothing mapped yet
+    hi = 65535 if edr else 255
+    pano.stored[...] = rng.integers(0, hi + 1, pano.stored.shape)
+    pano.mapped[100:300, 500:900] = True
+    pano.mapped[rng.integers(0, 512, 500), rng.integers(0, 2048, 500)] = True
+    for bits in (8, 16):
+        got = pano.tone_mapped(bits)
+        assert got.tobytes() == _tone_mapped_reference(pano, bits).tobytes()
+        assert not got[~pano.mapped].any()
