@@ -34,9 +34,15 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer
-from ..core.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix, so3_log
+from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig
-from ..ros.cdr_views import imu_cdr, imu_view, magnetic_field_view, transform_stamped_cdr, transform_stamped_view
+from ..ros.cdr_views import (
+    imu_view,
+    magnetic_field_view,
+    orientation_imu_cdr,
+    rotation_transform_cdr,
+    transform_stamped_view,
+)
 from ..ros.conversions import (
     ConversionError,
     covariance_is_known,
@@ -52,9 +58,6 @@ from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamped
 
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
-#: orientation/global's angular velocity, its covariance, linear acceleration, its covariance:
-#: not provided (zero vectors; covariance element 0 of -1, REP-145)
-_UNKNOWN_RATE_AND_ACCEL = (0.0, 0.0, 0.0, -1.0) + (0.0,) * 8 + (0.0, 0.0, 0.0, -1.0) + (0.0,) * 8
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
 _EXTRINSIC_WARN_RAD = np.radians(1.0)
 
@@ -341,20 +344,14 @@ class HybridOrientationFilterNode(TrackingNode):
         # As CDR bytes (ros.cdr_views): the Imu that set_quaternion / set_covariance would fill
         # (rates and accelerations zero, their covariances unknown: -1), without building it.
         sec, nanosec = divmod(int(t_ns), 1_000_000_000)
-        q = matrix_to_quat_xyzw(R_enu_cam)
-        self.pub_global.publish(imu_cdr(sec, nanosec, self.camera_frame, (
-            float(q[0]), float(q[1]), float(q[2]), float(q[3]),
-            *(float(v) for v in np.asarray(0.5 * (cov + cov.T), dtype=float).reshape(9)),
-            *_UNKNOWN_RATE_AND_ACCEL)))
+        self.pub_global.publish(orientation_imu_cdr(sec, nanosec, self.camera_frame, R_enu_cam, 0.5 * (cov + cov.T)))
         self.published += 1
         if self.publish_tf:
             if self.tf.listened:
                 self.tf.send(transform_stamped(t_ns, self.world_frame, self.camera_frame, R_enu_cam))
             self._publish_mount(t_ns)
         if R_enu_pano is not None:
-            p = matrix_to_quat_xyzw(R_enu_pano)
-            self.pub_frame.publish(transform_stamped_cdr(sec, nanosec, self.world_frame, self.panorama_frame, (
-                0.0, 0.0, 0.0, float(p[0]), float(p[1]), float(p[2]), float(p[3]))))
+            self.pub_frame.publish(rotation_transform_cdr(sec, nanosec, self.world_frame, self.panorama_frame, R_enu_pano))
 
     def _resolve(self) -> None:
         """Feed pending IMU samples to the alignment with the visual orientation at their stamps."""

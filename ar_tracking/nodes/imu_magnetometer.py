@@ -36,15 +36,13 @@ from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.ahrs import Ahrs, AhrsConfig, AhrsError
 from ..core.imu_orientation import FieldModel, GravityFieldOrientation
-from ..core.rotations import matrix_to_quat_xyzw, rot_z
+from ..core.rotations import rot_z
 from ..io.replay import ReplayOptions, ScheduledMessage
-from ..ros.cdr_views import header_message, imu_cdr, imu_view, magnetic_field_view
+from ..ros.cdr_views import header_message, imu_view, magnetic_field_view, orientation_imu_cdr
 from ..ros.conversions import (
     ConversionError,
     finite_vector3,
     imu_sample,
-    set_covariance,
-    set_quaternion,
     set_vector3,
     stamp_ns,
 )
@@ -126,8 +124,8 @@ PARAMS = (
 
 
 class _Sample:
-    """A calibrated IMU sample of a subscribed node: what imu/data carries besides the
-    orientation (header fields, calibrated rate and specific force, their covariances)."""
+    """A calibrated IMU sample: what imu/data carries besides the orientation (header fields,
+    calibrated rate and specific force, their covariances)."""
 
     __slots__ = ('sec', 'nanosec', 'frame_id', 'gyro', 'accel', 'gyro_cov', 'accel_cov')
 
@@ -135,6 +133,13 @@ class _Sample:
                  gyro_cov: Any, accel_cov: Any) -> None:
         self.sec, self.nanosec, self.frame_id = sec, nanosec, frame_id
         self.gyro, self.accel, self.gyro_cov, self.accel_cov = gyro, accel, gyro_cov, accel_cov
+
+    def cdr(self, R: np.ndarray | None, cov: np.ndarray | None) -> bytes:
+        """The sample as an Imu's CDR bytes with the orientation R and its covariance (None,
+        None: no orientation, the replay's calibrated imu/data_raw): the bytes of the message
+        set_quaternion / set_covariance / set_vector3 would fill (ros.cdr_views)."""
+        return orientation_imu_cdr(self.sec, self.nanosec, self.frame_id, R, cov,
+                                   self.gyro, self.gyro_cov, self.accel, self.accel_cov)
 
 class ImuMagnetometerNode(TrackingNode):
     INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu', 'imu/mag': 'sensor_msgs/msg/MagneticField'}
@@ -204,7 +209,7 @@ class ImuMagnetometerNode(TrackingNode):
         self.mag_guard = StampGuard(reset_s)
         self.mag_raw: np.ndarray | None = None
         self.mag_ns: int | None = None
-        self.held: tuple[int, np.ndarray, np.ndarray, Imu | _Sample] | None = None
+        self.held: tuple[int, np.ndarray, np.ndarray, _Sample] | None = None
         self.published = 0
 
         self.pub_data = self.advertise(Imu, 'imu/data', RELIABLE_QOS)
@@ -338,8 +343,9 @@ class ImuMagnetometerNode(TrackingNode):
             self.held = None
         return raw
 
-    def on_imu(self, msg: Imu) -> Imu | None:
-        """Publish imu/data for one IMU sample; returns the calibrated raw message (replay mode)."""
+    def on_imu(self, msg: Imu) -> bytes | None:
+        """Publish imu/data for one IMU sample; returns the calibrated raw sample as an Imu's
+        CDR bytes (replay mode, which publishes it as imu/data_raw)."""
         try:
             accel, gyro = imu_sample(msg)
         except ConversionError as exc:
@@ -347,23 +353,11 @@ class ImuMagnetometerNode(TrackingNode):
             return None
         if not self._stamp_ok(self.imu_guard, msg, 'imu/data_raw'):
             return None
-        calibrated: Imu | _Sample
-        if self.player is None:
-            # Subscribed: the sample's fields only, published as CDR bytes by _publish
-            stamp = msg.header.stamp
-            calibrated = _Sample(int(stamp.sec), int(stamp.nanosec), self.frame_id or msg.header.frame_id,
-                                 self.calibration.gyro(gyro), self.calibration.accel(accel),
-                                 msg.angular_velocity_covariance, msg.linear_acceleration_covariance)
-        else:  # replay: the calibrated message is published as imu/data_raw too
-            calibrated = Imu()
-            calibrated.header = header_message(msg.header)
-            if self.frame_id:
-                calibrated.header.frame_id = self.frame_id
-            set_vector3(calibrated.angular_velocity, self.calibration.gyro(gyro))
-            set_vector3(calibrated.linear_acceleration, self.calibration.accel(accel))
-            calibrated.angular_velocity_covariance = msg.angular_velocity_covariance
-            calibrated.linear_acceleration_covariance = msg.linear_acceleration_covariance
-            set_covariance(calibrated.orientation_covariance, None)
+        # The sample's fields only (subscribed or replayed), published as CDR bytes by _publish
+        stamp = msg.header.stamp
+        calibrated = _Sample(int(stamp.sec), int(stamp.nanosec), self.frame_id or msg.header.frame_id,
+                             self.calibration.gyro(gyro), self.calibration.accel(accel),
+                             msg.angular_velocity_covariance, msg.linear_acceleration_covariance)
         t_ns = stamp_ns(msg.header)
         # A field sample with the IMU sample's stamp may come just after it: hold this one
         # sample until that field sample or the next IMU sample, whichever comes first (at
@@ -375,9 +369,9 @@ class ImuMagnetometerNode(TrackingNode):
             self.held = (t_ns, gyro, accel, calibrated)
         else:
             self._process(t_ns, gyro, accel, calibrated)
-        return calibrated if isinstance(calibrated, Imu) else None
+        return None if self.player is None else calibrated.cdr(None, None)
 
-    def _process(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, calibrated: Imu | _Sample) -> None:
+    def _process(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, calibrated: _Sample) -> None:
         """imu/data for one IMU sample with the newest field sample within max_mag_age_s."""
         mag = None
         if self.use_mag and self.mag_ns is not None and abs(t_ns - self.mag_ns) <= self.max_mag_age_ns:
@@ -394,7 +388,7 @@ class ImuMagnetometerNode(TrackingNode):
         else:
             self._emit_compass(accel, calibrated, mag)
 
-    def _emit_compass(self, accel: np.ndarray, calibrated: Imu | _Sample, mag: np.ndarray | None) -> None:
+    def _emit_compass(self, accel: np.ndarray, calibrated: _Sample, mag: np.ndarray | None) -> None:
         """Eq. 3-4 for one IMU sample and the field sample paired with it."""
         if mag is None:
             self.warn_throttled(
@@ -409,43 +403,17 @@ class ImuMagnetometerNode(TrackingNode):
             return
         self._publish(calibrated, estimate.R_enu_body, estimate.covariance)
 
-    def _publish(self, calibrated: Imu | _Sample, R_enu_body: np.ndarray, cov_enu: np.ndarray) -> None:
+    def _publish(self, calibrated: _Sample, R_enu_body: np.ndarray, cov_enu: np.ndarray) -> None:
         R_world = self.R_world_enu @ self.R_declination_change
         R = R_world @ R_enu_body
         cov = R_world @ cov_enu @ R_world.T
-        if isinstance(calibrated, _Sample):
-            # Subscribed: imu/data as CDR bytes (ros.cdr_views.imu_cdr), the same bytes as the
-            # message set_quaternion / set_covariance / set_vector3 would fill, ~20 us sooner.
-            c = calibrated
-            q = matrix_to_quat_xyzw(R)
-            raw = imu_cdr(c.sec, c.nanosec, c.frame_id, (
-                float(q[0]), float(q[1]), float(q[2]), float(q[3]),
-                *(float(v) for v in np.asarray(cov, dtype=float).reshape(9)),
-                float(c.gyro[0]), float(c.gyro[1]), float(c.gyro[2]), *(float(v) for v in c.gyro_cov),
-                float(c.accel[0]), float(c.accel[1]), float(c.accel[2]), *(float(v) for v in c.accel_cov)))
-            self.pub_data.publish(raw)
-            t_ns, frame = c.sec * 1_000_000_000 + c.nanosec, c.frame_id
-        else:
-            # replay: on_imu's caller publishes the calibrated sample as it is; imu/data is a copy
-            out = self._imu_data(calibrated, R, cov)
-            self.pub_data.publish(out)
-            t_ns, frame = stamp_ns(out.header), out.header.frame_id
+        # imu/data as CDR bytes (ros.cdr_views), the same bytes as the message set_quaternion /
+        # set_covariance / set_vector3 would fill, ~20 us sooner; subscribed and replayed alike
+        self.pub_data.publish(calibrated.cdr(R, cov))
         self.published += 1
         if self.publish_tf and self.tf.listened:
-            self.tf.send(transform_stamped(t_ns, self.fixed_frame, frame or 'imu', R))
-
-    @staticmethod
-    def _imu_data(calibrated: Imu, R: np.ndarray, cov: np.ndarray) -> Imu:
-        """imu/data of a replayed sample: the calibrated message with the orientation."""
-        out = Imu()
-        out.header = calibrated.header
-        out.angular_velocity = calibrated.angular_velocity
-        out.linear_acceleration = calibrated.linear_acceleration
-        out.angular_velocity_covariance = calibrated.angular_velocity_covariance
-        out.linear_acceleration_covariance = calibrated.linear_acceleration_covariance
-        set_quaternion(out.orientation, R)
-        set_covariance(out.orientation_covariance, cov)
-        return out
+            t_ns = calibrated.sec * 1_000_000_000 + calibrated.nanosec
+            self.tf.send(transform_stamped(t_ns, self.fixed_frame, calibrated.frame_id or 'imu', R))
 
 
 def main(args: list[str] | None = None) -> int:

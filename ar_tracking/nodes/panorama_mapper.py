@@ -24,9 +24,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from ..core.panorama import EDR_CORRECTIONS, MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
 from ..core.panorama.exposure import OFFSET_EXPOSURE
-from ..core.rotations import matrix_to_quat_xyzw
 from ..core.stamp_pairing import NearestStampPairer
-from ..ros.cdr_views import image_view, transform_stamped_cdr
+from ..ros.cdr_views import image_view, rotation_transform_cdr
 from ..ros.conversions import (
     ConversionError,
     array_to_image,
@@ -251,9 +250,7 @@ class PanoramaMapperNode(TrackingNode):
         if R is not None and np.all(np.isfinite(R)):
             # as CDR bytes (ros.cdr_views): the TransformStamped set_quaternion would fill
             sec, nanosec = divmod(int(t), 1_000_000_000)
-            q = matrix_to_quat_xyzw(R)
-            self.pub_orientation.publish(transform_stamped_cdr(sec, nanosec, self.frame_id, self.child_frame_id, (
-                0.0, 0.0, 0.0, float(q[0]), float(q[1]), float(q[2]), float(q[3]))))
+            self.pub_orientation.publish(rotation_transform_cdr(sec, nanosec, self.frame_id, self.child_frame_id, R))
             self.published += 1
         else:
             self.lost += 1

@@ -33,6 +33,8 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.rotations import matrix_to_quat_xyzw
+
 _HEADER = struct.Struct('<iII')  # stamp.sec, stamp.nanosec, frame_id length
 _U32 = struct.Struct('<I')
 _IMU = struct.Struct('<37d')  # orientation 4, cov 9, angular_velocity 3, cov 9, linear_acceleration 3, cov 9
@@ -227,6 +229,48 @@ def transform_stamped_cdr(sec: int, nanosec: int, frame_id: str, child_frame_id:
     head = _header_cdr(sec, nanosec, frame_id)
     head += _string_cdr(child_frame_id, len(head))
     return head + _pad(len(head), 8) + _TRANSFORM.pack(*values)
+
+
+#: A covariance marked unknown (REP-145: -1 in element 0), for Imu fields a message leaves empty.
+UNKNOWN_COVARIANCE = (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_ZERO3 = (0.0, 0.0, 0.0)
+
+
+def orientation_imu_cdr(sec: int, nanosec: int, frame_id: str, R: NDArray[np.float64] | None,
+                        covariance: Any = None, angular_velocity: Any = _ZERO3,
+                        angular_velocity_covariance: Any = UNKNOWN_COVARIANCE, linear_acceleration: Any = _ZERO3,
+                        linear_acceleration_covariance: Any = UNKNOWN_COVARIANCE) -> bytes:
+    """CDR bytes of a sensor_msgs/Imu with the orientation R (3x3: its quaternion with w >= 0,
+    as ``conversions.set_quaternion`` writes it) and its 3x3 ``covariance`` (None: unknown,
+    as ``conversions.set_covariance(.., None)``); R None: no orientation (the identity
+    quaternion of a new message, covariance unknown). Rate and acceleration (3 values each,
+    with 9-value covariances) default to zero and unknown (an orientation-only output).
+
+    The per-sample outputs of imu_magnetometer and the hybrid filter: the 37 doubles go into
+    one float64 array (no tuple of Python floats) and are written as :func:`imu_cdr` writes
+    them."""
+    values = np.empty(37, '<f8')
+    if R is None:
+        values[0:4] = (0.0, 0.0, 0.0, 1.0)
+    else:
+        values[0:4] = matrix_to_quat_xyzw(R)
+    values[4:13] = UNKNOWN_COVARIANCE if covariance is None else np.asarray(covariance, dtype=np.float64).reshape(9)
+    values[13:16] = angular_velocity
+    values[16:25] = angular_velocity_covariance
+    values[25:28] = linear_acceleration
+    values[28:37] = linear_acceleration_covariance
+    head = _header_cdr(sec, nanosec, frame_id)
+    return head + _pad(len(head), 8) + values.tobytes()
+
+
+def rotation_transform_cdr(sec: int, nanosec: int, frame_id: str, child_frame_id: str, R: NDArray[np.float64]
+                           ) -> bytes:
+    """CDR bytes of a geometry_msgs/TransformStamped with zero translation and the rotation R
+    (3x3, its quaternion with w >= 0): the per-frame orientation outputs of panorama_mapper
+    and the hybrid filter."""
+    q = matrix_to_quat_xyzw(R)
+    return transform_stamped_cdr(sec, nanosec, frame_id, child_frame_id,
+                                 (0.0, 0.0, 0.0, float(q[0]), float(q[1]), float(q[2]), float(q[3])))
 
 
 def header_message(header: Any) -> Any:

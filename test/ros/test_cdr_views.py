@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image, Imu, MagneticField
 
-from ar_tracking.io.bags import msg_class, serialize
+from ar_tracking.io.bags import deserialize, msg_class, serialize
 from ar_tracking.ros.cdr_views import (
     HeaderView,
     header_message,
@@ -201,3 +201,66 @@ def test_transform_stamped_cdr_is_the_standard_serialisation(stamp, frame, child
     assert raw == serialize(ref)
     view = transform_stamped_view(raw)
     assert view.child_frame_id == child and same(view.transform.rotation.w, values[6])
+
+
+def _canonical(msg, msgtype: str) -> bytes:
+    """rclpy's serialisation of a message with zero padding (rclpy leaves the padding bytes
+    as they were in memory; the middleware's bytes otherwise), through rosbags."""
+    return serialize(deserialize(serialize_message(msg), msgtype))
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+@settings(max_examples=60, deadline=None)
+@given(stamp=stamps, frame=names, seed=st.integers(0, 2**32 - 1), orientation=st.booleans(), known=st.booleans())
+def test_orientation_imu_cdr_is_the_message_the_setters_fill(stamp, frame, seed, orientation, known):
+    """The nodes' per-sample Imu bytes equal rclpy's serialisation of the message that
+    set_quaternion / set_covariance / set_vector3 fill (and of a fresh Imu without orientation)."""
+    from ar_tracking.ros.cdr_views import UNKNOWN_COVARIANCE, orientation_imu_cdr
+    from ar_tracking.ros.conversions import set_covariance, set_quaternion, set_vector3
+
+    rng = np.random.default_rng(seed)
+    R = _rotation(rng) if orientation else None
+    cov = rng.normal(size=(3, 3)) if known else None
+    gyro, accel = rng.normal(size=3), rng.normal(size=3)
+    gyro_cov = rng.normal(size=9)
+    accel_cov = np.array(UNKNOWN_COVARIANCE)
+    ref = Imu()
+    ref.header.stamp.sec, ref.header.stamp.nanosec = stamp
+    ref.header.frame_id = frame
+    if R is not None:
+        set_quaternion(ref.orientation, R)
+    set_covariance(ref.orientation_covariance, cov)
+    set_vector3(ref.angular_velocity, gyro)
+    set_vector3(ref.linear_acceleration, accel)
+    ref.angular_velocity_covariance = gyro_cov
+    ref.linear_acceleration_covariance = accel_cov
+    raw = orientation_imu_cdr(stamp[0], stamp[1], frame, R, cov, gyro, gyro_cov, accel, accel_cov)
+    assert raw == _canonical(ref, 'sensor_msgs/msg/Imu')
+    # the defaults: rate and acceleration zero, their covariances unknown
+    bare = Imu()
+    bare.header = ref.header
+    bare.orientation = ref.orientation
+    bare.orientation_covariance = ref.orientation_covariance
+    set_covariance(bare.angular_velocity_covariance, None)
+    set_covariance(bare.linear_acceleration_covariance, None)
+    assert orientation_imu_cdr(stamp[0], stamp[1], frame, R, cov) == _canonical(bare, 'sensor_msgs/msg/Imu')
+
+
+@settings(max_examples=60, deadline=None)
+@given(stamp=stamps, frame=names, child=names, seed=st.integers(0, 2**32 - 1))
+def test_rotation_transform_cdr_is_the_message_set_quaternion_fills(stamp, frame, child, seed):
+    from ar_tracking.ros.cdr_views import rotation_transform_cdr
+    from ar_tracking.ros.conversions import set_quaternion
+
+    R = _rotation(np.random.default_rng(seed))
+    ref = TransformStamped()
+    ref.header.stamp.sec, ref.header.stamp.nanosec = stamp
+    ref.header.frame_id, ref.child_frame_id = frame, child
+    set_quaternion(ref.transform.rotation, R)
+    assert rotation_transform_cdr(stamp[0], stamp[1], frame, child, R) == _canonical(
+        ref, 'geometry_msgs/msg/TransformStamped')
