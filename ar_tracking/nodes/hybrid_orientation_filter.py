@@ -388,8 +388,11 @@ class HybridOrientationFilterNode(TrackingNode):
         if msg.header.frame_id:
             self.panorama_frame = msg.header.frame_id.lstrip('/')
         returning = self.last_visual_ns is not None and t_v - self.last_visual_ns > self.visual_timeout_ns
-        estimate = self.align.estimate()
-        if returning and estimate is not None and self.backup.R_enu_cam is not None:
+        # The placement before this frame's IMU samples join it: read only when vision returns
+        # (the estimate below, after _resolve, is the one published; estimate() computes only
+        # when samples were added since its last call, so each state is solved once).
+        estimate = self.align.estimate() if returning and self.backup.R_enu_cam is not None else None
+        if estimate is not None and self.backup.R_enu_cam is not None:
             R_vis = estimate.R_pano_enu.T @ R_pano_cam
             jump = float(np.linalg.norm(so3_log(self.backup.R_enu_cam.T @ R_vis)))
             if jump > self.reseed_rad:
