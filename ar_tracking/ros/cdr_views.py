@@ -18,7 +18,11 @@ The other way round, :func:`imu_cdr` and :func:`transform_stamped_cdr` give the 
 Imu or TransformStamped from its field values, which a publisher sends as they are (rclpy
 publishes raw CDR bytes unchanged): the bytes rclpy's middleware makes of the message object
 (padding zero), without building that object through its checked setters (~15-25 us a message
-with the node's conversions, ~2 us here).
+with the node's conversions, ~2 us here). :func:`orientation_imu_cdr` and
+:func:`rotation_transform_cdr` are the nodes' per-sample outputs built on them: a rotation
+matrix and covariance in, the bytes of the message ``conversions.set_quaternion`` /
+``set_covariance`` / ``set_vector3`` would fill out (imu_magnetometer, panorama_mapper and the
+hybrid share them instead of each building the tuple of doubles).
 
 Layout (plain CDR, XCDR1, as ROS 2 writes it): a 4-byte encapsulation header, then the fields
 in order, each primitive aligned to its size relative to the end of the encapsulation header;
