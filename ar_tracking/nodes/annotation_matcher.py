@@ -108,6 +108,9 @@ PARAMS = (
     ParamSpec('parallax_model', True,
               'With gravity_alignment: fit the heading residuals of the matches with the parallax of a displaced '
               'standing point and place again (extension of sec. 4.3)'),
+    ParamSpec('parallax_elevation', True,
+              'The parallax model also raises or lowers the labels by the same displacement (nearer: higher above '
+              'eye level)'),
     ParamSpec('parallax_trim_sigmas', 3.0,
               'Refit the parallax model once without the matches beyond this many robust standard deviations of its '
               'residuals (landmarks much nearer than the anchors); 0: off', min_value=0.0, max_value=100.0),
@@ -145,6 +148,9 @@ PARAMS = (
     ParamSpec('prediction_support', True,
               'depth_ratio_support_deg also counts the parallax model\'s own uncertainty at the label (matches '
               'bunched in one sector pin the model there only)'),
+    ParamSpec('matched_agreement_deg', 1.2,
+              'A matched label is shown as placed only within this of where the other matches put it (the '
+              'alignment with the parallax model), degrees; 0: off', min_value=0.0, max_value=180.0),
     ParamSpec('local_support_matched', True,
               'Matched labels too need local_support_matches other matches within local_support_deg (an isolated '
               'match is only approximate)'),
@@ -221,7 +227,7 @@ class AnnotationMatcherNode(TrackingNode):
             placement_penalty=v['placement_penalty'], consensus_score=v['consensus_score'],
             guided_all=v['guided_all'], prior_alignment=v['prior_alignment'],
             gravity_alignment=v['gravity_alignment'], gravity_v_px=v['gravity_v_px'],
-            parallax_model=v['parallax_model'], parallax_trim_sigmas=v['parallax_trim_sigmas'],
+            parallax_model=v['parallax_model'], parallax_elevation=v['parallax_elevation'], parallax_trim_sigmas=v['parallax_trim_sigmas'],
             parallax_scale_sigma=v['parallax_scale_sigma'],
             parallax_gate_sigmas=v['parallax_gate_sigmas'], min_support_matches=v['min_support_matches'],
             support_prior_sigmas=v['support_prior_sigmas'], strong_support_matches=v['strong_support_matches'],
@@ -230,7 +236,8 @@ class AnnotationMatcherNode(TrackingNode):
             local_support_matched=v['local_support_matched'], lookalike_margin=v['lookalike_margin'],
             lookalike_sep_px=v['lookalike_sep_px'], bracket_support_px=math.radians(v['bracket_support_deg']) * f,
             depth_ratio_support_rad=math.radians(v['depth_ratio_support_deg']),
-            depth_ratio_scatter=v['depth_ratio_scatter'], prediction_support=v['prediction_support'])
+            depth_ratio_scatter=v['depth_ratio_scatter'], prediction_support=v['prediction_support'],
+            matched_agreement_px=math.radians(v['matched_agreement_deg']) * f)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []

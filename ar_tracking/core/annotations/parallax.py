@@ -2,19 +2,27 @@
 Langlotz 2011 sec. 4.3 for the 2 m radius of sec. 6.1).
 
 The global alignment of sec. 4.3 is a rotation; the two panoramas are never taken from the same
-spot. When the browsing spot is displaced horizontally by ``t`` from the authoring spot, an
-anchor at horizontal azimuth ``theta`` and distance ``d`` appears turned about the vertical by
+spot. Let ``(e1, e2, up)`` be right-handed, ``h(theta) = cos(theta) e1 + sin(theta) e2`` the
+horizontal direction at azimuth ``theta`` and ``t = t1 e1 + t2 e2`` the horizontal displacement of
+the browsing spot from the authoring spot. An anchor at horizontal distance ``d`` then appears
+turned about ``up`` by
 
-    delta(theta) ~= (t_north * cos(theta) - t_east * sin(theta)) / d
+    delta(theta) ~= (t1 sin(theta) - t2 cos(theta)) / d = a cos(theta) + b sin(theta)
 
-(small-angle; the elevation barely changes for anchors tens of metres away). The depths are not
-in the annotation record, so the model takes one common depth: after the rotation, the heading
+(small-angle; ``a = -t2 / d``, ``b = t1 / d``), and the spot is nearer to it by ``t . h``: its
+horizontal distance becomes ``d (1 - q)`` with
+
+    q(theta) = (t1 cos(theta) + t2 sin(theta)) / d = b cos(theta) - a sin(theta),
+
+the quadrature of the same sinusoid (no new parameter), so ``tan(elevation)`` grows by
+``1 / (1 - q) ~ 1 + q`` (``ParallaxModel.elevation``). Near eye level that is nothing, but a window
+5 m up a facade 15 m away rises by 0.6 deg when the spot is 0.5 m nearer. The depths are not in
+the annotation record, so the model takes one common depth: after the rotation, the heading
 residuals of the matched annotations follow ``c + a cos(theta) + b sin(theta)``, with ``c`` what
-the rotation left of the heading and ``(a, b)`` the horizontal displacement over the depth (in
-the azimuth's axes, e.g. ``(t_north, -t_east) / d`` with theta from east). Fitted by least squares
-with a Gaussian prior on ``(a, b)`` (``sigma_parallax``: about 1 m at 50 m), it moves the inferred
-annotations - whose placement otherwise carries the mean parallax the rotation absorbed from the
-matched ones - and the positions around which candidates are chosen.
+the rotation left of the heading. Fitted by least squares with a Gaussian prior on ``(a, b)``
+(``sigma_parallax``: about 1 m at 50 m), it moves the inferred annotations - whose placement
+otherwise carries the mean parallax the rotation absorbed from the matched ones - and the
+positions around which candidates are chosen.
 
 The common depth is fitted mostly on landmarks (:mod:`.landmarks`), nearer on the whole than the
 facades the annotations are on; :func:`fit_depth_scale` gives the annotations' parallax as a
@@ -59,6 +67,8 @@ class ParallaxModel:
     c: float
     a: float
     b: float
+    #: Whether :meth:`apply` changes the elevations too (the radial part of the displacement).
+    elevation: bool = False
 
     def azimuth(self, dirs: Array) -> Array:
         """(n,) azimuths (rad) about ``up`` of (n, 3) directions, from ``e1`` towards ``e2``."""
@@ -71,15 +81,36 @@ class ParallaxModel:
         th = self.azimuth(dirs)
         return self.c + self.a * np.cos(th) + self.b * np.sin(th)
 
-    def apply(self, dirs: Array) -> Array:
-        """(n, 3) directions turned about ``up`` by their shift."""
+    def radial(self, dirs: Array) -> Array:
+        """(n,) the displacement towards the anchors over their depth, ``q = b cos - a sin``: the
+        quadrature of the heading sinusoid (module docstring)."""
+        th = self.azimuth(dirs)
+        return self.b * np.cos(th) - self.a * np.sin(th)
+
+    def elevation_shift(self, dirs: Array) -> Array:
+        """(n,) change of elevation (rad, small-angle) :meth:`apply` makes at the directions: 0
+        without ``elevation``, else ``sin(el) cos(el) q``."""
         dirs = np.asarray(dirs, float).reshape(-1, 3)
-        return np.einsum('nij,nj->ni', rotations_about_axis(self.up, self.shift(dirs)), dirs)
+        if not self.elevation:
+            return np.zeros(len(dirs))
+        sin_el = np.clip(dirs @ self.up / np.linalg.norm(dirs, axis=1), -1.0, 1.0)
+        return sin_el * np.sqrt(1.0 - sin_el ** 2) * self.radial(dirs)
+
+    def apply(self, dirs: Array) -> Array:
+        """(n, 3) directions turned about ``up`` by their shift, and with ``elevation`` raised or
+        lowered by the radial displacement."""
+        dirs = np.asarray(dirs, float).reshape(-1, 3)
+        out = np.einsum('nij,nj->ni', rotations_about_axis(self.up, self.shift(dirs)), dirs)
+        if not self.elevation:
+            return out
+        # tan(elevation) scales with d / d' (module docstring): the vertical component by 1 + q.
+        out = out + np.outer((out @ self.up) * self.radial(dirs), self.up)
+        return out / np.linalg.norm(out, axis=1, keepdims=True)
 
     def scaled(self, scale: float) -> ParallaxModel:
         """The same heading ``c`` with the parallax ``(a, b)`` times ``scale`` (a depth ratio:
         anchors ``1 / scale`` times as far as the matches the model was fitted on)."""
-        return ParallaxModel(self.up, self.c, scale * self.a, scale * self.b)
+        return ParallaxModel(self.up, self.c, scale * self.a, scale * self.b, self.elevation)
 
     @property
     def amplitude(self) -> float:
@@ -88,7 +119,7 @@ class ParallaxModel:
 
 
 def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: float = 0.01,
-                 sigma_parallax: float = 0.02, trim_sigmas: float = 0.0) -> ParallaxModel:
+                 sigma_parallax: float = 0.02, trim_sigmas: float = 0.0, elevation: bool = False) -> ParallaxModel:
     """The model from (n, 3) directions where the rotation puts the matches (``predicted``) and
     where they were found (``observed``), n >= 1: weighted least squares of the heading
     residuals (``sigma_match``: a match's localisation plus the depth differences the common
@@ -98,7 +129,8 @@ def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: floa
     standard deviations (1.4826 x median absolute residual; never less than sigma_match / 5) of
     the first fit. Among the landmarks of a panorama (:mod:`.landmarks`) some are much nearer
     than the anchors - trees, poles - and turn two or three times as far: outliers of the common
-    depth, which would otherwise set the amplitude for the far anchors."""
+    depth, which would otherwise set the amplitude for the far anchors. ``elevation``: the model
+    also moves elevations (:attr:`ParallaxModel.elevation`; fitted on the headings alone)."""
     k = np.asarray(up, float) / np.linalg.norm(up)
     model = ParallaxModel(k, 0.0, 0.0, 0.0)
     th = model.azimuth(predicted)
@@ -113,7 +145,7 @@ def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: floa
         res = np.abs(r - X @ coef)
         keep = res <= max(trim_sigmas * 1.4826 * float(np.median(res)), sigma_match / 5)
     c, a, b = coef
-    return ParallaxModel(k, float(c), float(a), float(b))
+    return ParallaxModel(k, float(c), float(a), float(b), elevation)
 
 
 def heading_residuals(model: ParallaxModel, predicted: Array, observed: Array) -> Array:
@@ -157,11 +189,19 @@ def prediction_sigma(model: ParallaxModel, predicted: Array, observed: Array, at
     the posterior covariance of ``(c, a, b)`` in :func:`fit_parallax`'s least squares on the
     matches (``predicted`` / ``observed``), with their robust residual scale (1.4826 x median
     absolute, at least ``sigma_match``) for the per-match sigma. Matches bunched in one sector
-    of the panorama pin the sinusoid there only: far from them it is extrapolated."""
+    of the panorama pin the sinusoid there only: far from them it is extrapolated. With
+    :attr:`ParallaxModel.elevation` the elevation change's variance at ``at`` is added."""
     X = _regressors(model.azimuth(predicted))
     r = heading_residuals(model, predicted, observed)
     s = max(sigma_match, 1.4826 * float(np.median(np.abs(r)))) if r.size else sigma_match
     info = X.T @ X / s ** 2 + np.diag([0.0, 1.0, 1.0]) / sigma_parallax ** 2
     cov = np.linalg.pinv(info)
-    Xa = _regressors(model.azimuth(at))
-    return np.sqrt(np.maximum(np.einsum('ni,ij,nj->n', Xa, cov, Xa), 0.0))
+    th = model.azimuth(at)
+    Xa = _regressors(th)
+    var = np.einsum('ni,ij,nj->n', Xa, cov, Xa)
+    if model.elevation:  # d(elevation_shift)/d(c, a, b) = sin cos (0, -sin th, cos th)
+        at = np.asarray(at, float).reshape(-1, 3)
+        sin_el = np.clip(at @ model.up / np.linalg.norm(at, axis=1), -1.0, 1.0)
+        Xv = (sin_el * np.sqrt(1.0 - sin_el ** 2))[:, None] * np.stack([np.zeros_like(th), -np.sin(th), np.cos(th)], axis=1)
+        var = var + np.einsum('ni,ij,nj->n', Xv, cov, Xv)
+    return np.sqrt(np.maximum(var, 0.0))

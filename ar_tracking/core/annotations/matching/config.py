@@ -75,6 +75,11 @@ class MatchConfig:
     #: depth, :mod:`.parallax`) and place again around the corrected positions. Sigmas in rad:
     #: a match (with the depth differences), the prior on |t| / d.
     parallax_model: bool = True
+    #: The parallax model raises and lowers the anchors too (:attr:`..parallax.ParallaxModel.elevation`:
+    #: the radial part of the same displacement). Matcher replay (with ``matched_agreement_px``):
+    #: spots 505-588 wrong label time 0.0076 -> 0.0046, redetection 0.967 -> 0.970; spots
+    #: 371-504 0.0016 -> 0.0029 (one early label of spot 444), redetection 0.954 both.
+    parallax_elevation: bool = True
     parallax_min_matches: int = 3
     parallax_sigma_match: float = 0.01
     parallax_sigma: float = 0.02
@@ -135,6 +140,14 @@ class MatchConfig:
     #: bracketed by matches 60 deg away is extrapolated more than the bracket rule assumes.
     #: Matcher replay of spots 371-504: wrong label time 0.0072 -> 0.0036, redetection 0.970 -> 0.960.
     prediction_support: bool = True
+    #: A matched annotation is shown as placed only within ``matched_agreement_px`` (map
+    #: distance; 0: off) of where the alignment puts it (:attr:`.placement.Placement.predicted`:
+    #: the other matches with the parallax model, leave-one-out). Further apart, the patch and
+    #: the other matches disagree by more than the 1 deg a label may be off, so one of them is:
+    #: on spots 505-588 such labels were look-alikes one facade repetition away (2.3-2.9 deg
+    #: off) in a quarter of their time (replay of 505-588: wrong label time 0.0097 -> 0.0076,
+    #: redetection 0.970 -> 0.967). 6.8 px = 1.2 deg. A local test: with landmarks only.
+    matched_agreement_px: float = 6.8
     #: Look-alike test of a matched annotation after the parallax model (0: off): when another
     #: local NCC maximum at least ``lookalike_sep_px`` from its match, inside the placement gate
     #: around its leave-one-out prediction, has an NCC within ``lookalike_margin`` of the

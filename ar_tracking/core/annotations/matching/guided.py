@@ -168,7 +168,7 @@ class GuidedSearch:
 
         def fit(rows: Array | slice) -> ParallaxModel:
             return fit_parallax(predicted[matched][rows], observed[rows], up, cfg.parallax_sigma_match,
-                                cfg.parallax_sigma, cfg.parallax_trim_sigmas)
+                                cfg.parallax_sigma, cfg.parallax_trim_sigmas, cfg.parallax_elevation)
 
         # The annotations' parallax as a factor of the model's (their facades are farther than
         # the landmarks it is mostly fitted on), from the matched annotations - without the one

@@ -30,6 +30,11 @@ class Placement:
     #: Shown as placed (:meth:`ReDetector.result` sets it: the alignment is supported and, for an
     #: inferred placement, pinned by matches near it); else only approximate.
     supported: bool = False
+    #: Where the alignment puts the annotation (unit direction in the target panorama: the
+    #: rotation, with the parallax model - leave-one-out for a matched one - when fitted); None
+    #: without an alignment. A matched placement far from it is one of two disagreeing pieces
+    #: of evidence (:attr:`.config.MatchConfig.matched_agreement_px`).
+    predicted: Array | None = None
 
 
 @dataclass
@@ -99,10 +104,11 @@ def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequenc
     for i in range(len(src)):
         if i in best:
             c = candidates[i][best[i]]
-            out.append(Placement(i, c.u, c.v, geo.unproject(np.array(c.u), np.array(c.v)), 'matched', c.ncc))
+            out.append(Placement(i, c.u, c.v, geo.unproject(np.array(c.u), np.array(c.v)), 'matched', c.ncc,
+                                 predicted=pred[i]))
         else:
             pu, pv = geo.project(pred[i])
-            out.append(Placement(i, float(pu), float(pv), pred[i], 'inferred', float('nan')))
+            out.append(Placement(i, float(pu), float(pv), pred[i], 'inferred', float('nan'), predicted=pred[i]))
     return out
 
 

@@ -61,7 +61,8 @@ class SupportTest:
             if not local:
                 p.supported = True
             elif p.status == 'matched':
-                p.supported = not cfg.local_support_matched or near - 1 >= cfg.local_support_matches
+                p.supported = ((not cfg.local_support_matched or near - 1 >= cfg.local_support_matches)
+                               and self._agrees(p))
             else:
                 p.supported = near >= cfg.local_support_matches
                 if not p.supported and cfg.bracket_support_px > 0 and len(mu):
@@ -71,17 +72,27 @@ class SupportTest:
                 if p.supported and not self._depth_ratio_pins(al, p):
                     p.supported = False
 
+    def _agrees(self, p: Placement) -> bool:
+        """Whether the matched placement ``p`` lies within :attr:`MatchConfig.matched_agreement_px`
+        of where the alignment puts it (always without a limit or a prediction)."""
+        limit = self.config.matched_agreement_px
+        if limit <= 0 or p.predicted is None:
+            return True
+        u, v = self.geometry.project(p.predicted)
+        return bool(float(self.geometry.map_distance(p.u, p.v, u, v)) <= limit)
+
     def _depth_ratio_pins(self, al: Alignment, p: Placement) -> bool:
         """Whether the inferred placement ``p`` is pinned to within
         :attr:`MatchConfig.depth_ratio_support_rad` (1 sigma): the parallax model's term at it
-        times the depth ratio's standard deviation (the fitted ratio's, none without
+        (heading and, with ``parallax_elevation``, elevation) times the depth ratio's standard deviation (the fitted ratio's, none without
         ``parallax_scale_sigma``, and ``depth_ratio_scatter``), with the model's own heading
         uncertainty there (``prediction_support``)."""
         limit = self.config.depth_ratio_support_rad
         if limit <= 0 or al.parallax is None or al.R_target_source is None:
             return True
         m = al.parallax
-        term = float(m.shift(self.source_dirs[p.index] @ al.R_target_source.T)[0]) - m.c
+        at = self.source_dirs[p.index] @ al.R_target_source.T
+        term = math.hypot(float(m.shift(at)[0]) - m.c, float(m.elevation_shift(at)[0]))
         fitted = al.depth_ratio_sigma if math.isfinite(al.depth_ratio_sigma) else 0.0
         ratio = abs(term) * math.hypot(fitted, self.config.depth_ratio_scatter)
         return math.hypot(ratio, al.prediction_sigma.get(p.index, 0.0)) <= limit
