@@ -38,7 +38,8 @@ from ar_tracking.core.rotations import (
     nearest_rotation,
     quat_xyzw_to_matrix,
 )
-from ar_tracking.io.bags import BagError, BagMessage, BagReader, stamp_to_ns, static_transforms
+from ar_tracking.io.bags import BagError, BagMessage, BagReader, stamp_to_ns
+from ar_tracking.io.static_tf import static_transforms
 from ar_tracking.errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
@@ -269,7 +270,7 @@ def _decode(bag: BagReader, m: BagMessage) -> Any | None:
 
 
 def _read_static_transforms(bag: BagReader, topics: dict[str, str]) -> StaticTransforms:
-    """The bag's /tf_static rotations (read by io.bags.static_transforms, as the runner does)."""
+    """The bag's /tf_static rotations (read by io.static_tf.static_transforms, as the runner does)."""
     tf = StaticTransforms()
     for t in static_transforms(bag, TF_STATIC_TOPIC):
         tf.add_rotation(t.parent, t.child, t.rotation)

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..io.bags import BagReader, static_transforms, stamp_to_ns
+from ..io.bags import BagReader, stamp_to_ns
+from ..io.static_tf import static_transforms
 from .metrics import CAMERA_FRAME, OrientationSeries
 
 logger = logging.getLogger(__name__)

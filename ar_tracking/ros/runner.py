@@ -41,7 +41,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from ..io.bags import TF_STATIC_TOPIC, BagReader, BagWriter, static_transforms
+from ..io.bags import BagReader, BagWriter
+from ..io.static_tf import TF_STATIC_TOPIC, static_transforms
 from .graph_plan import (EXECUTOR_CHOICES, GRAPH_CHOICES, GRAPH_NODES, NAMED_GRAPHS, ROTATION_IN_PLACE_TOPIC,
                          RunError, check_rate, choose_nodes, load_node_class, plan_nodes, transport_probe_graph)
 from .live_play import (IMAGE_TYPES, SENSOR_STAMP_TYPES, RealtimePlayback, best_effort_outputs, connect_node_processes, latency_stamp_topics, live_report,
@@ -438,7 +439,7 @@ class GraphRunner:
         """Give the bag's /tf_static to every node with an ``on_static_transforms`` method.
 
         The pip-only ROS has no tf2_msgs, so no node can subscribe to /tf_static; the runner
-        reads it with rosbags (io.bags.static_transforms) and calls the method with the list of
+        reads it with rosbags (io.static_tf.static_transforms) and calls the method with the list of
         StaticTransform (parent, child, rotation, translation) before the first message. A
         node that fails on them keeps running without (one warning).
         """

@@ -111,7 +111,7 @@ def subscribe_static_transforms(node: Any, callback: Callable[[list[Any]], None]
     TFMessage = tf_message_class()
     if TFMessage is None:
         return False
-    from ..io.bags import StaticTransform
+    from ..io.static_tf import StaticTransform
     from ..core.rotations import quat_xyzw_to_matrix
 
     def on_tf(msg: Any) -> None:

@@ -526,7 +526,7 @@ def test_static_transforms_are_read_without_ros(tmp_path):
     is the child origin in the parent; a later transform replaces an earlier one; invalid ones
     are skipped."""
     from ar_tracking.core.rotations import matrix_to_quat_xyzw, rot_z
-    from ar_tracking.io.bags import static_transforms
+    from ar_tracking.io.static_tf import static_transforms
 
     TFMessage = msg_class('tf2_msgs/msg/TFMessage')
     TransformStamped = msg_class('geometry_msgs/msg/TransformStamped')
