@@ -180,6 +180,21 @@ PARAMS = (
 )
 
 
+#: Node parameters in degrees whose :class:`MatchConfig` field is in map pixels.
+_DEG_TO_PX = {'prior_window_deg': 'prior_window_px', 'local_support_deg': 'local_support_px',
+              'bracket_support_deg': 'bracket_support_px', 'matched_agreement_deg': 'matched_agreement_px'}
+
+
+def match_config(values: dict[str, Any], f: float) -> MatchConfig:
+    """The matcher's configuration from the node's parameter ``values``: those named as a
+    :class:`MatchConfig` field as they are, the ones in degrees in map pixels (``f`` pixels per
+    radian) or, for ``depth_ratio_support_deg``, in radians."""
+    kw = {k: values[k] for k in values.keys() & {field.name for field in dataclasses.fields(MatchConfig)}}
+    kw.update({px: math.radians(values[deg]) * f for deg, px in _DEG_TO_PX.items()})
+    kw['depth_ratio_support_rad'] = math.radians(values['depth_ratio_support_deg'])
+    return MatchConfig(**kw)
+
+
 class AnnotationMatcherNode(TrackingNode):
     INPUTS = {
         'panorama/image': 'sensor_msgs/msg/Image',
@@ -209,8 +224,6 @@ class AnnotationMatcherNode(TrackingNode):
         self.reload_period_ns = int(1e9 * v['reload_period_s'])
         self.budget_ms = v['budget_ms']
         self.op_cost_ms = v['op_cost_ms']
-        prior = v['sensor_prior']
-        ransac = v['ransac']
         self.use_landmarks = v['landmarks']
         self.marker_distance_m = v['marker_distance_m']
         self.marker_height_m = v['marker_height_m']
@@ -219,25 +232,7 @@ class AnnotationMatcherNode(TrackingNode):
         reset_s = v['reset_after_s']
         f = CylinderGeometry().f
 
-        self.match_config = MatchConfig(
-            sensor_prior=prior, prior_window_px=math.radians(v['prior_window_deg']) * f,
-            prior_outer_factor=v['prior_outer_factor'], prior_penalty=v['prior_penalty'], ransac=ransac,
-            inlier_px=v['inlier_px'], min_inlier_ratio=v['min_inlier_ratio'], min_ncc=v['min_ncc'],
-            walsh_min=v['walsh_min'], placement_px=v['placement_px'], guided_search=v['guided_search'],
-            placement_penalty=v['placement_penalty'], consensus_score=v['consensus_score'],
-            guided_all=v['guided_all'], prior_alignment=v['prior_alignment'],
-            gravity_alignment=v['gravity_alignment'], gravity_v_px=v['gravity_v_px'],
-            parallax_model=v['parallax_model'], parallax_elevation=v['parallax_elevation'], parallax_trim_sigmas=v['parallax_trim_sigmas'],
-            parallax_scale_sigma=v['parallax_scale_sigma'],
-            parallax_gate_sigmas=v['parallax_gate_sigmas'], min_support_matches=v['min_support_matches'],
-            support_prior_sigmas=v['support_prior_sigmas'], strong_support_matches=v['strong_support_matches'],
-            local_support_matches=v['local_support_matches'],
-            local_support_px=math.radians(v['local_support_deg']) * f,
-            local_support_matched=v['local_support_matched'], lookalike_margin=v['lookalike_margin'],
-            lookalike_sep_px=v['lookalike_sep_px'], bracket_support_px=math.radians(v['bracket_support_deg']) * f,
-            depth_ratio_support_rad=math.radians(v['depth_ratio_support_deg']),
-            depth_ratio_scatter=v['depth_ratio_scatter'], prediction_support=v['prediction_support'],
-            matched_agreement_px=math.radians(v['matched_agreement_deg']) * f)
+        self.match_config = match_config(v, f)
         self.geometry = CylinderGeometry()
         self.annotations: list[Annotation] = []
         self.landmarks: list[Landmark] = []
@@ -272,8 +267,8 @@ class AnnotationMatcherNode(TrackingNode):
         if not self.store_path:
             self.get_logger().warning('annotation_matcher: no store_path set; nothing to match (in a params '
                                       'file: annotation_matcher: {ros__parameters: {store_path: notes.db}})')
-        self.get_logger().info(f'annotation_matcher: store {describe(self.store_ref) if self.store_ref else "-"}, prior {"on" if prior else "off"}, '
-                               f'RANSAC {"on" if ransac else "off"}, budget {self.budget_ms} ms')
+        self.get_logger().info(f'annotation_matcher: store {describe(self.store_ref) if self.store_ref else "-"}, prior {"on" if self.match_config.sensor_prior else "off"}, '
+                               f'RANSAC {"on" if self.match_config.ransac else "off"}, budget {self.budget_ms} ms')
 
     # -- annotations -----------------------------------------------------------------------
 
