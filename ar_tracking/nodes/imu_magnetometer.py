@@ -141,6 +141,7 @@ class _Sample:
         return orientation_imu_cdr(self.sec, self.nanosec, self.frame_id, R, cov,
                                    self.gyro, self.gyro_cov, self.accel, self.accel_cov)
 
+
 class ImuMagnetometerNode(TrackingNode):
     INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu', 'imu/mag': 'sensor_msgs/msg/MagneticField'}
     #: The magnetometer is optional (6D without it).
