@@ -123,3 +123,13 @@ def test_tone_mapped_stretches_the_mapped_values_and_zeroes_the_rest(edr: bool, 
         got = pano.tone_mapped(bits)
         assert got.tobytes() == _tone_mapped_reference(pano, bits).tobytes()
         assert not got[~pano.mapped].any()
+
+
+def test_the_tracker_estimates_the_log_gain_only_for_the_gain_correction() -> None:
+    """The log gain is read by the 'gain' EDR correction alone; the other modes skip it."""
+    from ar_tracking.core.panorama import MapperConfig, PanoramaMapper
+
+    assert PanoramaMapper(MapperConfig(edr_correction='gain')).tracker.config.log_gain
+    for mode in ('overlap', 'offset'):
+        assert not PanoramaMapper(MapperConfig(edr_correction=mode)).tracker.config.log_gain
+    assert not PanoramaMapper(MapperConfig(map=MapConfig(edr=False), edr_correction='gain')).tracker.config.log_gain

@@ -21,7 +21,7 @@ No ROS here; the node is a thin wrapper.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -128,7 +128,9 @@ class PanoramaMapper:
     def reset(self) -> None:
         cfg = self.config
         self.map = PanoramaMap(cfg.map)
-        self.tracker = ActiveSearchTracker(cfg.tracker)
+        # The tracker's log gain is read by the 'gain' EDR correction only.
+        wants_log_gain = cfg.map.edr and cfg.edr_correction == 'gain'
+        self.tracker = ActiveSearchTracker(cfg.tracker if wants_log_gain else replace(cfg.tracker, log_gain=False))
         self.relocaliser = Relocaliser(cfg.relocaliser)
         self.exposure = ExposureFilter(cfg.exposure)
         self.offset_filter = ExposureFilter(cfg.offset_exposure)

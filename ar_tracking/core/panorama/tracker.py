@@ -56,6 +56,10 @@ class TrackerConfig:
     #: ... and this fraction of the searched keypoints being inliers.
     min_inlier_ratio: float = 0.7
     seed: int = 0
+    #: Estimate the exposure's log gain of the frame (``TrackResult.log_gain``: what the
+    #: mapper's 'gain' EDR correction filters). False: not computed (0, its standard error inf,
+    #: 0 pairs); the mapper turns it off in its other correction modes, which never read it.
+    log_gain: bool = True
 
     def __post_init__(self) -> None:
         if self.patch_size % 2 == 0 or self.patch_size < 5:
@@ -280,17 +284,18 @@ class ActiveSearchTracker:
         # The exposure is a gain on the encoded values: its estimate is the same mean, of log
         # intensities. Pairs whose frame patch touches 0 or 255 (clipped: the gain is not seen
         # there) or that are dark (log noise) do not vote.
-        peak_patch = views[k, best[k]]
-        unclipped = (peak_patch.max(axis=1) < 254.5) & (peak_patch.min(axis=1) > 0.5)
-        use = inl & unclipped & (f_mean > cfg.min_photometric_level) & (t_mean[k] > cfg.min_photometric_level)
-        if np.count_nonzero(use) >= 3:
-            log_gain, log_se = _trimmed_mean_se(np.log(t_mean[k][use]) - np.log(f_mean[use]))
-        else:
-            log_gain, log_se = 0.0, float('inf')
+        log_gain, log_se, pairs_used = 0.0, float('inf'), 0
+        if cfg.log_gain:
+            peak_patch = views[k, best[k]]
+            unclipped = (peak_patch.max(axis=1) < 254.5) & (peak_patch.min(axis=1) > 0.5)
+            use = inl & unclipped & (f_mean > cfg.min_photometric_level) & (t_mean[k] > cfg.min_photometric_level)
+            pairs_used = int(np.count_nonzero(use))
+            if pairs_used >= 3:
+                log_gain, log_se = _trimmed_mean_se(np.log(t_mean[k][use]) - np.log(f_mean[use]))
         ok = n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * n
         reason = '' if ok else f'{n_in} inliers of {n} searched keypoints'
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
-                           log_gain, log_se, int(np.count_nonzero(use)), offset_se)
+                           log_gain, log_se, pairs_used, offset_se)
 
     def _spread(self, idx: NDArray[np.int64], x: Array, y: Array, score: Array, w: int, h: int
                 ) -> NDArray[np.int64]:
