@@ -560,9 +560,10 @@ def test_lookalike_test_places_an_ambiguous_match_at_its_prediction():
            for dx in (0, 16)]
     assert 0.13 < ncc[1] - ncc[0] < 0.2  # the copy beats the truth's penalty (0.2 x 16 / 25)
 
-    def placed(margin: float):
+    def placed(margin: float, agreement_px: float = MatchConfig.matched_agreement_px):
         det = ReDetector(case.patches, case.dirs, ['p'] * 6,
-                         MatchConfig(lookalike_margin=margin, parallax_gate_sigmas=0.0),
+                         MatchConfig(lookalike_margin=margin, parallax_gate_sigmas=0.0,
+                                     matched_agreement_px=agreement_px),
                          R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * 6)
         det.set_orientation(M_ENU_PANO)
         det.add_finished_tiles(tiles_of(case.mapped))
@@ -576,6 +577,10 @@ def test_lookalike_test_places_an_ambiguous_match_at_its_prediction():
     on = placed(0.2)
     assert on[k].status == 'inferred' and abs(on[k].u - tu) < 0.5 and abs(on[k].v - tv) < 0.5
     assert all(p.status == 'matched' for i, p in on.items() if i != k)
+    # A match that agrees with its prediction (within matched_agreement_px, here made wider than
+    # the 16 px) is kept whatever its rivals.
+    kept = placed(0.2, agreement_px=20.0)[k]
+    assert kept.status == 'matched' and kept.u - tu == pytest.approx(16.0, abs=0.5)
 
 
 def test_inferred_label_between_matches_is_supported_and_beyond_them_is_not():

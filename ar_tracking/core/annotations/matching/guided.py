@@ -120,9 +120,12 @@ class GuidedSearch:
         """The look-alike test of a matched placement (:attr:`MatchConfig.lookalike_margin`):
         another local NCC maximum (3 x 3) inside the gate around its prediction, at least
         ``lookalike_sep_px`` from the match, with an NCC within the margin of the match's makes
-        the placement the prediction itself (inferred)."""
+        the placement the prediction itself (inferred) - unless the match lies within
+        :attr:`MatchConfig.matched_agreement_px` of the prediction."""
         cfg, geo = self.config, self.geometry
         cu, cv_ = (float(x) for x in geo.project(predicted))
+        if float(geo.map_distance(p.u, p.v, cu, cv_)) <= cfg.matched_agreement_px:
+            return  # the match agrees with the other matches: a rival would change nothing shown
         win = self._window_ncc(p.index, cu, cv_, gate_px, v_tol)
         if win is None:
             return
