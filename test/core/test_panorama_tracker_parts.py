@@ -1,5 +1,6 @@
 """The panorama tracker's vectorised parts against their plain definitions: the RANSAC votes
-of the closed-form two-point rotations, the template rays, and the keypoint spread."""
+of the closed-form two-point rotations, the template rays (camera_rays against its plain formula),
+and the keypoint spread."""
 from __future__ import annotations
 
 import numpy as np
@@ -51,15 +52,42 @@ def test_hypothesis_votes_of_a_degenerate_pair_are_empty() -> None:
     assert votes[1].all() and votes[2].all()  # identity is exact
 
 
+def _camera_rays_reference(K: np.ndarray, x: np.ndarray, y: np.ndarray, unit: bool) -> np.ndarray:
+    """camera_rays as it was written before it wrote into one array: broadcast copies and a
+    stack (the plain formula)."""
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    yn = (np.asarray(y, float) - cy) / fy
+    xn = (np.asarray(x, float) - cx - skew * yn) / fx
+    r = np.stack(np.broadcast_arrays(xn, yn, np.ones_like(xn)), axis=-1)
+    return r / np.linalg.norm(r, axis=-1, keepdims=True) if unit else r
+
+
 def test_template_rays_equal_camera_rays_of_the_pixel_grids() -> None:
+    """The tracker's call (x (n, 1, P) and y (n, P, 1) broadcast) gives the bytes of the plain
+    formula on the full pixel grids."""
     tracker = ActiveSearchTracker()
     K = np.array([[300.0, 0.5, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]])
     xr = np.array([10, 200, 311])
     yr = np.array([15, 100, 230])
     grid = tracker._grid
     gx, gy = np.broadcast_arrays(xr[:, None, None] + grid[None, None, :], yr[:, None, None] + grid[None, :, None])
-    expect = camera_rays(K, gx, gy, unit=False)
-    got = tracker._template_rays(K, xr, yr)
+    expect = _camera_rays_reference(K, gx, gy, unit=False)
+    got = camera_rays(K, xr[:, None, None] + grid, yr[:, None, None] + grid[:, None], unit=False)
+    assert got.shape == (3, grid.size, grid.size, 3)
+    assert got.tobytes() == expect.tobytes()
+
+
+@pytest.mark.parametrize('shape', [(), (7,), (5, 4)])
+@pytest.mark.parametrize('unit', [True, False])
+def test_camera_rays_equal_the_plain_formula(shape: tuple[int, ...], unit: bool) -> None:
+    """The other callers' shapes (sub-pixel matches (n,), the synthetic scenes' pixel grids,
+    a single pixel) give the same bytes as the plain formula, unit or not."""
+    rng = np.random.default_rng(5)
+    K = np.array([[300.0, 0.5, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]])
+    x, y = rng.uniform(0, 320, size=shape), rng.uniform(0, 240, size=shape)
+    got = camera_rays(K, x, y, unit=unit)
+    expect = _camera_rays_reference(K, x, y, unit)
+    assert got.shape == shape + (3,)
     assert got.tobytes() == expect.tobytes()
 
 

@@ -160,19 +160,6 @@ class ActiveSearchTracker:
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.config.seed)
 
-    def _template_rays(self, K: Array, xr: NDArray[np.int64], yr: NDArray[np.int64]) -> Array:
-        """Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on (xr, yr): the values
-        of :func:`camera_rays` with ``unit=False``, written into one array (its broadcasts,
-        stack and division cost twice as much)."""
-        fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-        P = self._grid.size
-        yn = (yr[:, None, None] + self._grid[None, :, None] - cy) / fy
-        r = np.empty((xr.size, P, P, 3))
-        r[..., 0] = (xr[:, None, None] + self._grid[None, None, :] - cx - skew * yn) / fx
-        r[..., 1] = yn
-        r[..., 2] = 1.0
-        return r
-
     def track(self, frame: NDArray[np.uint8], K: Array, R_pred: Array, pano: PanoramaMap,
               radius_px: int | None = None) -> TrackResult:
         """Estimate R_pano_cam of ``frame`` (grey uint8) starting from ``R_pred``."""
@@ -199,8 +186,11 @@ class ActiveSearchTracker:
         px, py = x[idx], y[idx]
         xr, yr = np.rint(px).astype(np.int64), np.rint(py).astype(np.int64)
         # 2. Templates: the map warped into the predicted view around each keypoint.
-        # One (n P P, 3) x (3, 3) product (a stack of n P small ones costs more; same values).
-        rays = self._template_rays(K, xr, yr)
+        # Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on (xr, yr), x (n, 1, P)
+        # and y (n, P, 1) broadcast; then one (n P P, 3) x (3, 3) product (a stack of n P small
+        # ones costs more; same values).
+        grid = self._grid
+        rays = camera_rays(K, xr[:, None, None] + grid, yr[:, None, None] + grid[:, None], unit=False)
         u, v = pano.geometry.project((rays.reshape(-1, 3) @ R_pred.T).reshape(rays.shape))
         # Each sample depends only on its own map coordinates, so the layout of the maps is
         # free: one row (cv2.remap's per-row cost, ~30 % of the call with n P rows of P) unless
