@@ -1,12 +1,12 @@
 """The panorama tracker's vectorised parts against their plain definitions: the RANSAC votes
-of the closed-form two-point rotations, the template rays (camera_rays against its plain formula),
-and the keypoint spread."""
+of the closed-form two-point rotations, the template rays (camera_rays and the image projection
+against their plain formulas), and the keypoint spread."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ar_tracking.core.panorama.cylinder import camera_rays
+from ar_tracking.core.panorama.cylinder import camera_rays, project_to_image, project_xyz
 from ar_tracking.core.panorama.map import MapConfig, PanoramaMap
 from ar_tracking.core.panorama.tracker import ActiveSearchTracker, _hypothesis_votes, kabsch
 
@@ -89,6 +89,21 @@ def test_camera_rays_equal_the_plain_formula(shape: tuple[int, ...], unit: bool)
     expect = _camera_rays_reference(K, x, y, unit)
     assert got.shape == shape + (3,)
     assert got.tobytes() == expect.tobytes()
+
+
+def test_project_to_image_is_project_xyz_of_the_columns() -> None:
+    rng = np.random.default_rng(6)
+    K = np.array([[300.0, 0.5, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]])
+    p = rng.normal(size=(50, 3))
+    p[:5, 2] = 0.0  # on the image plane's z = 0: not in front
+    x, y, front = project_to_image(K, p)
+    zs = np.where(p[:, 2] > 1e-6, p[:, 2], 1.0)
+    xn, yn = p[:, 0] / zs, p[:, 1] / zs
+    assert x.tobytes() == (K[0, 0] * xn + K[0, 1] * yn + K[0, 2]).tobytes()
+    assert y.tobytes() == (K[1, 1] * yn + K[1, 2]).tobytes()
+    np.testing.assert_array_equal(front, p[:, 2] > 1e-6)
+    x2, y2, front2 = project_xyz(K, *(np.ascontiguousarray(p[:, k]) for k in range(3)))
+    assert (x2.tobytes(), y2.tobytes(), front2.tobytes()) == (x.tobytes(), y.tobytes(), front.tobytes())
 
 
 def _spread_reference(tracker: ActiveSearchTracker, idx: np.ndarray, x: np.ndarray, y: np.ndarray,

@@ -96,10 +96,18 @@ def camera_rays(K: Array, x: ArrayLike, y: ArrayLike, unit: bool = True) -> Arra
     return r
 
 
-def project_to_image(K: Array, p_cam: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
-    """Pixel coordinates of camera-frame points (..., 3) and whether they are in front."""
-    z = p_cam[..., 2]
-    front = z > 1e-6
-    zs = np.where(front, z, 1.0)
-    xn, yn = p_cam[..., 0] / zs, p_cam[..., 1] / zs
+def project_xyz(K: Array, px: Array, py: Array, pz: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Pixel coordinates of camera-frame points given as their three coordinate arrays, and
+    whether they are in front (z > 1e-6; points behind get z = 1 so the division stays finite).
+    Separate arrays let a caller that computes the coordinates one by one (the mapper's
+    separable map-pixel directions) skip the strided columns of an (N, 3) array."""
+    front = pz > 1e-6
+    zs = np.where(front, pz, 1.0)
+    xn, yn = px / zs, py / zs
     return K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2], front
+
+
+def project_to_image(K: Array, p_cam: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Pixel coordinates of camera-frame points (..., 3) and whether they are in front
+    (:func:`project_xyz` of the three columns)."""
+    return project_xyz(K, p_cam[..., 0], p_cam[..., 1], p_cam[..., 2])

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .cylinder import CylinderGeometry
+from .cylinder import CylinderGeometry, project_xyz
 
 logger = logging.getLogger(__name__)
 
@@ -294,13 +294,10 @@ class PanoramaMap:
         # Separable direction (sin t, h, cos t): camera coordinates are R^T d.
         Rt = R_pano_cam.T
         s, c, hh = self._col_sin[uu], self._col_cos[uu], self._row_h[vv]
-        # project_to_image's arithmetic on the three coordinates as separate contiguous arrays
-        # (the (N, 3) array's strided columns cost a third more)
+        # The three coordinates as separate contiguous arrays (the (N, 3) array's strided
+        # columns cost a third more in project_to_image).
         px, py, pz = (Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c for k in range(3))
-        front = pz > 1e-6
-        zs = np.where(front, pz, 1.0)
-        xn, yn = px / zs, py / zs
-        x, y = K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2]
+        x, y, front = project_xyz(K, px, py, pz)
         b = self.config.frame_border_px
         ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
         if not ok.any():
