@@ -222,9 +222,13 @@ def _pad(pos: int, size: int) -> bytes:
 def imu_cdr(sec: int, nanosec: int, frame_id: str, values: Any) -> bytes:
     """CDR bytes of a sensor_msgs/Imu; ``values`` the 37 doubles in field order: orientation
     (x, y, z, w), its covariance (9), angular_velocity (3), its covariance (9),
-    linear_acceleration (3), its covariance (9)."""
+    linear_acceleration (3), its covariance (9) (a float64 array of 37 is written as it is, no
+    Python floats made of it: the nodes' :func:`orientation_imu_cdr`)."""
+    v = np.asarray(values, '<f8')
+    if v.shape != (37,):
+        raise ValueError(f'an Imu has 37 doubles, got shape {v.shape}')
     head = _header_cdr(sec, nanosec, frame_id)
-    return head + _pad(len(head), 8) + _IMU.pack(*values)
+    return head + _pad(len(head), 8) + v.tobytes()
 
 
 def transform_stamped_cdr(sec: int, nanosec: int, frame_id: str, child_frame_id: str, values: Any) -> bytes:
@@ -251,8 +255,7 @@ def orientation_imu_cdr(sec: int, nanosec: int, frame_id: str, R: NDArray[np.flo
     with 9-value covariances) default to zero and unknown (an orientation-only output).
 
     The per-sample outputs of imu_magnetometer and the hybrid filter: the 37 doubles go into
-    one float64 array (no tuple of Python floats) and are written as :func:`imu_cdr` writes
-    them."""
+    one float64 array (no tuple of Python floats), which :func:`imu_cdr` writes."""
     values = np.empty(37, '<f8')
     if R is None:
         values[0:4] = (0.0, 0.0, 0.0, 1.0)
@@ -263,8 +266,7 @@ def orientation_imu_cdr(sec: int, nanosec: int, frame_id: str, R: NDArray[np.flo
     values[16:25] = angular_velocity_covariance
     values[25:28] = linear_acceleration
     values[28:37] = linear_acceleration_covariance
-    head = _header_cdr(sec, nanosec, frame_id)
-    return head + _pad(len(head), 8) + values.tobytes()
+    return imu_cdr(sec, nanosec, frame_id, values)
 
 
 def rotation_transform_cdr(sec: int, nanosec: int, frame_id: str, child_frame_id: str, R: NDArray[np.float64]

@@ -187,6 +187,23 @@ def test_imu_cdr_is_the_standard_serialisation(stamp, frame, values):
 
 
 @settings(max_examples=100, deadline=None)
+@given(stamp=stamps, frame=names, values=st.lists(doubles, min_size=37, max_size=37),
+       payload=st.integers(1, 2**51 - 1))
+def test_imu_cdr_writes_the_doubles_as_struct_packs_them(stamp, frame, values, payload):
+    """The 37 doubles are written bit for bit as struct's '<37d' writes them (a NaN's payload
+    and sign included), from a list or a float64 array alike; another count is refused."""
+    from ar_tracking.ros.cdr_views import _header_cdr, _pad, imu_cdr
+
+    values[5] = struct.unpack('<d', struct.pack('<Q', 0xFFF0000000000000 | payload))[0]  # a NaN with a payload
+    head = _header_cdr(stamp[0], stamp[1], frame)
+    expect = head + _pad(len(head), 8) + struct.pack('<37d', *values)
+    assert imu_cdr(stamp[0], stamp[1], frame, values) == expect
+    assert imu_cdr(stamp[0], stamp[1], frame, np.array(values)) == expect
+    with pytest.raises(ValueError):
+        imu_cdr(stamp[0], stamp[1], frame, values[:36])
+
+
+@settings(max_examples=100, deadline=None)
 @given(stamp=stamps, frame=names, child=names, values=st.lists(doubles, min_size=7, max_size=7))
 def test_transform_stamped_cdr_is_the_standard_serialisation(stamp, frame, child, values):
     from ar_tracking.ros.cdr_views import transform_stamped_cdr
