@@ -22,7 +22,8 @@ def test_every_parameter_named_as_a_field_reaches_the_config():
     assert len(shared) >= 25
     for name in shared:
         values = _defaults()
-        values[name] = (not values[name]) if isinstance(values[name], bool) else values[name] * 0.5 + 0.25
+        values[name] = (not values[name]) if isinstance(values[name], bool) else values[name] * 0.5 + 0.3
+        assert values[name] != _defaults()[name]
         assert getattr(match_config(values, F), name) == values[name], name
 
 

@@ -54,6 +54,14 @@ def _horizontal_axes(up: Array) -> tuple[Array, Array]:
     return e1, cross3(up, e1)
 
 
+def _elevation_factor(up: Array, dirs: Array) -> Array:
+    """(n,) ``sin(el) cos(el)`` of (n, 3) directions about ``up``: the change of elevation per
+    unit of the relative change of ``tan(elevation)``."""
+    dirs = np.asarray(dirs, float).reshape(-1, 3)
+    sin_el = np.clip(dirs @ up / np.linalg.norm(dirs, axis=1), -1.0, 1.0)
+    return np.asarray(sin_el * np.sqrt(1.0 - sin_el ** 2), float)
+
+
 def _regressors(theta: Array) -> Array:
     """(n, 3) columns of the model's heading shift ``c + a cos + b sin`` at azimuths ``theta``."""
     return np.stack([np.ones_like(theta), np.cos(theta), np.sin(theta)], axis=1)
@@ -76,15 +84,15 @@ class ParallaxModel:
         dirs = np.asarray(dirs, float).reshape(-1, 3)
         return np.arctan2(dirs @ e2, dirs @ e1)
 
-    def shift(self, dirs: Array) -> Array:
-        """(n,) heading shifts (rad) at the given directions."""
-        th = self.azimuth(dirs)
+    def shift(self, dirs: Array, th: Array | None = None) -> Array:
+        """(n,) heading shifts (rad) at the given directions (``th``: their azimuths, if known)."""
+        th = self.azimuth(dirs) if th is None else th
         return self.c + self.a * np.cos(th) + self.b * np.sin(th)
 
-    def radial(self, dirs: Array) -> Array:
+    def radial(self, dirs: Array, th: Array | None = None) -> Array:
         """(n,) the displacement towards the anchors over their depth, ``q = b cos - a sin``: the
-        quadrature of the heading sinusoid (module docstring)."""
-        th = self.azimuth(dirs)
+        quadrature of the heading sinusoid (module docstring; ``th`` as in :meth:`shift`)."""
+        th = self.azimuth(dirs) if th is None else th
         return self.b * np.cos(th) - self.a * np.sin(th)
 
     def elevation_shift(self, dirs: Array) -> Array:
@@ -93,18 +101,18 @@ class ParallaxModel:
         dirs = np.asarray(dirs, float).reshape(-1, 3)
         if not self.elevation:
             return np.zeros(len(dirs))
-        sin_el = np.clip(dirs @ self.up / np.linalg.norm(dirs, axis=1), -1.0, 1.0)
-        return sin_el * np.sqrt(1.0 - sin_el ** 2) * self.radial(dirs)
+        return _elevation_factor(self.up, dirs) * self.radial(dirs)
 
     def apply(self, dirs: Array) -> Array:
         """(n, 3) directions turned about ``up`` by their shift, and with ``elevation`` raised or
         lowered by the radial displacement."""
         dirs = np.asarray(dirs, float).reshape(-1, 3)
-        out = np.einsum('nij,nj->ni', rotations_about_axis(self.up, self.shift(dirs)), dirs)
+        th = self.azimuth(dirs)
+        out = np.einsum('nij,nj->ni', rotations_about_axis(self.up, self.shift(dirs, th)), dirs)
         if not self.elevation:
             return out
         # tan(elevation) scales with d / d' (module docstring): the vertical component by 1 + q.
-        out = out + np.outer((out @ self.up) * self.radial(dirs), self.up)
+        out = out + np.outer((out @ self.up) * self.radial(dirs, th), self.up)
         return out / np.linalg.norm(out, axis=1, keepdims=True)
 
     def scaled(self, scale: float) -> ParallaxModel:
@@ -200,8 +208,6 @@ def prediction_sigma(model: ParallaxModel, predicted: Array, observed: Array, at
     Xa = _regressors(th)
     var = np.einsum('ni,ij,nj->n', Xa, cov, Xa)
     if model.elevation:  # d(elevation_shift)/d(c, a, b) = sin cos (0, -sin th, cos th)
-        at = np.asarray(at, float).reshape(-1, 3)
-        sin_el = np.clip(at @ model.up / np.linalg.norm(at, axis=1), -1.0, 1.0)
-        Xv = (sin_el * np.sqrt(1.0 - sin_el ** 2))[:, None] * np.stack([np.zeros_like(th), -np.sin(th), np.cos(th)], axis=1)
+        Xv = _elevation_factor(model.up, at)[:, None] * np.stack([np.zeros_like(th), -np.sin(th), np.cos(th)], axis=1)
         var = var + np.einsum('ni,ij,nj->n', Xv, cov, Xv)
     return np.sqrt(np.maximum(var, 0.0))

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from ...panorama.cylinder import CylinderGeometry
 from ..parallax import ParallaxModel, depth_scale_sigma, fit_depth_scale, fit_parallax, prediction_sigma
 from .config import MatchConfig
-from .placement import Alignment, Placement, place_annotations
+from .placement import Alignment, Placement, offset_from_prediction_px, place_annotations
 from .tiles import Candidate
 
 Array = NDArray[np.float64]
@@ -123,9 +123,9 @@ class GuidedSearch:
         the placement the prediction itself (inferred) - unless the match lies within
         :attr:`MatchConfig.matched_agreement_px` of the prediction."""
         cfg, geo = self.config, self.geometry
-        cu, cv_ = (float(x) for x in geo.project(predicted))
-        if float(geo.map_distance(p.u, p.v, cu, cv_)) <= cfg.matched_agreement_px:
+        if offset_from_prediction_px(p, geo) <= cfg.matched_agreement_px:  # p.predicted is `predicted`
             return  # the match agrees with the other matches: a rival would change nothing shown
+        cu, cv_ = (float(x) for x in geo.project(predicted))
         win = self._window_ncc(p.index, cu, cv_, gate_px, v_tol)
         if win is None:
             return

@@ -3,6 +3,7 @@
 (:class:`_CandidateArrays`), and the placements without an alignment."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -68,6 +69,15 @@ class Alignment:
     #: Standard deviation (rad) of the parallax model's heading at each annotation (global
     #: index; :func:`.parallax.prediction_sigma`), with ``MatchConfig.prediction_support``.
     prediction_sigma: dict[int, float] = field(default_factory=dict)
+
+
+def offset_from_prediction_px(p: Placement, geometry: CylinderGeometry) -> float:
+    """Map distance (px) between the placement and where the alignment puts it
+    (:attr:`Placement.predicted`; inf without a prediction)."""
+    if p.predicted is None:
+        return math.inf
+    u, v = geometry.project(p.predicted)
+    return float(geometry.map_distance(p.u, p.v, u, v))
 
 
 def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],

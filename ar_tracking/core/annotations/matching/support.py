@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from ...panorama.cylinder import CylinderGeometry
 from ...rotations import trace_angle
 from .config import MatchConfig
-from .placement import Alignment, Placement
+from .placement import Alignment, Placement, offset_from_prediction_px
 
 Array = NDArray[np.float64]
 
@@ -76,10 +76,7 @@ class SupportTest:
         """Whether the matched placement ``p`` lies within :attr:`MatchConfig.matched_agreement_px`
         of where the alignment puts it (always without a limit or a prediction)."""
         limit = self.config.matched_agreement_px
-        if limit <= 0 or p.predicted is None:
-            return True
-        u, v = self.geometry.project(p.predicted)
-        return bool(float(self.geometry.map_distance(p.u, p.v, u, v)) <= limit)
+        return bool(limit <= 0 or p.predicted is None or offset_from_prediction_px(p, self.geometry) <= limit)
 
     def _depth_ratio_pins(self, al: Alignment, p: Placement) -> bool:
         """Whether the inferred placement ``p`` is pinned to within
