@@ -15,7 +15,9 @@ from numpy.typing import NDArray
 #: Patch sides (pixels) a record may have.
 PATCH_SIDES = (8, 16, 24, 32)
 EARTH_RADIUS_M = 6_371_008.8
-#: Where a panorama's orientation in the world came from.
+#: Where a panorama's orientation in the world came from. ``annotate`` writes 'estimated' or
+#: 'none'; nothing writes 'ground_truth' any more (stores authored with the simulator's truth by
+#: earlier versions stay readable, and the matcher treats them like any stored orientation).
 ORIENTATION_SOURCES = ('estimated', 'ground_truth', 'none')
 
 
@@ -74,8 +76,8 @@ class PanoramaInfo:
     (R_enu_panorama, x y z w; NaN when unknown), the covariance of that orientation's error about
     the ENU axes (x, y: tilt, z: heading; rad^2), the up direction in the panorama frame (unit,
     from gravity; NaN when unknown) and where they came from (:data:`ORIENTATION_SOURCES`:
-    ``estimated`` by the graph's cores from the session's own sensors, ``ground_truth`` for
-    evaluation only, ``none``)."""
+    ``estimated`` by the graph's cores from the session's own sensors, ``none``, or
+    ``ground_truth`` in stores of earlier versions only)."""
 
     panorama_id: str
     panorama_in_world_quat_xyzw: NDArray[np.float64] = field(default_factory=lambda: np.full(4, np.nan))

@@ -81,9 +81,9 @@ class SupportTest:
     def _depth_ratio_pins(self, al: Alignment, p: Placement) -> bool:
         """Whether the inferred placement ``p`` is pinned to within
         :attr:`MatchConfig.depth_ratio_support_rad` (1 sigma): the parallax model's term at it
-        (heading and, with ``parallax_elevation``, elevation) times the depth ratio's standard deviation (the fitted ratio's, none without
-        ``parallax_scale_sigma``, and ``depth_ratio_scatter``), with the model's own heading
-        uncertainty there (``prediction_support``)."""
+        (heading and, with ``parallax_elevation``, elevation) times the depth ratio's standard
+        deviation (the fitted ratio's, none without ``parallax_scale_sigma``, and
+        ``depth_ratio_scatter``), with the model's own uncertainty there (``prediction_support``)."""
         limit = self.config.depth_ratio_support_rad
         if limit <= 0 or al.parallax is None or al.R_target_source is None:
             return True
