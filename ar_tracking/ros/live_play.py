@@ -257,7 +257,9 @@ def stop_node_processes(nodes: list[Any], executor: Any, recorder: Recorder,
     still queued for it, reports its counts and exits) once every node it subscribes to has
     reported, so that a backlog an upstream node is still working off reaches its
     downstream nodes (a node in a cycle, or left when the time is up, is stopped with the
-    rest). What they publish meanwhile is recorded until the recorder is quiet."""
+    rest). With the request a node gets the number of messages published on each of its inputs
+    (the feeder's and the reported nodes'), so that it also waits for those still in transit
+    between processes. What they publish meanwhile is recorded until the recorder is quiet."""
     handles = _handles(nodes)
     deadline = time.monotonic() + drain_max_s
     # upstream[i]: the node processes whose outputs node i subscribes to
@@ -266,11 +268,16 @@ def stop_node_processes(nodes: list[Any], executor: Any, recorder: Recorder,
     remaining = set(range(len(handles)))
     while remaining:
         ready = {i for i in remaining if not upstream[i] & remaining}
-        if not ready or time.monotonic() >= deadline:
+        counted = bool(ready) and time.monotonic() < deadline  # every upstream node has reported
+        if not counted:
             ready = set(remaining)
         layer = [handles[i] for i in sorted(ready)]
-        for h in layer:
-            h.request_stop()
+        published: dict[str, int] = defaultdict(int)  # by the feeder and the nodes that reported
+        for n in nodes:
+            for topic, count in getattr(n, 'publish_counts', {}).items():
+                published[topic] += count
+        for h in layer:  # with the counts it waits for what is still in transit to it
+            h.request_stop({t: published[t] for t in h.subscription_topics if t in published} if counted else None)
         while time.monotonic() < deadline and not all(h.reported() or not h.process.is_alive() for h in layer):
             executor.spin_once(timeout_sec=0.02)
         remaining -= ready

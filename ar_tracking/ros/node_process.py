@@ -12,7 +12,8 @@ player (feeder) and the recorder in its own process and talks to each node proce
    to discovery) and reports ready;
 3. after the playback and the drain, the runner asks for the child's counts (callbacks per
    input topic with their durations, messages published per topic) - the live report's
-   figures - and the child shuts down cleanly.
+   figures - and the child shuts down cleanly. With the request come the numbers of messages
+   published on its inputs, so that it waits for those still in transit.
 
 :class:`NodeProcess` is the runner-side handle; it has the attributes the live report reads
 from in-process nodes (``callback_stats``, ``publish_counts``, ``get_name``), filled at the end.
@@ -28,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .graph_plan import load_node_class
+from .run_state import DRAIN_QUIET_S
 from ..errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
@@ -83,12 +85,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         conn.send(('ready', None))
         while not stop.is_set():
             executor.spin_once(timeout_sec=0.05)
-        # The runner stops us once its recorder is quiet; inputs still queued here are taken
-        # first (until nothing moves for 0.2 s), as the in-process drain would.
-        done = -1
-        while done != (done := sum(len(s.durations_ms) for s in node.callback_stats.values())):
-            for _ in range(4):
-                executor.spin_once(timeout_sec=0.05)
+        _take_the_rest(node, executor, conn.recv()[1] if conn.poll() else {})
         conn.send(('counts', {t: list(s.durations_ms) for t, s in node.callback_stats.items()},
                    dict(node.publish_counts)))
     except BaseException as exc:  # reported to the runner, which ends the run with the node's name
@@ -104,6 +101,27 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
                 close()
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def _take_the_rest(node: Any, executor: Any, expected: dict[str, int]) -> None:
+    """Once asked to stop: take the inputs still queued or in flight, as the in-process drain
+    would. ``expected`` (fully qualified topic -> messages its publishers sent, from the runner;
+    empty when unknown): done as soon as every input has had that many callbacks; while one is
+    short, until nothing moved for ``DRAIN_QUIET_S`` (a message still in transit between
+    processes, or a node that dropped some); without counts, until nothing moved for 0.2 s."""
+    quiet_s = 0.2
+    done, quiet_since = -1, time.monotonic()
+    while True:
+        counts = {'/' + t.lstrip('/'): len(st.durations_ms) for t, st in node.callback_stats.items()}
+        if sum(counts.values()) != done:
+            done, quiet_since = sum(counts.values()), time.monotonic()
+        if expected:
+            if all(counts.get(t, 0) >= n for t, n in expected.items()):
+                return
+            quiet_s = DRAIN_QUIET_S
+        if time.monotonic() - quiet_since > quiet_s:
+            return
+        executor.spin_once(timeout_sec=0.05)
 
 
 class NodeProcess:
@@ -201,8 +219,14 @@ class NodeProcess:
         self.publish_counts = dict(published)
         self._counted = True
 
-    def request_stop(self) -> None:
-        """Tell the child to take what is queued, report and exit (returns at once)."""
+    def request_stop(self, expected: dict[str, int] | None = None) -> None:
+        """Tell the child to take what is queued, report and exit (returns at once);
+        ``expected``: how many messages were published on each of its input topics."""
+        if expected is not None:
+            try:
+                self._conn.send(('expected', dict(expected)))
+            except OSError:  # the child is gone: stop() reports how
+                pass
         self._stop.set()
 
     def stop(self) -> None:
