@@ -23,10 +23,11 @@ seen since the panorama started:
   estimated in the same least squares (linear in r). The accelerometer
   bias b_a is estimated with a ridge prior (only its horizontal part is observable, and only as
   the phone turns). O(1) per sample: the normal equations are sums, kept per window.
-* **magnetic field**: ``m_imu(t) = R_imu_P(t) f_P + h + e(t)``: the local field is a constant
-  vector in the panorama frame and h is the residual hard iron left by the calibration; with
-  the panorama's rotations the two separate (a moving-body magnetometer calibration, linear in
-  (f_P, h)). Disturbances that turn the field while keeping its strength and dip - invisible to
+* **magnetic field**: ``m_imu(t) = (I + E) R_imu_P(t) f_P + h + e(t)``: the local field is a
+  constant vector in the panorama frame, h is the residual hard iron and E the residual soft
+  iron left by the calibration (:mod:`.soft_iron`); with the panorama's rotations they
+  separate (a moving-body magnetometer calibration, linear in (f_P, h) and in E about the last
+  f_P). Disturbances that turn the field while keeping its strength and dip - invisible to
   a per-sample check - are outliers here: the estimate is an IRLS with a Cauchy loss on the
   field each short window of samples implies (strength and dip about their medians, heading
   about the densest cluster of window headings, kept from one solve to the next unless another
@@ -40,7 +41,7 @@ f x up, north = up x east), with the declination. Its covariance: tilt from the 
 term (``hand_velocity_m_s`` / (g T)), heading from the scatter of the window headings with an
 effective count (one per ``correlation_s``) and the tilt's leak through the dip, plus floors for
 what the model leaves out
-(soft-iron residuals, the camera-IMU time offset).
+(the soft iron a sweep cannot observe, the camera-IMU time offset).
 Field vectors are used in units of their median norm, so any magnetometer unit works.
 """
 from __future__ import annotations
@@ -51,6 +52,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 from .rotations import cross3, rot_z
+from .soft_iron import soft_iron_normal_equations, symmetric_from_params
 from .window_statistics import WindowSums, cauchy_about_median, shorth
 
 Array = NDArray[np.float64]
@@ -66,6 +68,10 @@ class WorldAlignmentConfig:
     accel_bias_sigma_m_s2: float = 0.01
     #: Prior 1-sigma of the residual hard iron, relative to |B|.
     hard_iron_sigma: float = 0.2
+    #: Prior 1-sigma of the residual soft iron (the entries of the symmetric E in
+    #: m = (I + E) R_imu_P f_P + h), relative like ``hard_iron_sigma``: both ridges weigh
+    #: against ``field_model_sigma`` per sample. 0 leaves E out of the model.
+    soft_iron_sigma: float = 0.1
     #: Length of the gravity weights' ramps at both ends of the session, s (a taper kills the
     #: velocity term of the mean at its ends).
     gravity_ramp_s: float = 3.0
@@ -88,7 +94,7 @@ class WorldAlignmentConfig:
     cauchy_scale: float = 2.5
     #: Floor of the robust residual sigma, relative to |B| (a perfect sensor is not trusted more).
     min_field_sigma: float = 0.005
-    #: Per-sample error of the field model (soft-iron residuals, small disturbances), relative
+    #: Per-sample error of the field model (unmodelled iron, small disturbances), relative
     #: to |B|: weighs the hard-iron prior, so that h moves only where the rotations tell it apart
     #: from a field turned in the world.
     field_model_sigma: float = 0.02
@@ -136,6 +142,8 @@ class WorldAlignmentEstimate:
     #: Residual hard iron (imu frame, relative to |B|) and accelerometer bias (m/s^2).
     hard_iron: Array
     accel_bias: Array
+    #: Residual soft iron E (imu frame, m = (I + E) R f + h; zeros when not modelled).
+    soft_iron: Array
 
 
 class WorldAlignment:
@@ -177,6 +185,7 @@ class WorldAlignment:
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
         self._prior = prior
         self._h_last: Array | None = None
+        self._soft_iron = np.zeros((3, 3))
         self._ambiguity_var = 0.0
         self._heading_mode: float | None = None
         self._field_enu_ref: Array | None = None if prior is None else getattr(self, '_field_enu_ref', None)
@@ -338,7 +347,7 @@ class WorldAlignment:
         return g, b
 
     def _solve_field(self) -> tuple[Array, Array, float, float]:
-        """Robust fit of m = R_imu_P f_P + h (ridge on h), over windows of ``window_s``.
+        """Robust fit of m = (I + E) R_imu_P f_P + h (ridges on h and E), over windows of ``window_s``.
 
         A disturbance lasts seconds and turns the field for all of its samples at once, so the
         samples are grouped in short windows (``window_s``): each window gives the heading
@@ -347,7 +356,8 @@ class WorldAlignment:
         that departs gets a Cauchy weight for all its samples (this survives up to half of the
         windows disturbed; a per-sample loss started from least squares does not, once a long
         disturbance has pulled the fit). f_P and h are
-        then refitted by weighted least squares. The normal equations are sums, so only the
+        then refitted by weighted least squares (E linearised about the previous f_P, see
+        :mod:`.soft_iron`). The normal equations are sums, so only the
         windows' sums are kept. Returns f_P, h (relative to |B|), the residual sigma of the
         window headings (rad) and the share of windows weighted below one half."""
         c = self.config
@@ -373,29 +383,44 @@ class WorldAlignment:
         h_held = self._h_last if self._h_last is not None else np.zeros(3)
         if n_win >= 3:
             f_held = (Rtm_w.sum(axis=0) - np.einsum('nji,j->i', S_w, h_held)) / n_w.sum()
-            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up)
+            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up, None)
         lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
+        soft = c.soft_iron_sigma > 0 and n_win >= 3
+        lam_e = (c.field_model_sigma / c.soft_iron_sigma) ** 2 if soft else 0.0
+        f_lin: Array | None = self._field[0] if self._field is not None else None
+        E = np.zeros((3, 3))
         for _ in range(max(1, c.irls_iterations)):
             wn = w_win * n_w
             sw = float(wn.sum())
             WS = np.einsum('n,nij->ij', w_win, S_w)  # sum w R_imu_P
-            A = np.zeros((6, 6))
+            dim = 6 if f_lin is None or not soft else 12
+            A = np.zeros((dim, dim))
             A[:3, :3] = np.eye(3) * sw
-            A[:3, 3:] = WS.T
-            A[3:, :3] = WS
-            A[3:, 3:] = np.eye(3) * sw * (1.0 + lam)
-            rhs = np.concatenate([w_win @ Rtm_w, w_win @ m_w])
+            A[:3, 3:6] = WS.T
+            A[3:6, :3] = WS
+            A[3:6, 3:6] = np.eye(3) * sw * (1.0 + lam)
+            rhs = np.zeros(dim)
+            rhs[:3], rhs[3:6] = w_win @ Rtm_w, w_win @ m_w
+            if f_lin is not None and dim == 12:
+                A_fe, A_he, A_ee, rhs_e = soft_iron_normal_equations(w_win, n_w, S_w, m_w, f_lin, sw * lam_e)
+                A[:3, 6:], A[3:6, 6:], A[6:, 6:] = A_fe, A_he, A_ee
+                A[6:, :3], A[6:, 3:6] = A_fe.T, A_he.T
+                rhs[6:] = rhs_e
             if prior is not None:
                 wp = self._prior_weight(self._prior[1], c.field_model_sigma, 1.0)  # type: ignore[index]
                 A[:3, :3] += np.eye(3) * wp
                 rhs[:3] += wp * prior
-            x = np.linalg.solve(A, rhs)
-            f, h = x[:3], x[3:]
+            x = np.asarray(np.linalg.solve(A, rhs), dtype=np.float64)
+            f, h = x[:3], x[3:6]
+            if dim == 12:
+                E = symmetric_from_params(x[6:])
+            f_lin = f
             if n_win < 3:
                 break
-            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f, h, up)
+            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f, h, up, E)
             outliers = float(np.mean(w_win < 0.5))
         self._h_last = h
+        self._soft_iron = E
         if n_win >= 3:
             e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
             if float(e1 @ e1) < 1e-6:
@@ -405,11 +430,15 @@ class WorldAlignment:
         return f, h, spread, outliers
 
     def _window_weights(self, n_w: Array, S_w: Array, Rtm_w: Array, f: Array, h: Array,
-                        up: Array) -> tuple[Array, float]:
+                        up: Array, E: Array | None) -> tuple[Array, float]:
         """Cauchy weights of the windows (heading, strength and dip of the field each implies
-        in the panorama frame, about their medians) and the heading spread (rad)."""
+        in the panorama frame, about their medians) and the heading spread (rad). ``E``: the
+        residual soft iron of the fit being judged (None: not modelled)."""
         c = self.config
         mean_f = (Rtm_w - np.einsum('nji,j->ni', S_w, h)) / n_w[:, None]  # mean R_P_imu (m - h)
+        if E is not None:
+            S_mean = S_w / n_w[:, None, None]
+            mean_f -= np.einsum('nji,jk,nkl,l->ni', S_mean, E, S_mean, f)
         # Headings about up in a basis fixed in the panorama frame, relative to f's.
         e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
         if float(e1 @ e1) < 1e-6:
@@ -535,6 +564,6 @@ class WorldAlignment:
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),
             field_outlier_share=outliers,
-            hard_iron=h, accel_bias=b_a)
+            hard_iron=h, accel_bias=b_a, soft_iron=self._soft_iron)
         self._dirty = False
         return self._estimate

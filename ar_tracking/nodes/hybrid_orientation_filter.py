@@ -91,6 +91,10 @@ PARAMS = (
     ParamSpec('hard_iron_sigma', _ALIGN.hard_iron_sigma,
               'Prior 1-sigma of the residual hard iron, relative to the field strength',
               min_value=1e-6, max_value=10.0),
+    ParamSpec('soft_iron_sigma', _ALIGN.soft_iron_sigma,
+              'Prior 1-sigma of the residual soft iron the calibration left (entries of a symmetric '
+              'correction, relative like hard_iron_sigma); 0 leaves it out of the model',
+              min_value=0.0, max_value=1.0),
     ParamSpec('window_s', _ALIGN.window_s,
               'Window of the robust field fit, s (a disturbance is judged window by window)',
               min_value=0.01, max_value=60.0),
@@ -197,6 +201,7 @@ class HybridOrientationFilterNode(TrackingNode):
         config = WorldAlignmentConfig(
             accel_bias_sigma_m_s2=v['accel_bias_sigma_m_s2'],
             hard_iron_sigma=v['hard_iron_sigma'],
+            soft_iron_sigma=v['soft_iron_sigma'],
             window_s=v['window_s'],
             solve_period_s=v['solve_period_s'],
             solve_period_share=v['solve_period_share'],

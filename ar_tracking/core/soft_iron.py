@@ -1,0 +1,55 @@
+"""The residual soft iron of a magnetometer, estimated from known rotations.
+
+A calibration leaves part of the soft iron behind: the field is measured as
+``m = (I + E) R_imu_P f_P + h`` with E symmetric and a few percent (the simulator's rough
+calibration leaves 20-50 % of a 1-4 % distortion; phones after a figure-eight are similar).
+Unlike hard iron, E turns the field by an amount that depends on the phone's heading: two
+sides of a panorama sweep see different field directions and the panorama's place in the
+world averages them. With the panorama's rotations known, E is linear in its six entries at a
+given f_P (``E v = J(v) e``), so :mod:`.world_alignment` adds it to its least squares about
+the previous solve's f_P (one Gauss-Newton step per IRLS iteration). Over one horizontal
+sweep only part of E is observable (the column along the phone's vertical axis looks like
+hard iron); the ridge keeps the rest near zero.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+def soft_iron_jacobian(v: Array) -> Array:
+    """d(E v)/de for each row of v (n, 3), with E = [[e0, e3, e4], [e3, e1, e5], [e4, e5, e2]]:
+    shape (n, 3, 6)."""
+    J = np.zeros((len(v), 3, 6))
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    J[:, 0, 0], J[:, 0, 3], J[:, 0, 4] = x, y, z
+    J[:, 1, 1], J[:, 1, 3], J[:, 1, 5] = y, x, z
+    J[:, 2, 2], J[:, 2, 4], J[:, 2, 5] = z, x, y
+    return J
+
+
+def symmetric_from_params(e: Array) -> Array:
+    """The symmetric 3x3 matrix of the six entries ordered as in :func:`soft_iron_jacobian`."""
+    return np.array([[e[0], e[3], e[4]], [e[3], e[1], e[5]], [e[4], e[5], e[2]]], dtype=float)
+
+
+def soft_iron_normal_equations(w_win: Array, n_w: Array, S_w: Array, m_w: Array, f_lin: Array,
+                               ridge: float) -> tuple[Array, Array, Array, Array]:
+    """The soft-iron blocks of the normal equations of the windowed field fit.
+
+    Per window: ``w`` its robust weight, ``n`` its sample count, ``S`` the sum of R_imu_P over
+    its samples and ``m`` the sum of its field samples. The model term of a sample is
+    ``J(R_imu_P f_lin) e``; within a window (0.5 s) the rotation changes little, so J is taken
+    at the window's mean ``S f_lin / n`` (exact for the terms linear in R). Returns the blocks
+    against f_P (3x6), against h (3x6), the 6x6 block (``ridge`` on its diagonal) and the
+    right-hand side (6)."""
+    v = np.einsum('nij,j->ni', S_w, f_lin) / n_w[:, None]
+    J = soft_iron_jacobian(v)
+    wn = w_win * n_w
+    A_fe = np.einsum('n,nji,njk->ik', w_win, S_w, J)
+    A_he = np.einsum('n,nik->ik', wn, J)
+    A_ee = np.einsum('n,nji,njk->ik', wn, J, J) + np.eye(6) * ridge
+    rhs = np.einsum('n,nji,nj->i', w_win, J, m_w)
+    return A_fe, A_he, A_ee, rhs
