@@ -2,7 +2,8 @@
 
 A params file maps node names (or ``/**`` for every node) to ``ros__parameters``. Values are
 turned into rclpy ``Parameter`` overrides for in-process nodes; numbers written as integers
-where a node declares floats are accepted (TrackingNode coerces them).
+where a node declares floats are accepted (TrackingNode coerces them), in a list too, alone or
+mixed with floats.
 """
 from __future__ import annotations
 
@@ -86,8 +87,17 @@ def params_for_node(node_name: str, files: list[str | Path], use_packaged: bool 
     return merged
 
 
+def _uniform(value: Any) -> Any:
+    """A list that mixes integers and floats (``[1.0, 0, 0]``, as people write a matrix) as floats:
+    rclpy takes a list of one type only and would refuse the node's start."""
+    if isinstance(value, list) and any(isinstance(v, float) for v in value) \
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        return [float(v) for v in value]
+    return value
+
+
 def to_overrides(params: dict[str, Any]) -> list[Any]:
     """rclpy Parameter objects for ``parameter_overrides``."""
     from rclpy.parameter import Parameter
 
-    return [Parameter(name, value=value) for name, value in params.items()]
+    return [Parameter(name, value=_uniform(value)) for name, value in params.items()]
