@@ -37,11 +37,10 @@ seen since the panorama started:
   sums are kept (O(1) per sample, O(windows) per solve).
 
 R_PN follows from g_P and f_P by the gravity-first construction of eq. 3-4 (up = g, east =
-f x up, north = up x east), with the declination. Its covariance: tilt from the hand's velocity
-term (``hand_velocity_m_s`` / (g T)), heading from the scatter of the window headings with an
-effective count (one per ``correlation_s``) and the tilt's leak through the dip, plus floors for
-what the model leaves out
-(the soft iron a sweep cannot observe, the camera-IMU time offset).
+f x up, north = up x east), with the declination. Its covariance (:mod:`.alignment_covariance`):
+tilt from the hand's velocity term, heading from the windows' scatter and the hard iron's
+bias through the field solve and the tilt's leak through the dip, plus floors for what the
+model leaves out (the soft iron a sweep cannot observe, the camera-IMU time offset).
 Field vectors are used in units of their median norm, so any magnetometer unit works.
 """
 from __future__ import annotations
@@ -51,6 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from .alignment_covariance import field_heading_mse, hand_tilt_variance
 from .rotations import cross3, rot_z
 from .soft_iron import soft_iron_normal_equations, symmetric_from_params
 from .window_statistics import WindowSums, cauchy_about_median, shorth
@@ -98,11 +98,17 @@ class WorldAlignmentConfig:
     #: to |B|: weighs the hard-iron prior, so that h moves only where the rotations tell it apart
     #: from a field turned in the world.
     field_model_sigma: float = 0.02
-    #: Correlation time of the residuals (hand motion, disturbances), s: sets the effective
-    #: sample count of the covariance.
+    #: Correlation time of the residuals (hand motion, disturbances), s: sets how many samples
+    #: a prior carried into a new panorama is worth.
     correlation_s: float = 0.25
     #: Typical speed of the phone in the hand (the velocity term of the gravity mean), m/s.
     hand_velocity_m_s: float = 0.3
+    #: Typical period of the hand's sway, s: a weight ramp of L seconds averages the hand's
+    #: velocity down by about ``hand_period_s / (pi L)`` (tilt covariance).
+    hand_period_s: float = 1.25
+    #: 1-sigma of the residual hard iron a calibration leaves, relative to |B| (heading
+    #: covariance: before the phone has turned, it is all that bounds the field's direction).
+    hard_iron_prior_sigma: float = 0.025
     #: Another cluster of window headings takes over from the one the last solve chose only
     #: when its episode cost (below) is lower by this many nats (hysteresis).
     mode_switch_nats: float = 1.0
@@ -176,6 +182,8 @@ class WorldAlignment:
         self._lever_count = 0
         self._gravity: tuple[Array, Array] | None = None
         self._gravity_windows = -1
+        self._ramp_s = self.config.window_s
+        self._fh_normal: tuple[float, Array, float] | None = None
         # Field: the normal equations of m = R_imu_P f + h are sums, so each window keeps its
         # own sums (count, sum R_imu_P, sum R_P_imu m, sum m, sum |m|) and the robust solve
         # works on windows only.
@@ -298,6 +306,7 @@ class WorldAlignment:
         S_w, Rta_w, a_w = sums['S'], sums['Rta'], sums['a']
         k = len(n_w)
         ramp = max(1.0, min(k / 2.0, c.gravity_ramp_s / c.window_s))
+        self._ramp_s = ramp * c.window_s
         idx = np.arange(k) + 0.5
         w = np.minimum(1.0, np.minimum(idx, k - idx) / ramp)
         n = float(w @ n_w)
@@ -393,6 +402,7 @@ class WorldAlignment:
             wn = w_win * n_w
             sw = float(wn.sum())
             WS = np.einsum('n,nij->ij', w_win, S_w)  # sum w R_imu_P
+            normal = (sw, WS, float(w_win.sum()))
             dim = 6 if f_lin is None or not soft else 12
             A = np.zeros((dim, dim))
             A[:3, :3] = np.eye(3) * sw
@@ -421,6 +431,9 @@ class WorldAlignment:
             outliers = float(np.mean(w_win < 0.5))
         self._h_last = h
         self._soft_iron = E
+        # The data part of the (f, h) normal equations of the last solve (sample weights) and
+        # the weighted number of windows, for the covariance (estimate()).
+        self._fh_normal = normal
         if n_win >= 3:
             e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
             if float(e1 @ e1) < 1e-6:
@@ -548,18 +561,19 @@ class WorldAlignment:
         R_pano_magenu = np.column_stack([east, north, up])
         R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
         self._field_enu_ref = R_pano_enu.T @ f_P
-        # Covariance: scatter / effective sample count (the session's span in correlation
-        # times), plus floors.
-        span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
-        n_eff = max(1.0, span_s / c.correlation_s)
+        # Covariance (alignment_covariance): the hand's motion in the tilt; the windows' scatter
+        # and the hard iron's bias through the field solve in the heading; plus floors.
+        span_s = (self._t_last_ns - (self._t_first_ns or self._t_last_ns)) * 1e-9
         g = float(np.linalg.norm(g_P))
-        # The hand's acceleration enters the mean as (v(T) - v(0)) / T: a tilt error that falls
-        # as 1/T, not as 1/sqrt(T) like white noise.
-        tilt_var = (c.hand_velocity_m_s / (g * max(span_s, 0.5))) ** 2 + c.tilt_floor_rad ** 2
-        # f_sigma is the scatter of the window headings (rad): the mean of the kept windows.
+        tilt_var = hand_tilt_variance(c.hand_velocity_m_s, c.hand_period_s, self._ramp_s, span_s, g) \
+            + c.tilt_floor_rad ** 2
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
         tan_dip = abs(float(f_P @ up)) / f_h
-        heading_var = (f_sigma ** 2 / max(1.0, n_eff * (1.0 - outliers)) + c.heading_floor_rad ** 2
+        assert self._fh_normal is not None  # set by every field solve
+        sw, WS, n_windows = self._fh_normal
+        field_var = field_heading_mse(sw, WS, n_windows, f_sigma, east, f_h,
+                                      sw * (c.field_model_sigma / c.hard_iron_sigma) ** 2, c.hard_iron_prior_sigma)
+        heading_var = (field_var + c.heading_floor_rad ** 2
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),

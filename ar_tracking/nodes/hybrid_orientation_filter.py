@@ -106,9 +106,15 @@ PARAMS = (
     ParamSpec('hand_velocity_m_s', _ALIGN.hand_velocity_m_s,
               'Typical speed of the phone in the hand, m/s (tilt covariance: the velocity term of the gravity mean)',
               min_value=0.0, max_value=10.0),
+    ParamSpec('hand_period_s', _ALIGN.hand_period_s,
+              'Typical period of the hand\'s sway, s (tilt covariance: how much the gravity ramps average the '
+              'hand\'s velocity down)', min_value=0.01, max_value=60.0),
+    ParamSpec('hard_iron_prior_sigma', _ALIGN.hard_iron_prior_sigma,
+              '1-sigma of the residual hard iron the calibration leaves, relative to the field strength '
+              '(heading covariance before the phone has turned)', min_value=1e-6, max_value=10.0),
     ParamSpec('correlation_s', _ALIGN.correlation_s,
-              'Correlation time of field disturbances and hand motion, s (effective sample count of the heading '
-              'covariance)', min_value=0.05, max_value=60.0),
+              'Correlation time of field disturbances and hand motion, s (how many samples a prior carried '
+              'into a new panorama is worth)', min_value=0.05, max_value=60.0),
     ParamSpec('lever_arm_sigma_m', _ALIGN.lever_arm_sigma_m,
               'Prior 1-sigma of the lever arm (the IMU from the centre the user turns about), m; 0: no lever-arm '
               'model', min_value=0.0, max_value=10.0),
@@ -207,6 +213,8 @@ class HybridOrientationFilterNode(TrackingNode):
             solve_period_share=v['solve_period_share'],
             hand_velocity_m_s=v['hand_velocity_m_s'],
             correlation_s=v['correlation_s'],
+            hand_period_s=v['hand_period_s'],
+            hard_iron_prior_sigma=v['hard_iron_prior_sigma'],
             lever_arm_sigma_m=v['lever_arm_sigma_m'],
             cauchy_scale=v['cauchy_scale'],
             tilt_floor_rad=v['tilt_floor_rad'],
