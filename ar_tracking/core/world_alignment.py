@@ -40,7 +40,7 @@ R_PN follows from g_P and f_P by the gravity-first construction of eq. 3-4 (up =
 f x up, north = up x east), with the declination. Its covariance (:mod:`.alignment_covariance`):
 tilt from the hand's velocity term, heading from the windows' scatter and the hard iron's
 bias through the field solve and the tilt's leak through the dip, plus floors for what the
-model leaves out (the soft iron a sweep cannot observe, the camera-IMU time offset).
+model leaves out (the camera-IMU time offset, iron that varies with temperature).
 Field vectors are used in units of their median norm, so any magnetometer unit works.
 """
 from __future__ import annotations
@@ -50,7 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from .alignment_covariance import field_heading_mse, hand_tilt_variance
+from .alignment_covariance import FieldErrorParts, field_error_parts, field_heading_mse, hand_tilt_variance
 from .rotations import cross3, rot_z
 from .soft_iron import soft_iron_normal_equations, symmetric_from_params
 from .window_statistics import WindowSums, cauchy_about_median, shorth
@@ -66,11 +66,13 @@ class WorldAlignmentConfig:
     #: horizontal part of a bias averages out as the phone turns anyway, and a loose bias
     #: absorbs accelerometer scale errors (which rotate with the phone) and tilts g_P.
     accel_bias_sigma_m_s2: float = 0.01
-    #: Prior 1-sigma of the residual hard iron, relative to |B|.
+    #: Width of the field fit's ridge on the residual hard iron, relative to |B| (weighed against
+    #: ``field_model_sigma`` per sample): deliberately looser than the residual a calibration
+    #: leaves (``hard_iron_prior_sigma``), so that h follows the rotations once they tell it apart.
     hard_iron_sigma: float = 0.2
-    #: Prior 1-sigma of the residual soft iron (the entries of the symmetric E in
-    #: m = (I + E) R_imu_P f_P + h), relative like ``hard_iron_sigma``: both ridges weigh
-    #: against ``field_model_sigma`` per sample. 0 leaves E out of the model.
+    #: Width of the field fit's ridge on the residual soft iron (the entries of the symmetric E
+    #: in m = (I + E) R_imu_P f_P + h), relative like ``hard_iron_sigma``. 0 leaves E out of the
+    #: model.
     soft_iron_sigma: float = 0.1
     #: Length of the gravity weights' ramps at both ends of the session, s (a taper kills the
     #: velocity term of the mean at its ends).
@@ -109,6 +111,9 @@ class WorldAlignmentConfig:
     #: 1-sigma of the residual hard iron a calibration leaves, relative to |B| (heading
     #: covariance: before the phone has turned, it is all that bounds the field's direction).
     hard_iron_prior_sigma: float = 0.025
+    #: 1-sigma of the residual soft iron's entries a calibration leaves (heading covariance:
+    #: what the soft-iron ridge holds back over a partial turn).
+    soft_iron_prior_sigma: float = 0.01
     #: Another cluster of window headings takes over from the one the last solve chose only
     #: when its episode cost (below) is lower by this many nats (hysteresis).
     mode_switch_nats: float = 1.0
@@ -183,8 +188,8 @@ class WorldAlignment:
         self._gravity: tuple[Array, Array] | None = None
         self._gravity_windows = -1
         self._ramp_s = self.config.window_s
-        self._fh_normal: tuple[float, Array, float] | None = None
-        # Field: the normal equations of m = R_imu_P f + h are sums, so each window keeps its
+        self._field_error: FieldErrorParts | None = None
+        # Field: the normal equations of m = (I + E) R_imu_P f + h are sums, so each window keeps its
         # own sums (count, sum R_imu_P, sum R_P_imu m, sum m, sum |m|) and the robust solve
         # works on windows only.
         self._fw = WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rtm': (3,), 'm': (3,), 'norm': ()})
@@ -235,7 +240,7 @@ class WorldAlignment:
         fw.sums['m'][k] += mag
         fw.sums['norm'][k] += math.sqrt(float(mag @ mag))
         self._field_samples += 1
-        span_ns = t_ns - (self._t_first_ns or t_ns)
+        span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
         period_ns = min(int(self.config.solve_period_s * 1e9), max(100_000_000, int(self.config.solve_period_share * span_ns)))
         if self._solve_t_ns is None or t_ns - self._solve_t_ns >= period_ns \
                 or self._field_samples < 8:
@@ -391,35 +396,43 @@ class WorldAlignment:
         # every window agrees with the wrong fit.
         h_held = self._h_last if self._h_last is not None else np.zeros(3)
         if n_win >= 3:
+            # (Only h: holding the previous soft iron too made fresh seeds 341-370 slightly
+            # worse - median +0.01 deg, one seed +0.28.)
             f_held = (Rtm_w.sum(axis=0) - np.einsum('nji,j->i', S_w, h_held)) / n_w.sum()
             w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up, None)
         lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         soft = c.soft_iron_sigma > 0 and n_win >= 3
         lam_e = (c.field_model_sigma / c.soft_iron_sigma) ** 2 if soft else 0.0
         f_lin: Array | None = self._field[0] if self._field is not None else None
-        E = np.zeros((3, 3))
+        E: Array | None = None
         for _ in range(max(1, c.irls_iterations)):
             wn = w_win * n_w
             sw = float(wn.sum())
             WS = np.einsum('n,nij->ij', w_win, S_w)  # sum w R_imu_P
-            normal = (sw, WS, float(w_win.sum()))
             dim = 6 if f_lin is None or not soft else 12
             A = np.zeros((dim, dim))
             A[:3, :3] = np.eye(3) * sw
             A[:3, 3:6] = WS.T
             A[3:6, :3] = WS
-            A[3:6, 3:6] = np.eye(3) * sw * (1.0 + lam)
+            A[3:6, 3:6] = np.eye(3) * sw
             rhs = np.zeros(dim)
             rhs[:3], rhs[3:6] = w_win @ Rtm_w, w_win @ m_w
-            if f_lin is not None and dim == 12:
-                A_fe, A_he, A_ee, rhs_e = soft_iron_normal_equations(w_win, n_w, S_w, m_w, f_lin, sw * lam_e)
+            if dim == 12:
+                assert f_lin is not None  # dim 12 only with a previous f
+                A_fe, A_he, A_ee, rhs_e = soft_iron_normal_equations(w_win, n_w, S_w, m_w, f_lin, 0.0)
                 A[:3, 6:], A[3:6, 6:], A[6:, 6:] = A_fe, A_he, A_ee
                 A[6:, :3], A[6:, 3:6] = A_fe.T, A_he.T
                 rhs[6:] = rhs_e
+            A_data = A.copy()  # what the samples give; the ridges and the prior follow
+            A[3:6, 3:6] += np.eye(3) * sw * lam
+            if dim == 12:
+                A[6:, 6:] += np.eye(6) * sw * lam_e
+            wp = 0.0
             if prior is not None:
                 wp = self._prior_weight(self._prior[1], c.field_model_sigma, 1.0)  # type: ignore[index]
                 A[:3, :3] += np.eye(3) * wp
                 rhs[:3] += wp * prior
+            error_parts = (A, A_data, sw * lam, sw * lam_e, wp, sw / max(float(w_win.sum()), 1e-12))
             x = np.asarray(np.linalg.solve(A, rhs), dtype=np.float64)
             f, h = x[:3], x[3:6]
             if dim == 12:
@@ -430,10 +443,8 @@ class WorldAlignment:
             w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f, h, up, E)
             outliers = float(np.mean(w_win < 0.5))
         self._h_last = h
-        self._soft_iron = E
-        # The data part of the (f, h) normal equations of the last solve (sample weights) and
-        # the weighted number of windows, for the covariance (estimate()).
-        self._fh_normal = normal
+        self._soft_iron = np.zeros((3, 3)) if E is None else E
+        self._field_error = field_error_parts(*error_parts)  # once per solve, for estimate()
         if n_win >= 3:
             e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
             if float(e1 @ e1) < 1e-6:
@@ -563,16 +574,16 @@ class WorldAlignment:
         self._field_enu_ref = R_pano_enu.T @ f_P
         # Covariance (alignment_covariance): the hand's motion in the tilt; the windows' scatter
         # and the hard iron's bias through the field solve in the heading; plus floors.
-        span_s = (self._t_last_ns - (self._t_first_ns or self._t_last_ns)) * 1e-9
+        span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
         g = float(np.linalg.norm(g_P))
         tilt_var = hand_tilt_variance(c.hand_velocity_m_s, c.hand_period_s, self._ramp_s, span_s, g) \
             + c.tilt_floor_rad ** 2
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
         tan_dip = abs(float(f_P @ up)) / f_h
-        assert self._fh_normal is not None  # set by every field solve
-        sw, WS, n_windows = self._fh_normal
-        field_var = field_heading_mse(sw, WS, n_windows, f_sigma, east, f_h,
-                                      sw * (c.field_model_sigma / c.hard_iron_sigma) ** 2, c.hard_iron_prior_sigma)
+        assert self._field_error is not None  # set by every field solve
+        prior_sigma = self._prior[1] if self._prior is not None else 0.0
+        field_var = field_heading_mse(self._field_error, f_sigma, east, f_h, c.hard_iron_prior_sigma,
+                                      c.soft_iron_prior_sigma, prior_sigma)
         heading_var = (field_var + c.heading_floor_rad ** 2
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
         self._estimate = WorldAlignmentEstimate(

@@ -89,10 +89,11 @@ PARAMS = (
               'Prior 1-sigma of the accelerometer bias left by the calibration, m/s^2 (tight: a loose bias absorbs '
               'scale errors)', min_value=1e-6, max_value=10.0),
     ParamSpec('hard_iron_sigma', _ALIGN.hard_iron_sigma,
-              'Prior 1-sigma of the residual hard iron, relative to the field strength',
+              'Width of the field fit\'s ridge on the residual hard iron, relative to the field strength '
+              '(looser than hard_iron_prior_sigma, so that the rotations move it)',
               min_value=1e-6, max_value=10.0),
     ParamSpec('soft_iron_sigma', _ALIGN.soft_iron_sigma,
-              'Prior 1-sigma of the residual soft iron the calibration left (entries of a symmetric '
+              'Width of the field fit\'s ridge on the residual soft iron (entries of a symmetric '
               'correction, relative like hard_iron_sigma); 0 leaves it out of the model',
               min_value=0.0, max_value=1.0),
     ParamSpec('window_s', _ALIGN.window_s,
@@ -112,6 +113,9 @@ PARAMS = (
     ParamSpec('hard_iron_prior_sigma', _ALIGN.hard_iron_prior_sigma,
               '1-sigma of the residual hard iron the calibration leaves, relative to the field strength '
               '(heading covariance before the phone has turned)', min_value=1e-6, max_value=10.0),
+    ParamSpec('soft_iron_prior_sigma', _ALIGN.soft_iron_prior_sigma,
+              '1-sigma of the residual soft iron\'s entries the calibration leaves (heading covariance)',
+              min_value=0.0, max_value=1.0),
     ParamSpec('correlation_s', _ALIGN.correlation_s,
               'Correlation time of field disturbances and hand motion, s (how many samples a prior carried '
               'into a new panorama is worth)', min_value=0.05, max_value=60.0),
@@ -215,6 +219,7 @@ class HybridOrientationFilterNode(TrackingNode):
             correlation_s=v['correlation_s'],
             hand_period_s=v['hand_period_s'],
             hard_iron_prior_sigma=v['hard_iron_prior_sigma'],
+            soft_iron_prior_sigma=v['soft_iron_prior_sigma'],
             lever_arm_sigma_m=v['lever_arm_sigma_m'],
             cauchy_scale=v['cauchy_scale'],
             tilt_floor_rad=v['tilt_floor_rad'],
