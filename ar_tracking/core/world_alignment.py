@@ -155,6 +155,9 @@ class WorldAlignmentEstimate:
     accel_bias: Array
     #: Residual soft iron E (imu frame, m = (I + E) R f + h; zeros when not modelled).
     soft_iron: Array
+    #: The unit of the relative field quantities (h, f): the windows' median |field|, in the
+    #: field samples' own unit (tesla for a MagneticField).
+    field_scale: float = 1.0
 
 
 class WorldAlignment:
@@ -199,6 +202,7 @@ class WorldAlignment:
         self._prior = prior
         self._h_last: Array | None = None
         self._soft_iron = np.zeros((3, 3))
+        self._field_scale = 1.0
         self._ambiguity_var = 0.0
         self._heading_mode: float | None = None
         self._field_enu_ref: Array | None = None if prior is None else getattr(self, '_field_enu_ref', None)
@@ -380,6 +384,7 @@ class WorldAlignment:
         scale = float(np.median(norm_w / n_w))
         if scale <= 0 or not math.isfinite(scale):
             scale = 1.0
+        self._field_scale = scale
         Rtm_w = Rtm_w / scale
         m_w = m_w / scale
         n_win = len(n_w)
@@ -589,6 +594,6 @@ class WorldAlignment:
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),
             field_outlier_share=outliers,
-            hard_iron=h, accel_bias=b_a, soft_iron=self._soft_iron)
+            hard_iron=h, accel_bias=b_a, soft_iron=self._soft_iron, field_scale=self._field_scale)
         self._dirty = False
         return self._estimate

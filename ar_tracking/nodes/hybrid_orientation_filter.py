@@ -35,7 +35,7 @@ from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
-from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig
+from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig, WorldAlignmentEstimate
 from ..ros.cdr_views import (
     imu_view,
     magnetic_field_view,
@@ -60,6 +60,11 @@ from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamp
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
 _EXTRINSIC_WARN_RAD = np.radians(1.0)
+#: Residual hard iron worth telling the user about (once the rotations pin it), tesla: ~8 deg
+#: of heading before the phone turns, against a 21 uT horizontal field.
+_HARD_IRON_REPORT_T = 3e-6
+#: ... once the heading is known to this (1 sigma), rad.
+_HARD_IRON_REPORT_SIGMA_RAD = np.radians(1.0)
 
 
 _ALIGN = WorldAlignmentConfig()
@@ -249,6 +254,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.backup = GyroBackup(self.R_imu_cam, backup)
         self.visual = RotationBuffer(self.max_pair_gap_ns)
         self.pending: deque[tuple[int, np.ndarray, np.ndarray | None, np.ndarray]] = deque()
+        self._hard_iron_reported = False
         self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
         self.mag: np.ndarray | None = None
         self.mag_ns: int | None = None
@@ -437,6 +443,26 @@ class HybridOrientationFilterNode(TrackingNode):
         cov = estimate.covariance_enu + np.eye(3) * self.visual_noise_rad ** 2
         self.backup.anchor(t_v, R_enu_cam, cov)
         self._publish(t_v, R_enu_cam, cov, R_enu_pano)
+        if not self._hard_iron_reported:
+            self._report_hard_iron(estimate)
+
+    def _report_hard_iron(self, estimate: WorldAlignmentEstimate) -> None:
+        """Tell the user once when the magnetometer's calibration leaves a large hard iron: the
+        field fit finds it against the panorama's rotations, but every session starts with it
+        (the heading is off by it until the phone has turned) - the corrected offset fixes that,
+        on the axes the rotations reveal."""
+        h_t = estimate.hard_iron * estimate.field_scale
+        if np.linalg.norm(h_t) < _HARD_IRON_REPORT_T or \
+                estimate.covariance_enu[2, 2] > _HARD_IRON_REPORT_SIGMA_RAD ** 2:
+            return
+        self._hard_iron_reported = True
+        cal = self.calibration
+        offset = cal.hard_iron_offset + np.linalg.solve(cal.soft_iron_matrix, h_t)
+        self.get_logger().warning(
+            f'imu/mag: the calibration leaves {np.linalg.norm(h_t) * 1e6:.1f} uT of hard iron (found against '
+            'the panorama\'s rotations; each session starts off by it until the phone turns): '
+            f'hard_iron_offset: [{", ".join(f"{x:.3e}" for x in offset)}] would remove what the rotations showed '
+            '(the axis the phone turned about keeps its calibration)')
 
     def on_mag(self, msg: MagneticField) -> None:
         """Keep the newest calibrated field sample for pairing."""
