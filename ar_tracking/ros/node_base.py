@@ -33,6 +33,7 @@ from rclpy.qos import (
 )
 
 from ..blas import limit_blas_threads
+from .params import is_number_list
 from .signals import StopOnSignal
 
 #: Sensor subscriptions: best effort, keep last 5 (a reliable publisher still reaches them).
@@ -191,13 +192,7 @@ class TrackingNode(Node):
         value = override.value
         if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
             self._parameter_overrides[name] = Parameter(name, value=float(value))
-        elif (
-            isinstance(default, list)
-            and default
-            and isinstance(default[0], float)
-            and isinstance(value, (list, tuple))
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-        ):
+        elif isinstance(default, list) and default and isinstance(default[0], float) and is_number_list(value):
             self._parameter_overrides[name] = Parameter(name, value=[float(v) for v in value])
 
     def _on_set_parameters(self, params: Sequence[Parameter]) -> SetParametersResult:

@@ -87,11 +87,16 @@ def params_for_node(node_name: str, files: list[str | Path], use_packaged: bool 
     return merged
 
 
+def is_number_list(value: Any) -> bool:
+    """Whether ``value`` is a list or tuple of ints and floats (bools excluded)."""
+    return isinstance(value, (list, tuple)) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+
+
 def _uniform(value: Any) -> Any:
     """A list that mixes integers and floats (``[1.0, 0, 0]``, as people write a matrix) as floats:
     rclpy takes a list of one type only and would refuse the node's start."""
-    if isinstance(value, list) and any(isinstance(v, float) for v in value) \
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+    if isinstance(value, list) and any(isinstance(v, float) for v in value) and is_number_list(value):
         return [float(v) for v in value]
     return value
 
