@@ -60,9 +60,9 @@ from ..ros.tf import TfBroadcaster, subscribe_static_transforms, transform_stamp
 INPUT_TYPES = {'transform': TransformStamped, 'pose': PoseStamped}
 #: Disagreement between /tf_static and the parameter that is worth a warning, rad.
 _EXTRINSIC_WARN_RAD = np.radians(1.0)
-#: Residual hard iron worth telling the user about (once the rotations pin it), tesla: ~8 deg
-#: of heading before the phone turns, against a 21 uT horizontal field.
-_HARD_IRON_REPORT_T = 3e-6
+#: Residual hard iron worth telling the user about (once the rotations pin it), relative to the
+#: field strength: 3 uT of 48, ~8 deg of heading before the phone turns.
+_HARD_IRON_REPORT = 0.06
 #: ... once the heading is known to this (1 sigma), rad.
 _HARD_IRON_REPORT_SIGMA_RAD = np.radians(1.0)
 
@@ -451,15 +451,17 @@ class HybridOrientationFilterNode(TrackingNode):
         field fit finds it against the panorama's rotations, but every session starts with it
         (the heading is off by it until the phone has turned) - the corrected offset fixes that,
         on the axes the rotations reveal."""
-        h_t = estimate.hard_iron * estimate.field_scale
-        if np.linalg.norm(h_t) < _HARD_IRON_REPORT_T or \
+        if np.linalg.norm(estimate.hard_iron) < _HARD_IRON_REPORT or \
                 estimate.covariance_enu[2, 2] > _HARD_IRON_REPORT_SIGMA_RAD ** 2:
             return
         self._hard_iron_reported = True
+        h_t = estimate.hard_iron * estimate.field_scale  # in the field's unit (tesla by REP 145)
+        size = f'{np.linalg.norm(h_t) * 1e6:.1f} uT' if 1e-5 < estimate.field_scale < 1e-4 else \
+            f'{np.linalg.norm(h_t):.3g} (the field\'s unit; MagneticField is tesla)'
         cal = self.calibration
         offset = cal.hard_iron_offset + np.linalg.solve(cal.soft_iron_matrix, h_t)
         self.get_logger().warning(
-            f'imu/mag: the calibration leaves {np.linalg.norm(h_t) * 1e6:.1f} uT of hard iron (found against '
+            f'imu/mag: the calibration leaves {size} of hard iron (found against '
             'the panorama\'s rotations; each session starts off by it until the phone turns): '
             f'hard_iron_offset: [{", ".join(f"{x:.3e}" for x in offset)}] would remove what the rotations showed '
             '(the axis the phone turned about keeps its calibration)')
