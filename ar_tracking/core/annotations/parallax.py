@@ -95,13 +95,13 @@ class ParallaxModel:
         th = self.azimuth(dirs) if th is None else th
         return self.b * np.cos(th) - self.a * np.sin(th)
 
-    def elevation_shift(self, dirs: Array) -> Array:
+    def elevation_shift(self, dirs: Array, th: Array | None = None) -> Array:
         """(n,) change of elevation (rad, small-angle) :meth:`apply` makes at the directions: 0
-        without ``elevation``, else ``sin(el) cos(el) q``."""
+        without ``elevation``, else ``sin(el) cos(el) q`` (``th`` as in :meth:`shift`)."""
         dirs = np.asarray(dirs, float).reshape(-1, 3)
         if not self.elevation:
             return np.zeros(len(dirs))
-        return _elevation_factor(self.up, dirs) * self.radial(dirs)
+        return _elevation_factor(self.up, dirs) * self.radial(dirs, th)
 
     def apply(self, dirs: Array) -> Array:
         """(n, 3) directions turned about ``up`` by their shift, and with ``elevation`` raised or

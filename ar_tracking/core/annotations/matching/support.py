@@ -89,7 +89,8 @@ class SupportTest:
             return True
         m = al.parallax
         at = self.source_dirs[p.index] @ al.R_target_source.T
-        term = math.hypot(float(m.shift(at)[0]) - m.c, float(m.elevation_shift(at)[0]))
+        th = m.azimuth(at)  # once for both terms
+        term = math.hypot(float(m.shift(at, th)[0]) - m.c, float(m.elevation_shift(at, th)[0]))
         fitted = al.depth_ratio_sigma if math.isfinite(al.depth_ratio_sigma) else 0.0
         ratio = abs(term) * math.hypot(fitted, self.config.depth_ratio_scatter)
         return math.hypot(ratio, al.prediction_sigma.get(p.index, 0.0)) <= limit
