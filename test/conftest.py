@@ -74,6 +74,9 @@ def pg_store_url(pg_cluster: Any) -> str:
     return f'{pg_cluster.url}&schema=t{os.getpid()}_{next(_pg_schemas)}'
 
 
+_runner_domains = itertools.count(os.getpid() % 50)
+
+
 @pytest.fixture(autouse=True)
 def _lockstep_runs_lose_nothing(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     """Issue 18: every lockstep run of the suite loses and drops no delivery. Each in-process
@@ -97,6 +100,9 @@ def _lockstep_runs_lose_nothing(request: pytest.FixtureRequest, monkeypatch: pyt
         return result
 
     monkeypatch.setattr(runner_module.GraphRunner, 'run', checked_run)
+    # Realtime graphs keep localhost discovery: each xdist worker's runs take their own half of
+    # the runner's domains (101-150, 151-200), so two workers' live runs never share one.
+    monkeypatch.setattr(runner_module, '_domain_id', lambda: 101 + 50 * (_BLOCK % 2) + next(_runner_domains) % 50)
     yield
     assert not bad, 'lockstep run lost or dropped deliveries: ' + '; '.join(bad)
 
