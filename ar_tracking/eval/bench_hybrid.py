@@ -497,6 +497,7 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
     from ..ros.runner import GraphRunner
     from ..sim.bagmaker import make_bag
     from .evaluate import orientation_metrics
+    from .heading_floor import hand_motion_floor
     from .metrics import load_orientations
 
     workdir = Path(workdir)
@@ -525,6 +526,7 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
         row['heading_split'] = heading_split(data)
         if profile in (None, 'hard'):
             row['compass_floor_first_1s_deg'] = compass_floor_deg(seed, duration_s)
+            row['hand_motion_floor'] = hand_motion_floor(seed, duration_s)
         rows[str(seed)] = row
         logger.info('seed %d: %s', seed, row)
     heading = [r['hybrid']['heading_rmse_deg'] for r in rows.values() if r['hybrid']['heading_rmse_deg'] is not None]
@@ -540,6 +542,10 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
         'hybrid_heading_rmse_deg_max': round(float(np.max(heading)), 4) if heading else None,
         'hybrid_tilt_rmse_deg_max': round(float(np.max(tilt)), 4) if tilt else None,
         'hybrid_over_vqf_heading_max': round(float(np.max(ratio)), 4) if ratio else None,
+        # the heading RMSE the hand's sway alone leaves (everything else perfect): a lower bound
+        'hand_motion_floor_heading_rmse_deg_median': round(float(np.median(
+            [r['hand_motion_floor']['heading_rmse_deg'] for r in rows.values()])), 4)
+        if rows and all('hand_motion_floor' in r for r in rows.values()) else None,
         'vqf_heading_rmse_deg_median': round(float(np.median([r['vqf']['heading_rmse_deg'] for r in rows.values()
                                                               if r['vqf']['heading_rmse_deg'] is not None])), 4) if rows else None,
     }
