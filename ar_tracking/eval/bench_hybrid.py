@@ -486,6 +486,21 @@ def compass_floor_deg(seed: int, duration_s: float, first_s: float = 1.0, sessio
     return round(abs(math.degrees((err + math.pi) % (2.0 * math.pi) - math.pi)), 4)
 
 
+def _first_seconds_over_floor(rows: dict[str, Any]) -> float | None:
+    """Median over seeds of the hybrid's heading RMSE in the first 2 s divided by the floor
+    there: the hand's sway (:func:`.heading_floor.hand_motion_floor`) and the ideal compass's
+    residual iron (:func:`compass_floor_deg`) in quadrature. 1 means at the floor."""
+    ratios = []
+    for r in rows.values():
+        first = r['heading_split'].get('orientation/global_heading_rmse_deg_first_2s')
+        if first is None or 'hand_motion_floor' not in r:
+            continue
+        floor = math.hypot(r['hand_motion_floor']['heading_rmse_deg_first_2s'], r['compass_floor_first_1s_deg'])
+        if floor > 0:
+            ratios.append(first / floor)
+    return round(float(np.median(ratios)), 3) if ratios else None
+
+
 def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), duration_s: float = 40.0,
                 profile: str | None = None) -> dict[str, Any]:
     """The hybrid filter on fresh rotation_sweep seeds (the simulator's default, harder profile
@@ -546,6 +561,8 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
         'hand_motion_floor_heading_rmse_deg_median': round(float(np.median(
             [r['hand_motion_floor']['heading_rmse_deg'] for r in rows.values()])), 4)
         if rows and all('hand_motion_floor' in r for r in rows.values()) else None,
+        # the first 2 s against what no estimator removes there (the sway and an ideal compass)
+        'hybrid_first_2s_over_floor_median': _first_seconds_over_floor(rows),
         'vqf_heading_rmse_deg_median': round(float(np.median([r['vqf']['heading_rmse_deg'] for r in rows.values()
                                                               if r['vqf']['heading_rmse_deg'] is not None])), 4) if rows else None,
     }

@@ -39,3 +39,15 @@ def test_the_floor_of_a_seed_is_in_the_first_seconds():
     assert floor['heading_rmse_deg_first_2s'] > 0.5
     assert floor['heading_rmse_deg_after_2s'] < 0.5 * floor['heading_rmse_deg_first_2s']
     assert 0.0 < floor['tilt_rmse_deg'] < 1.0
+
+
+def test_bench_seeds_rates_the_first_seconds_against_the_floor():
+    from ar_tracking.eval.bench_hybrid import _first_seconds_over_floor
+
+    def row(first, sway, compass):
+        return {'heading_split': {'orientation/global_heading_rmse_deg_first_2s': first},
+                'hand_motion_floor': {'heading_rmse_deg_first_2s': sway}, 'compass_floor_first_1s_deg': compass}
+
+    rows = {'1': row(5.0, 3.0, 4.0), '2': row(10.0, 3.0, 4.0), '3': row(2.5, 3.0, 4.0)}
+    assert _first_seconds_over_floor(rows) == 1.0  # floors of 5: ratios 0.5, 1, 2
+    assert _first_seconds_over_floor({'1': {'heading_split': {}}}) is None
