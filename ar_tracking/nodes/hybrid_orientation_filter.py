@@ -35,6 +35,7 @@ from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
+from ..core.time_offset import ImuClock, TimeOffsetConfig, TimeOffsetEstimator
 from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig, WorldAlignmentEstimate
 from ..ros.cdr_views import (
     imu_view,
@@ -65,6 +66,8 @@ _EXTRINSIC_WARN_RAD = np.radians(1.0)
 _HARD_IRON_REPORT = 0.06
 #: ... once the heading is known to this (1 sigma), rad.
 _HARD_IRON_REPORT_SIGMA_RAD = np.radians(1.0)
+#: The first seconds of IMU samples kept to re-pair once the time offset settles, ns.
+_REPAIR_NS = 10_000_000_000
 
 
 _ALIGN = WorldAlignmentConfig()
@@ -164,6 +167,15 @@ PARAMS = (
     ParamSpec('reseed_threshold_rad', 0.1,
               'When vision returns this far from the gyro backup, its frame changed: restart the panorama-in-world '
               'estimate from the backup, rad', min_value=0.0, max_value=3.2),
+    ParamSpec('imu_time_offset_s', 0.0,
+              'Known camera-IMU time offset: the IMU stamp minus the camera stamp of the same instant, s '
+              '(estimate_time_offset refines it)', read_only=True, min_value=-1.0, max_value=1.0),
+    ParamSpec('estimate_time_offset', True,
+              'Estimate the camera-IMU time offset from the gyro against the visual rotation (core/time_offset.py) '
+              'and shift the IMU stamps by it once it is known to 1.5 ms', read_only=True),
+    ParamSpec('max_time_offset_s', TimeOffsetConfig().max_offset_s,
+              'The estimated offset is searched within +- this of imu_time_offset_s, s', read_only=True,
+              min_value=0.005, max_value=1.0),
     ParamSpec('reset_after_s', 1.0,
               'A stamp this much older than the previous one means the clock jumped back (bag loop): reset',
               min_value=0.0, max_value=3600.0),
@@ -252,7 +264,12 @@ class HybridOrientationFilterNode(TrackingNode):
         self.extrinsic_source = 'parameter'
         self.align = WorldAlignment(config)
         self.backup = GyroBackup(self.R_imu_cam, backup)
-        self.visual = RotationBuffer(self.max_pair_gap_ns)
+        # IMU stamps are shifted into the camera's clock: t_camera = t_imu - clock.offset_ns.
+        estimator = TimeOffsetEstimator(self.R_imu_cam, TimeOffsetConfig(max_offset_s=v['max_time_offset_s'])) \
+            if v['estimate_time_offset'] else None
+        self.clock = ImuClock(int(round(1e9 * v['imu_time_offset_s'])), estimator, _REPAIR_NS)
+        # (long enough to re-pair the samples of the first seconds once the time offset is known)
+        self.visual = RotationBuffer(self.max_pair_gap_ns, keep_ns=_REPAIR_NS + 1_000_000_000)
         self.pending: deque[tuple[int, np.ndarray, np.ndarray | None, np.ndarray]] = deque()
         self._hard_iron_reported = False
         self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
@@ -309,6 +326,8 @@ class HybridOrientationFilterNode(TrackingNode):
                     f'{np.degrees(diff):.1f} deg: using /tf_static')
             self.R_imu_cam = R_imu_cam
             self.backup.R_imu_cam = R_imu_cam
+            if self.clock.estimator is not None:
+                self.clock.estimator.R_imu_cam = R_imu_cam
             self.extrinsic_source = f'/tf_static {parent} -> {child}'
             return
 
@@ -339,6 +358,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.get_logger().warning(f'{why}: starting over')
         self.align.reset()
         self.backup.reset()
+        self.clock.restart()  # its stamps start over; the offset applied so far is kept
         self.visual.clear()
         self.pending.clear()
         for guard in self.stamp_guards.values():
@@ -428,11 +448,13 @@ class HybridOrientationFilterNode(TrackingNode):
                 R_pe = R_pano_cam @ self.backup.R_enu_cam.T
                 self.align.reset(prior=(R_pe, float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))))
                 self.pending.clear()
+                self.clock.forget_kept()
             self.visual.clear()
             self.backup.visual.clear()
         self.last_visual_ns = t_v
         self.visual.add(t_v, R_pano_cam)
         self.backup.add_visual(t_v, R_pano_cam)
+        self.clock.add_visual(t_v, R_pano_cam)
         self._resolve()
         estimate = self.align.estimate()
         if estimate is None:
@@ -490,14 +512,19 @@ class HybridOrientationFilterNode(TrackingNode):
         except ConversionError as exc:
             self.warn_throttled(f'{exc}, message dropped')
             return
-        t_g = stamp_ns(msg.header)
-        if not self._stamp_ok('imu', t_g, 'imu/data_raw'):
+        t_imu = stamp_ns(msg.header)
+        if not self._stamp_ok('imu', t_imu, 'imu/data_raw'):
             return
+        mag = self.mag if self.mag_ns is not None and abs(t_imu - self.mag_ns) <= self.max_mag_age_ns else None
+        sample = (t_imu, self.calibration.accel(accel), mag, self.calibration.gyro(omega))
+        kept = self.clock.add(sample, sample[3], keep=self.last_visual_ns is not None)
+        if kept is not None:
+            self._offset_settled(kept)
+        t_g = t_imu - self.clock.offset_ns  # in the camera's clock from here on
         self.last_imu_ns = t_g
-        self.backup.add_gyro(t_g, self.calibration.gyro(omega))
-        mag = self.mag if self.mag_ns is not None and abs(t_g - self.mag_ns) <= self.max_mag_age_ns else None
+        self.backup.add_gyro(t_g, sample[3])
         if self.last_visual_ns is not None:
-            self.pending.append((t_g, self.calibration.accel(accel), mag, self.calibration.gyro(omega)))
+            self.pending.append((t_g, *sample[1:]))
             self._resolve()
         if self.last_visual_ns is None or self.backup.R_enu_cam is None or not self.align.ready:
             return
@@ -513,6 +540,17 @@ class HybridOrientationFilterNode(TrackingNode):
         self.warn_throttled('visual tracker lost: publishing the gyro backup')
         self.last_backup_pub_ns = t_g
         self._publish(t_g, self.backup.R_enu_cam, self.backup.cov, None)
+
+    def _offset_settled(self, kept: list[tuple[Any, ...]]) -> None:
+        """The time offset is known: rebuild the alignment from the samples so far, paired with
+        the visual orientation at their corrected stamps; say so once."""
+        self.align.reset()
+        self.pending = deque((t - self.clock.offset_ns, *rest) for t, *rest in kept)
+        self._resolve()
+        est = self.clock.estimator.estimate() if self.clock.estimator is not None else None
+        self.get_logger().info(
+            f'camera-IMU time offset {self.clock.offset_ns * 1e-6:.1f} +- {0.0 if est is None else est[1] * 1e3:.1f} ms '
+            '(IMU stamps minus camera stamps, from the gyro against the visual rotation): IMU samples are paired with it')
 
     def on_ahrs(self, msg: Imu) -> None:
         """imu/data (the AHRS): without a camera (none yet, or lost beyond max_backup_s) the

@@ -1,0 +1,114 @@
+"""The camera-IMU time offset from the gyro against the visual rotation (core.time_offset)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ar_tracking.core.rotations import so3_exp
+from ar_tracking.core.time_offset import ImuClock, TimeOffsetConfig, TimeOffsetEstimator
+
+R_IMU_CAM = np.diag([1.0, -1.0, -1.0])
+T0 = 1_700_000_000_000_000_000
+
+
+def _motion(t: np.ndarray) -> np.ndarray:
+    """Camera rate (camera axes, rad/s): pans that start and stop plus a tremor."""
+    return np.stack([0.05 * np.sin(2 * np.pi * 2.3 * t),
+                     0.6 * np.sin(2 * np.pi * 0.25 * t) ** 3 + 0.03 * np.sin(2 * np.pi * 4.1 * t),
+                     0.04 * np.cos(2 * np.pi * 1.7 * t)], axis=-1)
+
+
+def _feed(est_or_clock, offset_s: float, duration_s: float = 12.0, seed: int = 0, still: bool = False,
+          gyro_bias=(0.01, -0.02, 0.005)) -> None:
+    """Gyro at 200 Hz stamped on the IMU clock (truth + offset), with noise and a bias; frames at
+    30 Hz on the camera clock, integrated exactly from the same rate (fine steps), with noise."""
+    rng = np.random.default_rng(seed)
+    fine = np.arange(0.0, duration_s, 1e-4)
+    rate = np.zeros((len(fine), 3)) if still else _motion(fine)
+    R = np.eye(3)
+    frames = {}
+    frame_every = int(round(1 / 30 / 1e-4))
+    for k, w in enumerate(rate):
+        if k % frame_every == 0:
+            frames[k] = R @ so3_exp(rng.normal(0.0, 3e-4, 3))  # ~0.02 deg of tracker noise
+        R = R @ so3_exp(w * 1e-4)
+    events = []
+    for k in range(0, len(fine), 50):  # 200 Hz
+        w_imu = R_IMU_CAM @ rate[k] + np.asarray(gyro_bias) + rng.normal(0.0, 0.003, 3)
+        events.append((T0 + int(round((fine[k] + offset_s) * 1e9)), 0, w_imu))
+    events += [(T0 + int(round(fine[k] * 1e9)), 1, Rk) for k, Rk in frames.items()]
+    for t_ns, kind, value in sorted(events, key=lambda e: (e[0], e[1])):
+        if isinstance(est_or_clock, ImuClock):
+            if kind == 0:
+                est_or_clock.add((t_ns, 'sample'), value, keep=True)
+            else:
+                est_or_clock.add_visual(t_ns, value)
+        elif kind == 0:
+            est_or_clock.add_gyro(t_ns, value)
+        else:
+            est_or_clock.add_visual(t_ns, value)
+
+
+@pytest.mark.parametrize('offset_ms', [-30.0, 0.0, 7.0, 45.0])
+def test_the_offset_is_found_with_an_honest_sigma(offset_ms):
+    est = TimeOffsetEstimator(R_IMU_CAM)
+    _feed(est, offset_ms * 1e-3)
+    found = est.estimate()
+    assert found is not None
+    offset, sigma = found
+    assert abs(offset * 1e3 - offset_ms) < 0.5
+    assert 0.0 < sigma * 1e3 < 1.0
+    assert abs(offset * 1e3 - offset_ms) < 5 * sigma * 1e3 + 0.05
+    assert est.offset_s == pytest.approx(offset)
+
+
+def test_no_rotation_no_offset_and_out_of_range_is_not_found():
+    still = TimeOffsetEstimator(R_IMU_CAM)
+    _feed(still, 0.01, still=True)
+    assert still.offset_s is None
+    narrow = TimeOffsetEstimator(R_IMU_CAM, TimeOffsetConfig(max_offset_s=0.02))
+    _feed(narrow, 0.05)
+    assert narrow.estimate() is None and narrow.offset_s is None
+
+
+def test_a_jump_of_the_visual_estimate_is_left_out():
+    est = TimeOffsetEstimator(R_IMU_CAM)
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, 8.0, 1 / 200)
+    rate = _motion(t)
+    R, frames = np.eye(3), []
+    for k in range(len(t)):
+        if k % 7 == 0:
+            glitch = so3_exp(np.array([0.0, 0.3, 0.0])) if k == 7 * 300 else np.eye(3)  # one bad frame
+            frames.append((T0 + int(t[k] * 1e9), 1, R @ glitch))
+        R = R @ so3_exp(0.5 * (rate[k] + rate[min(k + 1, len(t) - 1)]) / 200)  # trapezoid: no lag
+    gyro = [(T0 + int((t[k] + 0.012) * 1e9), 0, R_IMU_CAM @ rate[k] + rng.normal(0, 0.002, 3)) for k in range(len(t))]
+    for t_ns, kind, value in sorted(gyro + frames, key=lambda e: (e[0], e[1])):
+        (est.add_gyro if kind == 0 else est.add_visual)(t_ns, value)
+    assert est.offset_s is not None and abs(est.offset_s - 0.012) < 0.002
+
+
+def test_imu_clock_hands_back_the_first_samples_once_when_the_offset_settles():
+    clock = ImuClock(0, TimeOffsetEstimator(R_IMU_CAM))
+    handed: list = []
+    original = clock.add
+
+    def add(sample, omega, keep):
+        kept = original(sample, omega, keep)
+        if kept is not None:
+            handed.append(kept)
+        return kept
+
+    clock.add = add  # type: ignore[method-assign]
+    _feed(clock, 0.02)
+    assert len(handed) == 1 and len(handed[0]) > 100  # the first seconds, once
+    assert all(s[1] == 'sample' for s in handed[0])
+    assert abs(clock.offset_ns - 20_000_000) < 1_000_000
+
+    forgotten = ImuClock(5_000_000, TimeOffsetEstimator(R_IMU_CAM))
+    forgotten.forget_kept()  # a new panorama: nothing to re-pair
+    assert forgotten.add((T0, 'sample'), np.zeros(3), keep=True) is None
+    assert forgotten.offset_ns == 5_000_000
+
+    fixed = ImuClock(-8_000_000, None)  # estimation off: the known offset, nothing kept
+    assert fixed.add((T0, 'sample'), np.zeros(3), keep=True) is None and fixed.offset_ns == -8_000_000
