@@ -52,6 +52,7 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
             args.scenario, args.out, seed=args.seed, duration_s=args.duration, session=args.session,
             storage=args.storage, image_format=args.image_format, overwrite=True, progress=progress,
             profile=args.profile,
+            imu_time_offset_s=None if args.imu_time_offset_ms is None else args.imu_time_offset_ms * 1e-3,
         )
     finally:
         close()
@@ -360,6 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
                         'camera-IMU time offset); robot_arcs: a real camera (lens distortion in camera_info, display '
                         'gamma, defocus, 155 deg/s pans with motion blur, an occluder, IMU bias walks, the IMU mount '
                         "with a lever arm only on /tf_static); 'kind' = the earlier, easier simulators")
+    p.add_argument('--imu-time-offset-ms', type=float, default=None, metavar='MS',
+                   help='rotation_sweep: the IMU and magnetometer stamps are this much later than the camera\'s for '
+                        'the same instant (default: the profile\'s, 2-8 ms either sign in hard, 0 in kind)')
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')

@@ -98,14 +98,15 @@ MAX_DURATION_S = 3600.0
 def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float = 60.0,
              session: str = 'authoring', storage: str = 'mcap', image_format: str = 'raw',
              overwrite: bool = False, progress: Callable[[float], None] | None = None,
-             lighting: str | None = None, profile: str = 'hard') -> Path:
+             lighting: str | None = None, profile: str = 'hard', imu_time_offset_s: float | None = None) -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
     rosbag2 directory. ``progress`` is called now and then with the fraction done (0..1).
     ``lighting`` (rotation_sweep only): the session whose sun and sky light the spot, default
     ``session``; e.g. a browsing walk under the authoring sun (the 'same lighting' column of
-    Langlotz 2011 Fig. 7). ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
+    Langlotz 2011 Fig. 7). ``imu_time_offset_s`` (rotation_sweep only): the IMU and
+    magnetometer stamps minus the true time instead of the profile's offset. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
     phone or camera) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
     :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
@@ -114,6 +115,9 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         raise SimError(f'unknown profile {profile!r} (use {" or ".join(PROFILES)})')
     if lighting is not None and lighting not in SESSIONS:
         raise SimError(f'unknown lighting {lighting!r} (use {" or ".join(SESSIONS)})')
+    if imu_time_offset_s is not None and (not isinstance(imu_time_offset_s, (int, float))
+                                          or not math.isfinite(imu_time_offset_s) or abs(imu_time_offset_s) > 1.0):
+        raise SimError(f'the IMU time offset must be finite and within +-1 s, got {imu_time_offset_s!r} s')
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:
@@ -121,7 +125,7 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
             if p.exists():
                 raise SimError(f'{p}: already exists (choose another name or overwrite)')
     scn = REGISTRY[scenario]
-    req = BagRequest(seed, duration_s, session, image_format, lighting, profile)
+    req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s)
     try:
         with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
             scn.write_bag(bag, req, progress)

@@ -362,11 +362,14 @@ class Scenario:
 
 
 def make_scenario(seed: int, session: str, duration_s: float,
-                  declination_rad: float = 0.0, profile: str = 'hard') -> Scenario:
+                  declination_rad: float = 0.0, profile: str = 'hard',
+                  imu_time_offset_s: float | None = None) -> Scenario:
     """The scenario for a seed and session; the spot (and so the GPS origin) is the seed's.
 
     ``profile``: 'hard' (default, a realistic phone) or 'kind' (the earlier, easier simulator);
-    see the module docstring."""
+    see the module docstring. ``imu_time_offset_s`` replaces the profile's camera-IMU time
+    offset (e.g. a phone whose rolling-shutter readout or driver delays the camera's stamps by
+    tens of ms); everything else stays the seed's."""
     if session not in SESSIONS:
         raise ValueError(f'unknown session {session!r} (use {" or ".join(SESSIONS)})')
     check_profile(profile)
@@ -382,6 +385,8 @@ def make_scenario(seed: int, session: str, duration_s: float,
         rng = rng_stream(seed, 'imu-time-offset', session)
         offset_ns = int(round(rng.uniform(*HARD_IMU_TIME_OFFSET_S) * 1e9)) * \
             (1 if rng.random() < 0.5 else -1)
+    if imu_time_offset_s is not None:
+        offset_ns = int(round(imu_time_offset_s * 1e9))
     return Scenario(
         seed=seed, session=session, duration_s=float(duration_s),
         trajectory=make_trajectory(seed, session, duration_s, profile), earth=earth,

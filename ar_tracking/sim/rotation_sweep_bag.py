@@ -48,17 +48,19 @@ class RotationSweep:
     name = 'rotation_sweep'
 
     def write_bag(self, bag: BagWriter, req: BagRequest, progress: Progress | None) -> None:
-        scn = rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile)
+        scn = rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
+                              imu_time_offset_s=req.imu_time_offset_s)
         world, light, pano = session_view(req.seed, req.session, req.lighting)
         _write_all(bag, scn, world, light, pano, Plan.make(scn, pano), req.image_format, progress)
 
     def write_sidecars(self, sidecar: Path, bag_path: Path, req: BagRequest) -> None:
-        write_sidecar(sidecar, rs.make_scenario(req.seed, req.session, req.duration_s,
-                                                profile=req.profile), bag_path)
+        write_sidecar(sidecar, rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
+                                                imu_time_offset_s=req.imu_time_offset_s), bag_path)
 
     def summary(self, req: BagRequest) -> str:
         return (f'rotation_sweep, seed {req.seed}, {req.session}, {req.duration_s:.1f} s, '
-                f'profile {req.profile}')
+                f'profile {req.profile}'
+                + ('' if req.imu_time_offset_s is None else f', IMU stamps {req.imu_time_offset_s * 1e3:+.1f} ms'))
 
 
 SCENARIO = RotationSweep()

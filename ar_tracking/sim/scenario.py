@@ -34,6 +34,8 @@ class BagRequest:
     image_format: str = 'raw'
     lighting: str | None = None
     profile: str = 'hard'
+    #: rotation_sweep: the camera-IMU time offset instead of the profile's, s (None: the profile's)
+    imu_time_offset_s: float | None = None
 
 
 class ScenarioBag(Protocol):

@@ -555,6 +555,29 @@ def test_imu_time_offset(data: dict[str, list], kind_data: dict[str, list]) -> N
     assert rs.make_scenario(SEED, 'authoring', DURATION_S, profile='kind').imu_time_offset_ns == 0
 
 
+def test_a_chosen_imu_time_offset_moves_only_the_imu_stamps(tmp_path: Path) -> None:
+    """make-bag --imu-time-offset-ms: the IMU and magnetometer stamps are that much later than
+    the truth and the camera (a phone with a larger offset), the rest of the seed unchanged."""
+    from ar_tracking.cli import build_parser
+
+    assert build_parser().parse_args(['make-bag', 'rotation_sweep', '-o', 'x.mcap', '--imu-time-offset-ms', '-25'])\
+        .imu_time_offset_ms == -25.0
+    chosen = rs.make_scenario(SEED, 'authoring', 10.0, imu_time_offset_s=-0.025)
+    assert chosen.imu_time_offset_ns == -25_000_000
+    assert np.array_equal(chosen.errors.hard_iron_t, rs.make_scenario(SEED, 'authoring', 10.0).errors.hard_iron_t)
+    bag = make_bag('rotation_sweep', tmp_path / 'late.mcap', seed=SEED, duration_s=1.0, imu_time_offset_s=0.04)
+    with BagReader(bag) as b:
+        imu = [stamp_to_ns(m.header.stamp) for _, m in b.read_all('/imu/data_raw')]
+        mag = [stamp_to_ns(m.header.stamp) for _, m in b.read_all('/imu/mag')]
+        gt = [stamp_to_ns(m.header.stamp) for _, m in b.read_all('/ground_truth/orientation')]
+        cam = [stamp_to_ns(m.header.stamp) for _, m in b.read_all('/camera/image_raw')]
+    assert np.all(np.array(imu) - np.array(gt) == 40_000_000) and np.all(np.array(mag) - np.array(gt) == 40_000_000)
+    assert cam[0] == gt[0]
+    for bad in (float('nan'), 2.0):
+        with pytest.raises(SimError, match='IMU time offset'):
+            make_bag('rotation_sweep', tmp_path / 'bad.mcap', seed=SEED, duration_s=1.0, imu_time_offset_s=bad)
+
+
 def test_exposure_jumps_larger_in_hard_profile() -> None:
     hard = rs.make_exposure(SEED, 'authoring', 60.0)
     kind = rs.make_exposure(SEED, 'authoring', 60.0, profile='kind')
