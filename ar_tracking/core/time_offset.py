@@ -127,6 +127,8 @@ class TimeOffsetEstimator:
         if not self._pairs or not self._gyro_t:
             return
         first, newest = self._pairs[0][0], self._gyro_t[-1]
+        if newest - c.max_offset_s - first < c.block_s:
+            return  # no block is complete yet (the common case: one check per sample)
         covered = [p for p in self._pairs if p[1] + c.max_offset_s <= newest]
         if not covered or covered[-1][1] - first < c.block_s:
             return
