@@ -401,7 +401,10 @@ def bench_hybrid(workdir: Path, duration_s: float = 60.0, seed: int = 1, real: b
     result['peers'] = sim['peers']
     result['sim'] = {k: v for k, v in sim.items() if k != 'peers'}
     if real:
+        from .bench_time_offset import bench_time_offset
+
         result.update(bench_real())
+        result['time_offset_euroc'] = bench_time_offset()
     return result
 
 

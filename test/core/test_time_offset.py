@@ -6,6 +6,7 @@ import pytest
 
 from ar_tracking.core.rotations import so3_exp
 from ar_tracking.core.time_offset import ImuClock, TimeOffsetConfig, TimeOffsetEstimator
+from conftest import SHARED_DATA
 
 R_IMU_CAM = np.diag([1.0, -1.0, -1.0])
 T0 = 1_700_000_000_000_000_000
@@ -112,3 +113,17 @@ def test_imu_clock_hands_back_the_first_samples_once_when_the_offset_settles():
 
     fixed = ImuClock(-8_000_000, None)  # estimation off: the known offset, nothing kept
     assert fixed.add((T0, 'sample'), np.zeros(3), keep=True) is None and fixed.offset_ns == -8_000_000
+
+
+@pytest.mark.skipif(not (SHARED_DATA / 'euroc_imu_april_detections' / 'imu0.csv').is_file(),
+                    reason='EuRoC imu_april detections not present in ../shared/data')
+def test_a_real_hardware_synchronised_camera_imu_pair():
+    """EuRoC imu_april (real VI-Sensor, one hardware clock): about 0 ms, and a shift of the IMU
+    stamps is found to a fraction of a ms."""
+    from ar_tracking.eval.bench_time_offset import bench_time_offset
+
+    result = bench_time_offset(shifts_ms=(0.0, 25.0, -40.0))
+    assert result['frames'] > 1000
+    for shift in (0.0, 25.0, -40.0):
+        found = result[f'shift_{shift:+g}ms']
+        assert abs(found['offset_ms'] - shift) < 1.0 and found['sigma_ms'] < 0.5, (shift, found)
