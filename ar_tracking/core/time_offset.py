@@ -27,6 +27,7 @@ field's windows are too coarse in time.)
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -79,6 +80,7 @@ class TimeOffsetEstimator:
         self._last_rate: Array | None = None
         self._frame: tuple[float, Array] | None = None
         self._pairs: list[tuple[float, float, Array]] = []  # (t0, t1, visual rate in camera axes)
+        self._trim_at = 512
         self.cost = np.zeros(len(self.candidates_s))
         self.pairs_used = 0
         self.blocks = 0
@@ -122,26 +124,39 @@ class TimeOffsetEstimator:
     # -- the cost --------------------------------------------------------------------------
 
     def _process(self) -> None:
-        """Add a block of pairs to the cost once the gyro covers it at every candidate."""
+        """Add a block of pairs to the cost once the gyro covers it at every candidate (or once
+        the frames have stopped: what waits is a short block), and trim the gyro buffer."""
         c = self.config
-        if not self._pairs or not self._gyro_t:
+        if not self._gyro_t:
             return
-        first, newest = self._pairs[0][0], self._gyro_t[-1]
-        if newest - c.max_offset_s - first < c.block_s:
-            return  # no block is complete yet (the common case: one check per sample)
-        covered = [p for p in self._pairs if p[1] + c.max_offset_s <= newest]
-        if not covered or covered[-1][1] - first < c.block_s:
-            return
-        self._pairs = self._pairs[len(covered):]
-        g_t = np.asarray(self._gyro_t)
-        usable = [p for p in covered if p[0] - c.max_offset_s >= g_t[0]]
-        if len(usable) >= 10:
-            self._add_block(g_t, np.asarray(self._gyro_int), usable)
-        # keep the gyro the next blocks can still reach
-        keep_from = (self._pairs[0][0] if self._pairs else newest) - c.max_offset_s - 0.1
-        k = int(np.searchsorted(g_t, keep_from))
+        newest = self._gyro_t[-1]
+        if self._pairs:
+            first = self._pairs[0][0]
+            stale = newest - self._pairs[-1][1] > c.block_s + c.max_offset_s  # the tracker stopped
+            if stale or newest - c.max_offset_s - first >= c.block_s:
+                covered = [p for p in self._pairs if p[1] + c.max_offset_s <= newest]
+                if covered and (stale or covered[-1][1] - first >= c.block_s):
+                    self._pairs = self._pairs[len(covered):]
+                    g_t = np.asarray(self._gyro_t)
+                    usable = [p for p in covered if p[0] - c.max_offset_s >= g_t[0]]
+                    if len(usable) >= 10:
+                        self._add_block(g_t, np.asarray(self._gyro_int), usable)
+        if len(self._gyro_t) >= self._trim_at:
+            self._trim(newest)
+
+    def _trim(self, newest: float) -> None:
+        """Drop the gyro no pair can reach any more: before the first waiting pair, or before
+        the last frame while a next frame can still pair with it (every few hundred samples)."""
+        c = self.config
+        reach = [newest]
+        if self._pairs:
+            reach.append(self._pairs[0][0])
+        if self._frame is not None and newest - self._frame[0] <= c.max_frame_gap_s + 2.0 * c.max_offset_s + c.block_s:
+            reach.append(self._frame[0])
+        k = bisect.bisect_left(self._gyro_t, min(reach) - c.max_offset_s - 0.1)
         if k > 0:
             del self._gyro_t[:k], self._gyro_int[:k]
+        self._trim_at = len(self._gyro_t) + 256
 
     def _add_block(self, g_t: Array, g_int: Array, pairs: list[tuple[float, float, Array]]) -> None:
         t0 = np.array([p[0] for p in pairs])
@@ -151,16 +166,25 @@ class TimeOffsetEstimator:
         dt = (t1 - t0)[:, None]
         gyro = np.stack([(np.interp(t1[:, None] + d, g_t, g_int[:, a]) - np.interp(t0[:, None] + d, g_t, g_int[:, a])) / dt
                          for a in range(3)], axis=-1)  # (n, candidates, 3)
-        r = vis[:, None, :] - gyro
-        r -= r.mean(axis=0, keepdims=True)  # the gyro bias over the block
+        raw = vis[:, None, :] - gyro
+        r = raw - raw.mean(axis=0, keepdims=True)  # the gyro bias over the block
         per_pair = np.einsum('ndk,ndk->nd', r, r)
         best = int(np.argmin(per_pair.sum(axis=0)))
         norm = np.sqrt(per_pair[:, best])
         keep = norm <= self.config.outlier_ratio * max(float(np.median(norm)), 1e-12)
-        self.cost += per_pair[keep].sum(axis=0)
+        if not keep.all():  # the bias again without the outliers (a lasting jump would shift it)
+            r = raw[keep] - raw[keep].mean(axis=0, keepdims=True)
+            per_pair = np.einsum('ndk,ndk->nd', r, r)
+        else:
+            per_pair = per_pair[keep]
+        self.cost += per_pair.sum(axis=0)
         self.pairs_used += int(keep.sum())
         self.blocks += 1
         self._estimate = None
+
+    def visual_break(self) -> None:
+        """The next frame does not pair with the last one (a new visual reference frame)."""
+        self._frame = None
 
     # -- the estimate ----------------------------------------------------------------------
 
@@ -201,8 +225,8 @@ class ImuClock:
     refined by a :class:`TimeOffsetEstimator` once it is confident.
 
     Until then the samples of the session's first seconds (up to ``repair_ns``) are kept as
-    received: when the estimate first settles, :meth:`add` hands them back, so that the caller
-    re-pairs them with the visual orientation at their corrected stamps (a 20 ms offset
+    received: when the estimate first settles, :meth:`take_kept` hands them back, so that the
+    caller re-pairs them with the visual orientation at their corrected stamps (a 20 ms offset
     mis-pairs exactly the seconds in which the panorama-in-world estimate takes shape).
     """
 
@@ -212,37 +236,55 @@ class ImuClock:
         self.offset_ns = self.known_offset_ns
         self.estimator = estimator
         self.repair_ns = int(repair_ns)
+        self._settled = False
         self._kept: list[tuple[Any, ...]] | None = [] if estimator is not None else None
 
-    def add(self, sample: tuple[Any, ...], omega_imu: Array, keep: bool) -> list[tuple[Any, ...]] | None:
+    def add(self, sample: tuple[Any, ...], omega_imu: Array, keep: bool) -> bool:
         """One IMU sample (``sample[0]`` its IMU stamp, ns) with its gyro rate; ``keep``: it may
-        need re-pairing later (the visual stream has started). Returns the kept samples, this
-        one excluded, when the offset has just settled (the caller re-pairs them), else None."""
+        need re-pairing later (the visual stream has started). True when the offset has just
+        become known (then :meth:`take_kept` has the samples so far, this one excluded)."""
         if self.estimator is None:
-            return None
+            return False
         t_imu = int(sample[0])
         self.estimator.add_gyro(t_imu - self.known_offset_ns, omega_imu)
         offset = self.estimator.offset_s
         if offset is not None:
             self.offset_ns = self.known_offset_ns + int(round(offset * 1e9))
-            kept, self._kept = self._kept, None
-            return kept
-        if self._kept is not None and keep:
-            self._kept.append(sample)
-            if t_imu - int(self._kept[0][0]) > self.repair_ns:
-                self._kept = None  # too late to re-pair: the offset applies from then on
-        return None
+            if not self._settled:
+                self._settled = True
+                return True
+            return False
+        self.keep(sample, keep)
+        return False
+
+    def keep(self, sample: tuple[Any, ...], keep: bool = True) -> None:
+        """Keep a sample (stamp first, IMU clock) for re-pairing while the offset is unknown."""
+        if self._kept is None or self._settled or not keep:
+            return
+        self._kept.append(sample)
+        if int(sample[0]) - int(self._kept[0][0]) > self.repair_ns:
+            self._kept = None  # too late to re-pair: the offset applies from then on
+
+    def take_kept(self) -> list[tuple[Any, ...]] | None:
+        """The kept samples (once; None when there is nothing to re-pair)."""
+        kept, self._kept = self._kept, None
+        return kept
 
     def add_visual(self, t_ns: int, R_ref_cam: Array) -> None:
         if self.estimator is not None:
             self.estimator.add_visual(t_ns, R_ref_cam)
 
     def forget_kept(self) -> None:
-        """No re-pairing across this point (the visual reference frame changed)."""
+        """The visual stream broke off (the tracker was lost, or its reference frame changed):
+        nothing before this point is re-paired, and no frame pair spans it."""
         self._kept = None
+        if self.estimator is not None:
+            self.estimator.visual_break()
 
     def restart(self) -> None:
-        """The stamps start over (a bag loop): a new estimate, around the offset applied so far."""
+        """The stamps start over (a bag loop): a new estimate on the grid about the known offset;
+        the offset applied so far stays until it is confident."""
         if self.estimator is not None:
             self.estimator.reset()
-            self._kept = [] if self._kept is not None else None
+            self._settled = False
+            self._kept = []

@@ -448,9 +448,9 @@ class HybridOrientationFilterNode(TrackingNode):
                 R_pe = R_pano_cam @ self.backup.R_enu_cam.T
                 self.align.reset(prior=(R_pe, float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))))
                 self.pending.clear()
-                self.clock.forget_kept()
             self.visual.clear()
             self.backup.visual.clear()
+            self.clock.forget_kept()
         self.last_visual_ns = t_v
         self.visual.add(t_v, R_pano_cam)
         self.backup.add_visual(t_v, R_pano_cam)
@@ -517,9 +517,8 @@ class HybridOrientationFilterNode(TrackingNode):
             return
         mag = self.mag if self.mag_ns is not None and abs(t_imu - self.mag_ns) <= self.max_mag_age_ns else None
         sample = (t_imu, self.calibration.accel(accel), mag, self.calibration.gyro(omega))
-        kept = self.clock.add(sample, sample[3], keep=self.last_visual_ns is not None)
-        if kept is not None:
-            self._offset_settled(kept)
+        if self.clock.add(sample, sample[3], keep=self.last_visual_ns is not None):
+            self._offset_settled(self.clock.take_kept())
         t_g = t_imu - self.clock.offset_ns  # in the camera's clock from here on
         self.last_imu_ns = t_g
         self.backup.add_gyro(t_g, sample[3])
@@ -541,12 +540,15 @@ class HybridOrientationFilterNode(TrackingNode):
         self.last_backup_pub_ns = t_g
         self._publish(t_g, self.backup.R_enu_cam, self.backup.cov, None)
 
-    def _offset_settled(self, kept: list[tuple[Any, ...]]) -> None:
-        """The time offset is known: rebuild the alignment from the samples so far, paired with
-        the visual orientation at their corrected stamps; say so once."""
-        self.align.reset()
-        self.pending = deque((t - self.clock.offset_ns, *rest) for t, *rest in kept)
-        self._resolve()
+    def _offset_settled(self, kept: list[tuple[Any, ...]] | None) -> None:
+        """The time offset is known: rebuild the alignment from the samples so far (when they
+        are all still there), paired with the visual orientation at their corrected stamps; the
+        gyro backup's chain starts over in the new clock; say so."""
+        if kept is not None:
+            self.align.reset()
+            self.pending = deque((t - self.clock.offset_ns, *rest) for t, *rest in kept)
+            self._resolve()
+        self.backup.chain.clear()
         est = self.clock.estimator.estimate() if self.clock.estimator is not None else None
         self.get_logger().info(
             f'camera-IMU time offset {self.clock.offset_ns * 1e-6:.1f} +- {0.0 if est is None else est[1] * 1e3:.1f} ms '

@@ -115,9 +115,12 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         raise SimError(f'unknown profile {profile!r} (use {" or ".join(PROFILES)})')
     if lighting is not None and lighting not in SESSIONS:
         raise SimError(f'unknown lighting {lighting!r} (use {" or ".join(SESSIONS)})')
-    if imu_time_offset_s is not None and (not isinstance(imu_time_offset_s, (int, float))
-                                          or not math.isfinite(imu_time_offset_s) or abs(imu_time_offset_s) > 1.0):
-        raise SimError(f'the IMU time offset must be finite and within +-1 s, got {imu_time_offset_s!r} s')
+    if imu_time_offset_s is not None:
+        if scenario != 'rotation_sweep':
+            raise SimError(f'an IMU time offset is a rotation_sweep option, not one of {scenario}')
+        if isinstance(imu_time_offset_s, bool) or not isinstance(imu_time_offset_s, (int, float, np.floating)) \
+                or not math.isfinite(imu_time_offset_s) or abs(imu_time_offset_s) > 1.0:
+            raise SimError(f'the IMU time offset must be finite and within +-1 s, got {imu_time_offset_s!r} s')
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:

@@ -95,24 +95,61 @@ def test_imu_clock_hands_back_the_first_samples_once_when_the_offset_settles():
     original = clock.add
 
     def add(sample, omega, keep):
-        kept = original(sample, omega, keep)
-        if kept is not None:
-            handed.append(kept)
-        return kept
+        settled = original(sample, omega, keep)
+        if settled:
+            handed.append(clock.take_kept())
+        return settled
 
     clock.add = add  # type: ignore[method-assign]
     _feed(clock, 0.02)
     assert len(handed) == 1 and len(handed[0]) > 100  # the first seconds, once
     assert all(s[1] == 'sample' for s in handed[0])
     assert abs(clock.offset_ns - 20_000_000) < 1_000_000
+    assert clock.take_kept() is None
 
     forgotten = ImuClock(5_000_000, TimeOffsetEstimator(R_IMU_CAM))
-    forgotten.forget_kept()  # a new panorama: nothing to re-pair
-    assert forgotten.add((T0, 'sample'), np.zeros(3), keep=True) is None
-    assert forgotten.offset_ns == 5_000_000
+    forgotten.forget_kept()  # the tracker was lost: nothing before is re-paired
+    assert forgotten.add((T0, 'sample'), np.zeros(3), keep=True) is False
+    assert forgotten.take_kept() is None and forgotten.offset_ns == 5_000_000
+    forgotten.restart()  # a bag loop: the new session's first seconds are kept again
+    forgotten.add((T0, 'sample'), np.zeros(3), keep=True)
+    assert forgotten.take_kept() == [(T0, 'sample')]
 
     fixed = ImuClock(-8_000_000, None)  # estimation off: the known offset, nothing kept
-    assert fixed.add((T0, 'sample'), np.zeros(3), keep=True) is None and fixed.offset_ns == -8_000_000
+    assert fixed.add((T0, 'sample'), np.zeros(3), keep=True) is False and fixed.offset_ns == -8_000_000
+
+
+def test_the_gyro_buffer_stays_bounded_without_frames_and_after_the_tracker_stops():
+    est = TimeOffsetEstimator(R_IMU_CAM)
+    for k in range(200 * 120):  # two minutes of gyro, no camera
+        est.add_gyro(T0 + k * 5_000_000, np.array([0.0, 0.1, 0.0]))
+    assert len(est._gyro_t) < 1000
+    est = TimeOffsetEstimator(R_IMU_CAM)
+    _feed(est, 0.01, duration_s=3.5)  # frames for a while ...
+    blocks = est.blocks
+    for k in range(200 * 60):  # ... then the tracker stops for a minute
+        est.add_gyro(T0 + int(3.6e9) + k * 5_000_000, np.array([0.0, 0.1, 0.0]))
+    assert len(est._gyro_t) < 1000 and not est._pairs
+    assert est.blocks == blocks + 1  # the pairs that waited made a short block
+
+
+def test_a_lasting_jump_of_the_tracker_does_not_spoil_the_bias_of_its_block():
+    est = TimeOffsetEstimator(R_IMU_CAM)
+    rng = np.random.default_rng(2)
+    t = np.arange(0.0, 12.0, 1 / 200)
+    rate = _motion(t)
+    R, frames = np.eye(3), []
+    jump = np.eye(3)
+    for k in range(len(t)):
+        if k % 7 == 0:
+            if k == 7 * 150:
+                jump = so3_exp(np.array([0.0, 0.2, 0.0]))  # a relocalisation: the frame moves for good
+            frames.append((T0 + int(t[k] * 1e9), 1, jump @ R))
+        R = R @ so3_exp(0.5 * (rate[k] + rate[min(k + 1, len(t) - 1)]) / 200)
+    gyro = [(T0 + int((t[k] + 0.012) * 1e9), 0, R_IMU_CAM @ rate[k] + rng.normal(0, 0.002, 3)) for k in range(len(t))]
+    for t_ns, kind, value in sorted(gyro + frames, key=lambda e: (e[0], e[1])):
+        (est.add_gyro if kind == 0 else est.add_visual)(t_ns, value)
+    assert est.offset_s is not None and abs(est.offset_s - 0.012) < 0.002
 
 
 @pytest.mark.skipif(not (SHARED_DATA / 'euroc_imu_april_detections' / 'imu0.csv').is_file(),

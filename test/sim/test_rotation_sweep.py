@@ -573,9 +573,11 @@ def test_a_chosen_imu_time_offset_moves_only_the_imu_stamps(tmp_path: Path) -> N
         cam = [stamp_to_ns(m.header.stamp) for _, m in b.read_all('/camera/image_raw')]
     assert np.all(np.array(imu) - np.array(gt) == 40_000_000) and np.all(np.array(mag) - np.array(gt) == 40_000_000)
     assert cam[0] == gt[0]
-    for bad in (float('nan'), 2.0):
+    for bad in (float('nan'), 2.0, True):
         with pytest.raises(SimError, match='IMU time offset'):
             make_bag('rotation_sweep', tmp_path / 'bad.mcap', seed=SEED, duration_s=1.0, imu_time_offset_s=bad)
+    with pytest.raises(SimError, match='rotation_sweep option'):
+        make_bag('robot_arcs', tmp_path / 'arcs.mcap', seed=SEED, duration_s=1.0, imu_time_offset_s=0.01)
 
 
 def test_exposure_jumps_larger_in_hard_profile() -> None:
