@@ -20,9 +20,8 @@ seen since the panorama started:
   the mean velocity over the ramps rather than its end values. A person turns the phone about
   their own body, the phone at arm's length: that orbit's acceleration ``alpha x r + omega x
   (omega x r)`` is modelled with the (low-passed) gyro rate and a lever arm r in the IMU frame,
-  estimated in the same least squares (linear in r). The accelerometer
-  bias b_a is estimated with a ridge prior (only its horizontal part is observable, and only as
-  the phone turns). O(1) per sample: the normal equations are sums, kept per window.
+  estimated in the same least squares (linear in r). The accelerometer bias b_a has a ridge
+  prior (only its horizontal part is observable, as the phone turns). Sums kept per window.
 * **magnetic field**: ``m_imu(t) = (I + E) R_imu_P(t) f_P + h + e(t)``: the local field is a
   constant vector in the panorama frame, h is the residual hard iron and E the residual soft
   iron left by the calibration (:mod:`.soft_iron`); with the panorama's rotations they
@@ -32,16 +31,15 @@ seen since the panorama started:
   field each short window of samples implies (strength and dip about their medians, heading
   about the densest cluster of window headings, kept from one solve to the next unless another
   cluster clearly outgrows it - a turned field early in a session can hold as many windows as
-  the true one, and a median would sit between the two),
-  re-solved every ``solve_period_s``; the normal equations are sums, so only each window's
-  sums are kept (O(1) per sample, O(windows) per solve).
+  the true one, and a median would sit between the two), re-solved every ``solve_period_s``
+  from each window's sums (O(1) per sample, O(windows) per solve). A field sample is paired
+  with the orientation at its own stamp (:meth:`WorldAlignment.add_field`).
 
 R_PN follows from g_P and f_P by the gravity-first construction of eq. 3-4 (up = g, east =
 f x up, north = up x east), with the declination. Its covariance (:mod:`.alignment_covariance`):
-tilt from the hand's velocity term, heading from the windows' scatter and the hard iron's
-bias through the field solve and the tilt's leak through the dip, plus floors for what the
-model leaves out (the camera-IMU time offset, iron that varies with temperature).
-Field vectors are used in units of their median norm, so any magnetometer unit works.
+tilt from the hand's velocity term, heading from the windows' scatter and the hard iron's bias
+through the field solve and the tilt's leak through the dip, plus floors for what the model
+leaves out. Field vectors are used in units of their median norm: any magnetometer unit works.
 """
 from __future__ import annotations
 
@@ -70,9 +68,8 @@ class WorldAlignmentConfig:
     #: ``field_model_sigma`` per sample): deliberately looser than the residual a calibration
     #: leaves (``hard_iron_prior_sigma``), so that h follows the rotations once they tell it apart.
     hard_iron_sigma: float = 0.2
-    #: Width of the field fit's ridge on the residual soft iron (the entries of the symmetric E
-    #: in m = (I + E) R_imu_P f_P + h), relative like ``hard_iron_sigma``. 0 leaves E out of the
-    #: model.
+    #: Width of the field fit's ridge on the residual soft iron (the entries of the symmetric E in
+    #: m = (I + E) R_imu_P f_P + h), relative like ``hard_iron_sigma``; 0 leaves E out.
     soft_iron_sigma: float = 0.1
     #: Length of the gravity weights' ramps at both ends of the session, s (a taper kills the
     #: velocity term of the mean at its ends).
@@ -96,9 +93,8 @@ class WorldAlignmentConfig:
     cauchy_scale: float = 2.5
     #: Floor of the robust residual sigma, relative to |B| (a perfect sensor is not trusted more).
     min_field_sigma: float = 0.005
-    #: Per-sample error of the field model (unmodelled iron, small disturbances), relative
-    #: to |B|: weighs the hard-iron prior, so that h moves only where the rotations tell it apart
-    #: from a field turned in the world.
+    #: Per-sample error of the field model (unmodelled iron, small disturbances), relative to |B|:
+    #: weighs the hard-iron prior (h moves only where the rotations tell it from a turned field).
     field_model_sigma: float = 0.02
     #: Correlation time of the residuals (hand motion, disturbances), s: sets how many samples
     #: a prior carried into a new panorama is worth.
@@ -234,9 +230,14 @@ class WorldAlignment:
         self._sum_aa += aa
         self._sum_a_norm += math.sqrt(aa)
         self._dirty = True
-        if mag is None:
-            return
-        fw = self._fw
+        if mag is not None:
+            self.add_field(t_ns, R_pano_imu, mag)
+
+    def add_field(self, t_ns: int, R_pano_imu: Array, mag: Array) -> None:
+        """One calibrated field sample (any unit) with the IMU's orientation in the panorama
+        frame at its own stamp (a magnetometer has its own rate and stamps)."""
+        t_ns, R_imu_P, fw = int(t_ns), R_pano_imu.T, self._fw
+        self._dirty = True
         k = fw.open(t_ns)
         fw.n[k] += 1
         fw.sums['S'][k] += R_imu_P

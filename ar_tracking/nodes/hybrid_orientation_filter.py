@@ -150,7 +150,8 @@ PARAMS = (
               'Weight of one comparison in the running gyro bias (0: no learning)', min_value=0.0, max_value=1.0),
     ParamSpec('visual_noise_rad', 0.001, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0),
     ParamSpec('max_mag_age_s', 0.1,
-              'Oldest field sample still paired with an IMU sample, s', min_value=0.0, max_value=10.0),
+              'Not used here (each field sample is paired with the visual orientation at its own stamp); kept so '
+              'that a params file shared with imu_magnetometer loads', min_value=0.0, max_value=10.0),
     ParamSpec('max_pair_gap_s', 0.2,
               'Largest gap between two visual orientations that is interpolated across, s',
               min_value=0.0, max_value=10.0),
@@ -209,7 +210,6 @@ class HybridOrientationFilterNode(TrackingNode):
             'publish_mount_tf': self._set_publish_mount_tf,
             'declination_rad': lambda x: self.align.set_declination(x),
             'visual_noise_rad': lambda x: setattr(self, 'visual_noise_rad', x),
-            'max_mag_age_s': live_ns('max_mag_age_ns'),
             'visual_timeout_s': live_ns('visual_timeout_ns'),
             'backup_rate_hz': lambda x: setattr(self, 'backup_period_ns', int(1e9 / x)),
             'max_backup_s': live_ns('max_backup_ns'),
@@ -250,7 +250,6 @@ class HybridOrientationFilterNode(TrackingNode):
             bias_gain=v['gyro_bias_gain'],
         )
         self.visual_noise_rad: float = v['visual_noise_rad']
-        self.max_mag_age_ns = int(1e9 * v['max_mag_age_s'])
         self.max_pair_gap_ns = int(1e9 * v['max_pair_gap_s'])
         self.visual_timeout_ns = int(1e9 * v['visual_timeout_s'])
         self.backup_period_ns = int(1e9 / v['backup_rate_hz'])
@@ -270,11 +269,11 @@ class HybridOrientationFilterNode(TrackingNode):
         self.clock = ImuClock(int(round(1e9 * v['imu_time_offset_s'])), estimator, _REPAIR_NS)
         # (long enough to re-pair the samples of the first seconds once the time offset is known)
         self.visual = RotationBuffer(self.max_pair_gap_ns, keep_ns=_REPAIR_NS + 1_000_000_000)
-        self.pending: deque[tuple[int, np.ndarray, np.ndarray | None, np.ndarray]] = deque()
+        #: IMU samples (t, accel, omega) and field samples (t, field), camera clock, waiting for
+        #: the visual orientation at their stamps.
+        self.pending: deque[tuple[Any, ...]] = deque()
         self._hard_iron_reported = False
         self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
-        self.mag: np.ndarray | None = None
-        self.mag_ns: int | None = None
         self.last_visual_ns: int | None = None
         self.last_imu_ns: int | None = None
         self.last_backup_pub_ns: int | None = None
@@ -363,7 +362,6 @@ class HybridOrientationFilterNode(TrackingNode):
         self.pending.clear()
         for guard in self.stamp_guards.values():
             guard.reset()
-        self.mag = self.mag_ns = None
         self.last_visual_ns = self.last_imu_ns = self.last_backup_pub_ns = self.last_published_ns = None
 
     def _stamp_ok(self, key: str, t_ns: int, what: str) -> bool:
@@ -398,10 +396,12 @@ class HybridOrientationFilterNode(TrackingNode):
             self.pub_frame.publish(rotation_transform_cdr(sec, nanosec, self.world_frame, self.panorama_frame, R_enu_pano))
 
     def _resolve(self) -> None:
-        """Feed pending IMU samples to the alignment with the visual orientation at their stamps."""
+        """Feed pending IMU and field samples to the alignment, each with the visual orientation
+        at its own stamp."""
         newest_visual = self.visual.newest_ns
         while self.pending:
-            t_s, accel, mag, omega = self.pending[0]
+            entry = self.pending[0]
+            t_s = entry[0]
             if newest_visual is None or newest_visual < t_s:
                 # Wait for a visual sample at or after t_s, unless vision is lost by now.
                 if self.last_imu_ns is not None and self.last_imu_ns - t_s > self.visual_timeout_ns:
@@ -412,7 +412,10 @@ class HybridOrientationFilterNode(TrackingNode):
             R_pano_cam = self.visual.at(t_s)
             if R_pano_cam is None:  # before the buffer, or across a lost stretch
                 continue
-            self.align.add(t_s, R_pano_cam @ self.R_imu_cam.T, accel, mag, omega)
+            if len(entry) == 2:
+                self.align.add_field(t_s, R_pano_cam @ self.R_imu_cam.T, entry[1])
+            else:
+                self.align.add(t_s, R_pano_cam @ self.R_imu_cam.T, entry[1], None, entry[2])
 
     # -- callbacks -------------------------------------------------------------------------
 
@@ -489,7 +492,9 @@ class HybridOrientationFilterNode(TrackingNode):
             '(the axis the phone turned about keeps its calibration)')
 
     def on_mag(self, msg: MagneticField) -> None:
-        """Keep the newest calibrated field sample for pairing."""
+        """A field sample: calibrated, to the alignment with the visual orientation at its own
+        stamp (a magnetometer has its own rate and stamps; pairing it with the IMU sample next to
+        it mis-pairs it by up to a sample period)."""
         try:
             raw = finite_vector3(msg.magnetic_field, 'imu/mag field')
         except ConversionError as exc:
@@ -502,7 +507,11 @@ class HybridOrientationFilterNode(TrackingNode):
         if float(field @ field) <= 0.0:
             self.warn_throttled('imu/mag field has zero norm, message dropped')
             return
-        self.mag, self.mag_ns = field, t_m
+        if self.last_visual_ns is None:
+            return
+        self.clock.keep((t_m, field))
+        self.pending.append((t_m - self.clock.offset_ns, field))
+        self._resolve()
 
     def on_imu(self, msg: Imu) -> None:
         """Gyro + accelerometer sample: to the alignment (paired with vision by stamp) and the
@@ -515,13 +524,12 @@ class HybridOrientationFilterNode(TrackingNode):
         t_imu = stamp_ns(msg.header)
         if not self._stamp_ok('imu', t_imu, 'imu/data_raw'):
             return
-        mag = self.mag if self.mag_ns is not None and abs(t_imu - self.mag_ns) <= self.max_mag_age_ns else None
-        sample = (t_imu, self.calibration.accel(accel), mag, self.calibration.gyro(omega))
-        if self.clock.add(sample, sample[3], keep=self.last_visual_ns is not None):
+        sample = (t_imu, self.calibration.accel(accel), self.calibration.gyro(omega))
+        if self.clock.add(sample, sample[2], keep=self.last_visual_ns is not None):
             self._offset_settled(self.clock.take_kept())
         t_g = t_imu - self.clock.offset_ns  # in the camera's clock from here on
         self.last_imu_ns = t_g
-        self.backup.add_gyro(t_g, sample[3])
+        self.backup.add_gyro(t_g, sample[2])
         if self.last_visual_ns is not None:
             self.pending.append((t_g, *sample[1:]))
             self._resolve()

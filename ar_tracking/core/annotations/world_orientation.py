@@ -127,17 +127,24 @@ class PanoramaWorldEstimator:
         ahrs_sum = np.zeros((3, 3))
         n = n_ahrs = 0
         cal = self.calibration
+        next_field = 0  # each field sample joins the alignment once, at its own stamp
         for t, gyro, accel in self.imu:
             k = bisect.bisect_right(mts, t) - 1
             raw_mag = self.mag[k][1] if k >= 0 and t - mts[k] <= self.max_mag_age_ns else None
             est = ahrs.update(t, gyro, accel, raw_mag, mts[k] if raw_mag is not None else None)
             R_pano_cam = self._visual_at(vts, t)
+            if R_pano_cam is not None:
+                R_pano_imu = R_pano_cam @ self.R_imu_cam.T
+                align.add(t, R_pano_imu, cal.accel(accel), None, cal.gyro(gyro))
+                n += 1
+            while next_field <= k:
+                t_m, raw = self.mag[next_field]
+                next_field += 1
+                R_field = self._visual_at(vts, t_m)
+                if R_field is not None:
+                    align.add_field(t_m, R_field @ self.R_imu_cam.T, cal.mag(raw))
             if R_pano_cam is None:
                 continue
-            R_pano_imu = R_pano_cam @ self.R_imu_cam.T
-            align.add(t, R_pano_imu, cal.accel(accel), None if raw_mag is None else cal.mag(raw_mag),
-                      cal.gyro(gyro))
-            n += 1
             if isinstance(est, AhrsEstimate) and est.mag_used:
                 ahrs_sum += est.R_enu_body @ R_pano_imu.T
                 n_ahrs += 1
