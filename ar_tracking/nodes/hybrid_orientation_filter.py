@@ -17,6 +17,8 @@ Publishes
 
 The IMU -> camera rotation comes from ``/tf_static`` when the graph or the bag has it (the
 parameter ``imu_to_camera_quat_xyzw`` is the fallback, with a warning when the two disagree).
+IMU and field samples are paired with the visual orientation at their own stamps, moved into
+the camera's clock by the camera-IMU time offset (``core/time_offset.py``, logged when known).
 
 TF (``publish_tf``): every orientation/global is also broadcast on ``/tf`` as
 ``world_frame_id`` -> ``camera_frame_id``, and, while the mount comes from the parameter, the
