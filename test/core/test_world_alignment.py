@@ -215,3 +215,30 @@ def test_the_heading_covariance_covers_the_soft_iron_over_half_a_turn():
         assert est.covariance_enu[2, 2] > 1.2 * without.covariance_enu[2, 2]
         v = so3_log(est.R_pano_enu.T @ R_PE)
         assert abs(float(v[2])) / math.sqrt(est.covariance_enu[2, 2]) < 2.5
+
+
+def test_field_samples_of_their_own_rate_and_stamps():
+    """A magnetometer at 20 Hz, stamped 7 ms after the IMU samples next to it, each sample given
+    with the orientation at its own stamp (``add_field``): the heading is right; the same field
+    paired with the IMU sample before it instead (7 ms off during a 36 deg/s turn) turns it."""
+    rng = np.random.default_rng(3)
+    own, lagged = WorldAlignment(), WorldAlignment()
+    duration, turns = 10.0, 1.0
+    for k in range(int(duration * 100)):
+        t = k / 100.0
+        R = sweep(t, turns, duration)
+        R_imu_enu = (R @ R_IMU_CAM.T).T
+        accel = R_imu_enu @ G + rng.normal(0, 0.05, 3)
+        for wa in (own, lagged):
+            wa.add(1 + int(t * 1e9), R_PE @ R @ R_IMU_CAM.T, accel)
+        if k % 5 == 2:  # 20 Hz, 7 ms after an IMU sample
+            t_m = t + 0.007
+            R_m = sweep(t_m, turns, duration)
+            mag = (R_m @ R_IMU_CAM.T).T @ FIELD + rng.normal(0, 0.3e-6, 3)
+            own.add_field(1 + int(t_m * 1e9), R_PE @ R_m @ R_IMU_CAM.T, mag)
+            lagged.add_field(1 + int(t * 1e9), R_PE @ R @ R_IMU_CAM.T, mag)
+    own_heading, _ = errors_deg(own.estimate())
+    lagged_heading, _ = errors_deg(lagged.estimate())
+    assert own_heading < 0.05
+    assert lagged_heading > 0.15 and lagged_heading > 4 * own_heading
+    assert own._field_samples == 200  # each field sample once
