@@ -505,13 +505,15 @@ def _first_seconds_over_floor(rows: dict[str, Any]) -> float | None:
 
 
 def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), duration_s: float = 40.0,
-                profile: str | None = None, imu_time_offset_ms: float | None = None) -> dict[str, Any]:
+                profile: str | None = None, imu_time_offset_ms: float | None = None,
+                readout_ms: float = 0.0) -> dict[str, Any]:
     """The hybrid filter on fresh rotation_sweep seeds (the simulator's default, harder profile
     unless ``profile`` says otherwise): per seed the heading / tilt RMSE of orientation/global
     (hybrid), imu/data (sensor only) and reference/vqf (VQF on the same IMU samples), the
     hybrid's mean NEES, and a summary (median and worst hybrid heading, worst tilt, worst
     hybrid / VQF heading ratio). ``imu_time_offset_ms`` replaces the profile's camera-IMU time
-    offset in every bag (make-bag ``--imu-time-offset-ms``). Commands per seed: make-bag, run (imu_magnetometer,
+    offset in every bag (make-bag ``--imu-time-offset-ms``), ``readout_ms`` gives the camera a
+    rolling shutter (``--readout-ms``). Commands per seed: make-bag, run (imu_magnetometer,
     panorama_mapper, hybrid_orientation_filter), evaluate."""
     from ..ros.runner import GraphRunner
     from ..sim.bagmaker import make_bag
@@ -524,12 +526,15 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
     rows: dict[str, Any] = {}
     for seed in seeds:
         tag = f'seed{seed}_{duration_s:g}s' + (f'_{profile}' if profile else '') \
-            + ('' if imu_time_offset_ms is None else f'_imu{imu_time_offset_ms:+g}ms')
+            + ('' if imu_time_offset_ms is None else f'_imu{imu_time_offset_ms:+g}ms') \
+            + (f'_rs{readout_ms:g}ms' if readout_ms else '')
         bag = workdir / f'rotation_sweep_{tag}.mcap'
         if not bag.exists():
             kwargs: dict[str, Any] = {'profile': profile} if profile else {}
             if imu_time_offset_ms is not None:
                 kwargs['imu_time_offset_s'] = imu_time_offset_ms * 1e-3
+            if readout_ms:
+                kwargs['readout_s'] = readout_ms * 1e-3
             make_bag('rotation_sweep', bag, seed=seed, duration_s=duration_s, overwrite=True, **kwargs)
         sidecar = bag.with_name(bag.stem + '.params.yaml')
         out = workdir / f'rotation_sweep_{tag}.out.mcap'
@@ -574,4 +579,5 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
                                                               if r['vqf']['heading_rmse_deg'] is not None])), 4) if rows else None,
     }
     return {'duration_s': duration_s, 'profile': profile or 'default', 'imu_time_offset_ms': imu_time_offset_ms,
+            'readout_ms': readout_ms,
             'per_seed': rows, 'summary': summary}

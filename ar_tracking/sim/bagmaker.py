@@ -98,7 +98,8 @@ MAX_DURATION_S = 3600.0
 def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float = 60.0,
              session: str = 'authoring', storage: str = 'mcap', image_format: str = 'raw',
              overwrite: bool = False, progress: Callable[[float], None] | None = None,
-             lighting: str | None = None, profile: str = 'hard', imu_time_offset_s: float | None = None) -> Path:
+             lighting: str | None = None, profile: str = 'hard', imu_time_offset_s: float | None = None,
+             readout_s: float = 0.0) -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
@@ -106,7 +107,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     ``lighting`` (rotation_sweep only): the session whose sun and sky light the spot, default
     ``session``; e.g. a browsing walk under the authoring sun (the 'same lighting' column of
     Langlotz 2011 Fig. 7). ``imu_time_offset_s`` (rotation_sweep only): the IMU and
-    magnetometer stamps minus the true time instead of the profile's offset. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
+    magnetometer stamps minus the true time instead of the profile's offset; ``readout_s``
+    (rotation_sweep only): a rolling-shutter camera read out over that time. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
     phone or camera) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
     :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
@@ -121,6 +123,12 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         if isinstance(imu_time_offset_s, bool) or not isinstance(imu_time_offset_s, (int, float, np.floating)) \
                 or not math.isfinite(imu_time_offset_s) or abs(imu_time_offset_s) > 1.0:
             raise SimError(f'the IMU time offset must be finite and within +-1 s, got {imu_time_offset_s!r} s')
+    if readout_s:
+        if scenario != 'rotation_sweep':
+            raise SimError(f'a rolling-shutter readout is a rotation_sweep option, not one of {scenario}')
+        if isinstance(readout_s, bool) or not isinstance(readout_s, (int, float, np.floating)) \
+                or not math.isfinite(readout_s) or not 0.0 <= readout_s <= 0.1:
+            raise SimError(f'the readout time must be between 0 and 0.1 s, got {readout_s!r} s')
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:
@@ -128,7 +136,7 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
             if p.exists():
                 raise SimError(f'{p}: already exists (choose another name or overwrite)')
     scn = REGISTRY[scenario]
-    req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s)
+    req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s, float(readout_s))
     try:
         with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
             scn.write_bag(bag, req, progress)

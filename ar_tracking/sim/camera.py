@@ -78,8 +78,11 @@ class FrameRenderer:
         self._xx, self._yy = xx.astype(np.float32), yy.astype(np.float32)
 
     def _sample(self, R_enu_cam: Array) -> Image:
-        """The panorama seen through the camera at one orientation (gamma-encoded, float)."""
+        """The panorama seen through the camera at one orientation (3, 3), or at one per image
+        row (rows, 3, 3: a rolling shutter), gamma-encoded, float."""
         R = np.asarray(R_enu_cam, dtype=np.float32)
+        if R.ndim == 3:  # per row: each coefficient repeated over the row's pixels
+            R = np.repeat(R, self.camera.width, axis=0).transpose(1, 2, 0)
         dx = self._rx * R[0, 0] + self._ry * R[0, 1] + self._rz * R[0, 2]
         dy = self._rx * R[1, 0] + self._ry * R[1, 1] + self._rz * R[1, 2]
         dz = self._rx * R[2, 0] + self._ry * R[2, 1] + self._rz * R[2, 2]
@@ -118,7 +121,8 @@ class FrameRenderer:
         return out
 
     def render(self, R_enu_cam_samples: Array, gain: float, wb_rgb: Array) -> NDArray[np.uint8]:
-        """An RGB8 frame; ``R_enu_cam_samples`` (n, 3, 3) spans the exposure (motion blur).
+        """An RGB8 frame; ``R_enu_cam_samples`` (n, 3, 3) spans the exposure (motion blur), or
+        (n, rows, 3, 3) with one orientation per image row (a rolling shutter).
 
         ``gain`` multiplies linear radiance (so encoded values by ``gain ** (1/GAMMA)``).
         """
@@ -127,7 +131,8 @@ class FrameRenderer:
             acc += self._sample(R)
         if len(R_enu_cam_samples) > 1:
             acc *= np.float32(1.0 / len(R_enu_cam_samples))
-        glare = self._glare(R_enu_cam_samples[len(R_enu_cam_samples) // 2])
+        middle = np.asarray(R_enu_cam_samples[len(R_enu_cam_samples) // 2])
+        glare = self._glare(middle if middle.ndim == 2 else middle[len(middle) // 2])
         if glare is not None:
             acc += glare
         scale = (gain ** (1.0 / GAMMA)) * 255.0 * np.asarray(wb_rgb, np.float64)

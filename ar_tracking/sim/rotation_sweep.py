@@ -359,17 +359,21 @@ class Scenario:
     profile: str = 'hard'
     #: IMU / magnetometer header stamp minus the true sample time (0 in the 'kind' profile).
     imu_time_offset_ns: int = 0
+    #: Rolling-shutter readout of the camera, s: row r of a frame stamped t is exposed around
+    #: t + readout_s (r + 0.5) / rows (0: a global shutter, the profiles' default).
+    readout_s: float = 0.0
 
 
 def make_scenario(seed: int, session: str, duration_s: float,
                   declination_rad: float = 0.0, profile: str = 'hard',
-                  imu_time_offset_s: float | None = None) -> Scenario:
+                  imu_time_offset_s: float | None = None, readout_s: float = 0.0) -> Scenario:
     """The scenario for a seed and session; the spot (and so the GPS origin) is the seed's.
 
     ``profile``: 'hard' (default, a realistic phone) or 'kind' (the earlier, easier simulator);
     see the module docstring. ``imu_time_offset_s`` replaces the profile's camera-IMU time
-    offset (e.g. a phone whose rolling-shutter readout or driver delays the camera's stamps by
-    tens of ms); everything else stays the seed's."""
+    offset (e.g. a phone whose driver delays the camera's stamps by tens of ms); ``readout_s``
+    gives the camera a rolling shutter read out over that time after its stamp; everything
+    else stays the seed's."""
     if session not in SESSIONS:
         raise ValueError(f'unknown session {session!r} (use {" or ".join(SESSIONS)})')
     check_profile(profile)
@@ -396,6 +400,7 @@ def make_scenario(seed: int, session: str, duration_s: float,
         origin_lat_lon_alt=origin,
         profile=profile,
         imu_time_offset_ns=offset_ns,
+        readout_s=float(readout_s),
     )
 
 
@@ -563,3 +568,18 @@ def blur_samples(traj: Trajectory, t_s: float, fx_px: float) -> Array:
     if n == 1:
         return traj.R_enu_cam(np.array([t_s]))
     return traj.R_enu_cam(t_s + np.linspace(-0.5, 0.5, n) * EXPOSURE_TIME_S)
+
+
+def frame_orientations(traj: Trajectory, t_s: float, fx_px: float, readout_s: float, rows: int) -> Array:
+    """The orientations a frame stamped ``t_s`` is rendered with: :func:`blur_samples` (n, 3, 3)
+    for a global shutter; with a rolling shutter (``readout_s`` > 0) one set per image row,
+    (n, rows, 3, 3), row r exposed around ``t_s + readout_s (r + 0.5) / rows``."""
+    if readout_s <= 0.0:
+        return blur_samples(traj, t_s, fx_px)
+    mid = t_s + 0.5 * readout_s
+    speed = float(np.linalg.norm(traj.omega_cam(np.array([mid]))[0]))
+    n = int(min(5, max(1, math.ceil(speed * EXPOSURE_TIME_S * fx_px / 1.2))))
+    blur = np.linspace(-0.5, 0.5, n) * EXPOSURE_TIME_S if n > 1 else np.zeros(1)
+    row_t = t_s + readout_s * (np.arange(rows) + 0.5) / rows
+    times = (blur[:, None] + row_t[None, :]).ravel()
+    return traj.R_enu_cam(times).reshape(n, rows, 3, 3)

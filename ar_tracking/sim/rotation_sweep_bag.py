@@ -49,7 +49,7 @@ class RotationSweep:
 
     def write_bag(self, bag: BagWriter, req: BagRequest, progress: Progress | None) -> None:
         scn = rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
-                              imu_time_offset_s=req.imu_time_offset_s)
+                              imu_time_offset_s=req.imu_time_offset_s, readout_s=req.readout_s)
         world, light, pano = session_view(req.seed, req.session, req.lighting)
         _write_all(bag, scn, world, light, pano, Plan.make(scn, pano), req.image_format, progress)
 
@@ -60,7 +60,8 @@ class RotationSweep:
     def summary(self, req: BagRequest) -> str:
         return (f'rotation_sweep, seed {req.seed}, {req.session}, {req.duration_s:.1f} s, '
                 f'profile {req.profile}'
-                + ('' if req.imu_time_offset_s is None else f', IMU stamps {req.imu_time_offset_s * 1e3:+.1f} ms'))
+                + ('' if req.imu_time_offset_s is None else f', IMU stamps {req.imu_time_offset_s * 1e3:+.1f} ms')
+                + (f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ''))
 
 
 SCENARIO = RotationSweep()
@@ -166,7 +167,7 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, 
                                               gps.altitude_m[k], gps.sigma_horizontal_m,
                                               gps.sigma_vertical_m))
         else:
-            R = rs.blur_samples(scn.trajectory, stamp * 1e-9, cam.fx)
+            R = rs.frame_orientations(scn.trajectory, stamp * 1e-9, cam.fx, scn.readout_s, cam.height)
             rgb = renderer.render(R, float(plan.gain[k]), plan.wb[k])
             bag.write(TOPIC_CAMERA_INFO, ns, m.camera_info(ns, cam))
             bag.write(image_topic, ns, m.image(ns, rgb) if image_format == 'raw'

@@ -36,6 +36,8 @@ class BagRequest:
     profile: str = 'hard'
     #: rotation_sweep: the camera-IMU time offset instead of the profile's, s (None: the profile's)
     imu_time_offset_s: float | None = None
+    #: rotation_sweep: the camera's rolling-shutter readout time, s (0: a global shutter)
+    readout_s: float = 0.0
 
 
 class ScenarioBag(Protocol):
