@@ -580,6 +580,47 @@ def test_a_chosen_imu_time_offset_moves_only_the_imu_stamps(tmp_path: Path) -> N
         make_bag('robot_arcs', tmp_path / 'arcs.mcap', seed=SEED, duration_s=1.0, imu_time_offset_s=0.01)
 
 
+def test_a_rolling_shutter_renders_each_row_at_its_own_time() -> None:
+    """make-bag --readout-ms: row r of a frame stamped t shows the scene at t + readout (r + 0.5)
+    / rows - during a pan the bottom rows are shifted against a global-shutter frame by the
+    turn over the readout, the top rows hardly."""
+    from ar_tracking.cli import build_parser
+
+    assert build_parser().parse_args(['make-bag', 'rotation_sweep', '-o', 'x.mcap', '--readout-ms', '30']).readout_ms == 30
+    traj = rs.make_trajectory(SEED, 'authoring', 20.0)
+    t = np.arange(0.5, 19.5, 0.01)
+    t_pan = float(t[int(np.argmax(np.linalg.norm(traj.omega_cam(t), axis=1)))])
+    rows = 240
+    R_rs = rs.frame_orientations(traj, t_pan, 277.0, 0.03, rows)
+    assert R_rs.shape[1:] == (rows, 3, 3)
+    mid = len(R_rs) // 2
+    for r, dt in ((0, 0.03 * 0.5 / rows), (rows - 1, 0.03 * (rows - 0.5) / rows)):
+        assert np.allclose(R_rs[mid, r], traj.R_enu_cam(np.array([t_pan + dt]))[0], atol=1e-3)
+    assert rs.frame_orientations(traj, t_pan, 277.0, 0.0, rows).ndim == 3  # global: (n, 3, 3)
+    with pytest.raises(SimError, match='readout'):
+        make_bag('rotation_sweep', Path('/nonexistent/x.mcap'), seed=SEED, duration_s=1.0, readout_s=0.5)
+    with pytest.raises(SimError, match='rotation_sweep option'):
+        make_bag('handheld_desk', Path('/nonexistent/x.mcap'), seed=SEED, duration_s=1.0, readout_s=0.01)
+
+
+def test_rolling_shutter_frames_shear_during_a_pan(tmp_path: Path) -> None:
+    import cv2
+
+    frames = {}
+    for ms in (0.0, 30.0):
+        bag = make_bag('rotation_sweep', tmp_path / f'rs{ms:g}.mcap', seed=5, duration_s=3.0, readout_s=ms * 1e-3)
+        with BagReader(bag) as b:
+            frames[ms] = [(stamp_to_ns(m.header.stamp), np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3))
+                          for _, m in b.read_all('/camera/image_raw')]
+    traj = rs.make_trajectory(5, 'authoring', 3.0)
+    t = np.array([(s - frames[0.0][0][0]) * 1e-9 for s, _ in frames[0.0]])
+    k = int(np.argmax(np.linalg.norm(traj.omega_cam(t), axis=1)))
+    a, b = (cv2.cvtColor(frames[ms][k][1], cv2.COLOR_RGB2GRAY).astype(np.float32) for ms in (0.0, 30.0))
+    top = cv2.phaseCorrelate(a[:40], b[:40])[0][0]
+    bottom = cv2.phaseCorrelate(a[-40:], b[-40:])[0][0]
+    assert abs(bottom) > 2.5 and abs(bottom) > 3 * abs(top)
+
+
 def test_exposure_jumps_larger_in_hard_profile() -> None:
     hard = rs.make_exposure(SEED, 'authoring', 60.0)
     kind = rs.make_exposure(SEED, 'authoring', 60.0, profile='kind')
