@@ -94,6 +94,10 @@ PARAMS = (
               'Search radius of the second attempt and of re-localisation, pixels',
               min_value=1, max_value=48, read_only=True),
     ParamSpec('max_features', 60, 'Map keypoints searched per frame', min_value=10, max_value=1000, read_only=True),
+    ParamSpec('readout_s', 0.0,
+              'Rolling-shutter readout of the camera, s (0: a global shutter); the tracker and the map turn each row '
+              'by the camera\'s rate, and panorama/orientation is the orientation at the frame\'s stamp',
+              min_value=0.0, max_value=0.1, read_only=True),
     ParamSpec('min_inliers', 10,
               'A frame is tracked with at least this many inlier matches', min_value=3, max_value=1000, read_only=True),
     ParamSpec('min_inlier_ratio', 0.7,
@@ -156,7 +160,7 @@ class PanoramaMapperNode(TrackingNode):
             tracker=TrackerConfig(search_radius_px=v['search_radius_px'], max_features=v['max_features'],
                                   min_inliers=v['min_inliers'], min_inlier_ratio=v['min_inlier_ratio'],
                                   inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
-            wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'],
+            wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'], readout_s=v['readout_s'],
             offset_exposure=replace(OFFSET_EXPOSURE, smooth=v['edr_smooth']), edr_correction=v['edr_correction'],
         )
         self.core = PanoramaMapper(self.config)

@@ -55,7 +55,8 @@ class RotationSweep:
 
     def write_sidecars(self, sidecar: Path, bag_path: Path, req: BagRequest) -> None:
         write_sidecar(sidecar, rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
-                                                imu_time_offset_s=req.imu_time_offset_s), bag_path)
+                                                imu_time_offset_s=req.imu_time_offset_s, readout_s=req.readout_s),
+                      bag_path)
 
     def summary(self, req: BagRequest) -> str:
         return (f'rotation_sweep, seed {req.seed}, {req.session}, {req.duration_s:.1f} s, '
@@ -189,7 +190,7 @@ _PROFILE_NOTES = {
 def write_sidecar(path: Path, scn: rs.Scenario, bag_path: Path) -> None:
     """The ROS 2 params file for this device (plain floats): the calibration under
     ``imu_magnetometer`` and the same values (:data:`HYBRID_CALIBRATION_KEYS`) under
-    ``hybrid_orientation_filter``."""
+    ``hybrid_orientation_filter``; a rolling shutter's readout under ``panorama_mapper``."""
     cal = rs.calibration_params(scn)
     doc = {'imu_magnetometer': {'ros__parameters': cal}}
     hybrid = {'hybrid_orientation_filter': {'ros__parameters': {
@@ -203,5 +204,8 @@ def write_sidecar(path: Path, scn: rs.Scenario, bag_path: Path) -> None:
             'calibrated mag = soft_iron_matrix @ (raw - hard_iron_offset).\n'
             f'# Simulator profile: {scn.profile} ({_PROFILE_NOTES[scn.profile]}).\n')
     dump = functools.partial(yaml.safe_dump, sort_keys=False, default_flow_style=None)
+    camera = '' if scn.readout_s <= 0 else (
+        '# The camera has a rolling shutter: its rows are read out over this time after the stamp.\n'
+        + dump({'panorama_mapper': {'ros__parameters': {'readout_s': float(scn.readout_s)}}}))
     path.write_text(head + dump(doc) + '# The same calibration for the hybrid filter, which '
-                    'reads raw accelerometer and field samples too.\n' + dump(hybrid))
+                    'reads raw accelerometer and field samples too.\n' + dump(hybrid) + camera)

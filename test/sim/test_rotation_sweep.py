@@ -616,6 +616,9 @@ def test_rolling_shutter_frames_shear_during_a_pan(tmp_path: Path) -> None:
     t = np.array([(s - frames[0.0][0][0]) * 1e-9 for s, _ in frames[0.0]])
     k = int(np.argmax(np.linalg.norm(traj.omega_cam(t), axis=1)))
     a, b = (cv2.cvtColor(frames[ms][k][1], cv2.COLOR_RGB2GRAY).astype(np.float32) for ms in (0.0, 30.0))
+    sidecar = (tmp_path / 'rs30.params.yaml').read_text()
+    assert 'panorama_mapper' in sidecar and 'readout_s: 0.03' in sidecar  # the camera's readout for the mapper
+    assert 'panorama_mapper' not in (tmp_path / 'rs0.params.yaml').read_text()
     top = cv2.phaseCorrelate(a[:40], b[:40])[0][0]
     bottom = cv2.phaseCorrelate(a[-40:], b[-40:])[0][0]
     assert abs(bottom) > 2.5 and abs(bottom) > 3 * abs(top)

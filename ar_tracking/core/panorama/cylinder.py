@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from ..rotations import rot_y
 
@@ -111,3 +112,32 @@ def project_to_image(K: Array, p_cam: Array) -> tuple[Array, Array, NDArray[np.b
     """Pixel coordinates of camera-frame points (..., 3) and whether they are in front
     (:func:`project_xyz` of the three columns)."""
     return project_xyz(K, p_cam[..., 0], p_cam[..., 1], p_cam[..., 2])
+
+
+def row_rotations(row_motion: tuple[Array, float], y: ArrayLike, height: int) -> Array:
+    """Rolling shutter: the camera's turn (n, 3, 3) between a frame's stamp and the reading of
+    image rows ``y``, ``exp(omega dt)`` with ``dt = readout (y + 0.5) / height`` (``row_motion`` =
+    (omega rad/s in camera axes, readout s)); R_pano_cam at row y is R_pano_cam(stamp) times it."""
+    omega, readout = row_motion
+    rows = np.clip(np.nan_to_num(np.asarray(y, dtype=float), nan=0.0, posinf=height, neginf=0.0), 0.0, height)
+    dt = readout * (rows + 0.5) / height
+    return Rotation.from_rotvec(np.asarray(omega, float)[None, :] * dt[:, None]).as_matrix()
+
+
+def to_row_cameras(row_motion: tuple[Array, float], y: Array, height: int, px: Array, py: Array, pz: Array
+                   ) -> tuple[Array, Array, Array]:
+    """Camera coordinates (px, py, pz) at the frame's stamp turned into those of the camera
+    that read row ``y`` (the inverse of :func:`row_rotations`, one axis for all points: the
+    Rodrigues formula per point, for the map's many pixels)."""
+    omega, readout = row_motion
+    w = np.asarray(omega, float)
+    rate = float(np.linalg.norm(w))
+    if rate < 1e-12 or readout <= 0.0:
+        return px, py, pz
+    kx, ky, kz = (float(c) for c in w / rate)
+    rows = np.clip(np.nan_to_num(y, nan=0.0, posinf=height, neginf=0.0), 0.0, height)
+    theta = -rate * readout * (rows + 0.5) / height  # turning back
+    c, s = np.cos(theta), np.sin(theta)
+    dot = (kx * px + ky * py + kz * pz) * (1.0 - c)
+    cx, cy, cz = ky * pz - kz * py, kz * px - kx * pz, kx * py - ky * px  # k x p
+    return (px * c + cx * s + kx * dot, py * c + cy * s + ky * dot, pz * c + cz * s + kz * dot)

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .cylinder import CylinderGeometry, project_xyz
+from .cylinder import CylinderGeometry, project_xyz, to_row_cameras
 
 logger = logging.getLogger(__name__)
 
@@ -129,6 +129,9 @@ class PanoramaMap:
         self._kp_score: list[Array] = []
         self._kp_cache: tuple[Array, Array, Array] | None = None
         self.version = 0  # bumped whenever pixels are written
+        #: (omega rad/s camera axes, readout s) of the frame being mapped when its camera has a
+        #: rolling shutter (set by the mapper per frame), else None: see cylinder.row_rotations.
+        self.row_motion: tuple[Array, float] | None = None
         self.frames_mapped = 0
         self._col_sin, self._col_cos = self.geometry.column_terms(np.arange(W, dtype=float))
         self._row_h = self.geometry.row_terms(np.arange(H, dtype=float))
@@ -298,6 +301,8 @@ class PanoramaMap:
         # columns cost a third more in project_to_image).
         px, py, pz = (Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c for k in range(3))
         x, y, front = project_xyz(K, px, py, pz)
+        if self.row_motion is not None:  # a rolling shutter: where the row that saw it put it
+            x, y, front = project_xyz(K, *to_row_cameras(self.row_motion, y, h, px, py, pz))
         b = self.config.frame_border_px
         ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
         if not ok.any():

@@ -55,6 +55,10 @@ class MapperConfig:
     relocaliser: RelocaliserConfig = field(default_factory=RelocaliserConfig)
     #: Search radius of the second attempt when the prediction fails, pixels.
     wide_radius_px: int = 10
+    #: Rolling-shutter readout of the camera, s (row y read ``readout_s (y + 0.5) / height``
+    #: after the stamp); 0 is a global shutter. With it the tracker and the map turn each row
+    #: by the camera's rate (the constant-motion velocity) and the estimate is the stamp's.
+    readout_s: float = 0.0
     #: Finished tiles whose keypoints are computed per background step.
     background_tiles: int = 4
     #: While the map has fewer keypoints, the background step does all queued tiles.
@@ -142,6 +146,7 @@ class PanoramaMapper:
         self._last_R: Array | None = None
         self._last_stamp: int | None = None
         self._velocity: Array | None = None  # rotation vector per second, camera frame
+        self._recent_rate: Array | None = None  # the last velocity known (kept while lost)
         self._tracking = False
 
     @property
@@ -202,17 +207,19 @@ class PanoramaMapper:
         res: TrackResult | None = None
         if self._tracking or prior is not None:
             R_pred = self.predict(stamp_ns) if prior is None else np.asarray(prior, float)
-            res = self.tracker.track(gray, K, R_pred, self.map)
+            motion = self._row_motion(self._velocity if self._velocity is not None else self._recent_rate)
+            res = self.tracker.track(gray, K, R_pred, self.map, row_motion=motion)
             if not res.ok:
-                res = self.tracker.track(gray, K, R_pred, self.map, self.config.wide_radius_px)
+                res = self.tracker.track(gray, K, R_pred, self.map, self.config.wide_radius_px, row_motion=motion)
         if res is None or not res.ok:
             status = 'relocalised'
             hint = last_R if prior is None else np.asarray(prior, float)
+            motion = self._row_motion(self._recent_rate)  # the rows of a lost frame: the last rate known
             for R_hyp in self.relocaliser.hypotheses(gray, K, hint, self.map):
-                res = self.tracker.track(gray, K, R_hyp, self.map, self.config.wide_radius_px)
+                res = self.tracker.track(gray, K, R_hyp, self.map, self.config.wide_radius_px, row_motion=motion)
                 if res.ok:
                     # Second pass from the refined estimate: templates warped at the right pose.
-                    res2 = self.tracker.track(gray, K, res.R_pano_cam, self.map)
+                    res2 = self.tracker.track(gray, K, res.R_pano_cam, self.map, row_motion=motion)
                     res = res2 if res2.ok else res
                     break
         if res is None or not res.ok:
@@ -222,10 +229,15 @@ class PanoramaMapper:
             step = np.degrees(np.linalg.norm(_log_rotation(last_R.T @ R)))
             if step > self.config.max_step_deg:
                 return self._lose(f'rotation step of {step:.0f} deg between frames', res)
-        pixels = self.map.new_pixels(K, R, gray.shape)
-        offset, gain = self._correction(res, stamp_ns, gray, K, pixels)
-        n = 0 if pixels is None else self.map.map_frame(to_map, K, R, idx, offset, gray if to_map.ndim == 3 else None,
-                                                         gain, pixels)
+        # the rate over the last frame interval turns the rows of this frame as it is mapped
+        self.map.row_motion = self._row_motion(self._rate_to(R, stamp_ns) if status == 'tracked' else None)
+        try:
+            pixels = self.map.new_pixels(K, R, gray.shape)
+            offset, gain = self._correction(res, stamp_ns, gray, K, pixels)
+            n = 0 if pixels is None else self.map.map_frame(to_map, K, R, idx, offset,
+                                                             gray if to_map.ndim == 3 else None, gain, pixels)
+        finally:
+            self.map.row_motion = None
         self._accept(R, stamp_ns, keep_velocity=was_tracking)
         return FrameResult(R, status, res, n, offset, intensity_gain=gain)
 
@@ -256,10 +268,25 @@ class PanoramaMapper:
         """Keypoints of finished tiles, with the per-frame budget (see MapperConfig)."""
         return self.map.process_queue(self.config.background_tiles, self.config.min_keypoints)
 
+    def _row_motion(self, omega: Array | None) -> tuple[Array, float] | None:
+        """(omega, readout) for the tracker and the map when the camera has a rolling shutter."""
+        if self.config.readout_s <= 0.0 or omega is None:
+            return None
+        return np.asarray(omega, float), float(self.config.readout_s)
+
+    def _rate_to(self, R: Array, stamp_ns: int | None) -> Array | None:
+        """The camera's rate (rad/s, camera axes) from the last tracked frame to R."""
+        if self._last_R is None or stamp_ns is None or self._last_stamp is None:
+            return None
+        dt = (stamp_ns - self._last_stamp) * 1e-9
+        return _log_rotation(self._last_R.T @ R) / dt if 0 < dt < 0.5 else None
+
     def _accept(self, R: Array, stamp_ns: int | None, keep_velocity: bool = False) -> None:
         if keep_velocity and self._last_R is not None and stamp_ns is not None and self._last_stamp is not None:
             dt = (stamp_ns - self._last_stamp) * 1e-9
             self._velocity = _log_rotation(self._last_R.T @ R) / dt if dt > 0 else None
+            if self._velocity is not None:
+                self._recent_rate = self._velocity
         else:
             self._velocity = None
         self._last_R = R

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from ..box_sums import window_box_sums
 from ..rotations import align_directions
+from .cylinder import row_rotations
 from .cylinder import camera_rays, project_to_image
 from .map import PanoramaMap
 
@@ -161,8 +162,13 @@ class ActiveSearchTracker:
         self._rng = np.random.default_rng(self.config.seed)
 
     def track(self, frame: NDArray[np.uint8], K: Array, R_pred: Array, pano: PanoramaMap,
-              radius_px: int | None = None) -> TrackResult:
-        """Estimate R_pano_cam of ``frame`` (grey uint8) starting from ``R_pred``."""
+              radius_px: int | None = None, row_motion: tuple[Array, float] | None = None) -> TrackResult:
+        """Estimate R_pano_cam of ``frame`` (grey uint8) starting from ``R_pred``.
+
+        ``row_motion`` = (omega, readout_s): a rolling shutter - row y was read ``readout_s (y +
+        0.5) / h`` after the stamp while the camera turned at ``omega`` (rad/s, camera axes); the
+        keypoints are searched where each row saw them and the matched bearings are turned back
+        to the stamp's orientation, which is what is estimated."""
         cfg = self.config
         r = cfg.search_radius_px if radius_px is None else int(radius_px)
         P = cfg.patch_size
@@ -174,7 +180,10 @@ class ActiveSearchTracker:
             fail.reason = 'too few map keypoints'
             return fail
         # 1. Active search: project the keypoints with the prediction, keep the visible ones.
-        x, y, front = project_to_image(K, dirs @ R_pred)
+        cam = dirs @ R_pred
+        x, y, front = project_to_image(K, cam)
+        if row_motion is not None:  # where the row that sees a keypoint saw it (one iteration)
+            x, y, front = project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
         m = half + r + 1
         vis = front & (x >= m) & (x < w - 1 - m) & (y >= m) & (y < h - 1 - m)
         idx = np.flatnonzero(vis)
@@ -191,7 +200,11 @@ class ActiveSearchTracker:
         # ones costs more; same values).
         grid = self._grid
         rays = camera_rays(K, xr[:, None, None] + grid, yr[:, None, None] + grid[:, None], unit=False)
-        u, v = pano.geometry.project((rays.reshape(-1, 3) @ R_pred.T).reshape(rays.shape))
+        if row_motion is None:
+            u, v = pano.geometry.project((rays.reshape(-1, 3) @ R_pred.T).reshape(rays.shape))
+        else:  # each template turned by its row's rotation
+            R_rows = R_pred @ row_rotations(row_motion, py, h)
+            u, v = pano.geometry.project(np.einsum('nij,npqj->npqi', R_rows, rays))
         # Each sample depends only on its own map coordinates, so the layout of the maps is
         # free: one row (cv2.remap's per-row cost, ~30 % of the call with n P rows of P) unless
         # it would pass remap's 32767 limit on a side.
@@ -238,6 +251,8 @@ class ActiveSearchTracker:
         mx = px[k] + (bxk - r) + np.clip(dx, -0.5, 0.5)
         my = py[k] + (byk - r) + np.clip(dy, -0.5, 0.5)
         b = camera_rays(K, mx, my)
+        if row_motion is not None:  # each bearing turned back to the stamp's camera
+            b = np.einsum('nij,nj->ni', row_rotations(row_motion, my, h), b)
         d = dirs[idx[k]]
         # 5. Robust rotation: RANSAC over 2-point Kabsch, then Kabsch on the inliers.
         f = float(K[0, 0])
