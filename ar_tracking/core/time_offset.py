@@ -199,11 +199,11 @@ class TimeOffsetEstimator:
         if k == 0 or k == len(cost) - 1:
             return None
         step = self.config.step_s
-        curv = (cost[k - 1] - 2.0 * cost[k] + cost[k + 1]) / step ** 2
-        if curv <= 0.0:
+        second = cost[k - 1] - 2.0 * cost[k] + cost[k + 1]  # the parabola's second difference
+        if second <= 0.0:
             return None
-        shift = 0.5 * (cost[k - 1] - cost[k + 1]) / (cost[k - 1] - 2.0 * cost[k] + cost[k + 1])
-        offset = float(self.candidates_s[k] + shift * step)
+        curv = second / step ** 2
+        offset = float(self.candidates_s[k] + 0.5 * (cost[k - 1] - cost[k + 1]) / second * step)
         # residual variance per component (3 per pair, less one mean per block and axis)
         dof = max(3 * self.pairs_used - 3 * self.blocks - 1, 1)
         s2 = float(cost[k]) / dof

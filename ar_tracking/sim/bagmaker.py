@@ -118,17 +118,9 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     if lighting is not None and lighting not in SESSIONS:
         raise SimError(f'unknown lighting {lighting!r} (use {" or ".join(SESSIONS)})')
     if imu_time_offset_s is not None:
-        if scenario != 'rotation_sweep':
-            raise SimError(f'an IMU time offset is a rotation_sweep option, not one of {scenario}')
-        if isinstance(imu_time_offset_s, bool) or not isinstance(imu_time_offset_s, (int, float, np.floating)) \
-                or not math.isfinite(imu_time_offset_s) or abs(imu_time_offset_s) > 1.0:
-            raise SimError(f'the IMU time offset must be finite and within +-1 s, got {imu_time_offset_s!r} s')
+        _check_sweep_seconds(scenario, 'IMU time offset', imu_time_offset_s, -1.0, 1.0)
     if readout_s:
-        if scenario != 'rotation_sweep':
-            raise SimError(f'a rolling-shutter readout is a rotation_sweep option, not one of {scenario}')
-        if isinstance(readout_s, bool) or not isinstance(readout_s, (int, float, np.floating)) \
-                or not math.isfinite(readout_s) or not 0.0 <= readout_s <= 0.1:
-            raise SimError(f'the readout time must be between 0 and 0.1 s, got {readout_s!r} s')
+        _check_sweep_seconds(scenario, 'readout time', readout_s, 0.0, 0.1)
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:
@@ -169,6 +161,16 @@ def _check_args(scenario: str, seed: int, duration_s: float, session: str, stora
         raise SimError(f'unknown storage {storage!r} (use {" or ".join(STORAGES)})')
     if image_format not in IMAGE_FORMATS:
         raise SimError(f'unknown image format {image_format!r} (use {" or ".join(IMAGE_FORMATS)})')
+
+
+def _check_sweep_seconds(scenario: str, what: str, value: object, lo: float, hi: float) -> None:
+    """A rotation_sweep option in seconds: SimError unless the scenario has it and the value
+    is a finite number in [lo, hi]."""
+    if scenario != 'rotation_sweep':
+        raise SimError(f'the {what} is a rotation_sweep option, not one of {scenario}')
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) \
+            or not math.isfinite(value) or not lo <= value <= hi:
+        raise SimError(f'the {what} must be a finite number of seconds in [{lo:g}, {hi:g}], got {value!r}')
 
 
 def _bag_path(out: Path, storage: str) -> Path:

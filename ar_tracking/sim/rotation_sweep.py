@@ -561,13 +561,17 @@ def calibration_params(scn: Scenario) -> dict[str, list[float] | float]:
     }
 
 
-def blur_samples(traj: Trajectory, t_s: float, fx_px: float) -> Array:
-    """Orientations spread over the exposure (1-5 of them, more when turning fast)."""
+def _blur_offsets(traj: Trajectory, t_s: float, fx_px: float) -> Array:
+    """Times (s, relative to ``t_s``) spread over the exposure centred there: 1-5 of them,
+    more when the camera turns fast (about one per 1.2 pixels of motion)."""
     speed = float(np.linalg.norm(traj.omega_cam(np.array([t_s]))[0]))
     n = int(min(5, max(1, math.ceil(speed * EXPOSURE_TIME_S * fx_px / 1.2))))
-    if n == 1:
-        return traj.R_enu_cam(np.array([t_s]))
-    return traj.R_enu_cam(t_s + np.linspace(-0.5, 0.5, n) * EXPOSURE_TIME_S)
+    return np.linspace(-0.5, 0.5, n) * EXPOSURE_TIME_S if n > 1 else np.zeros(1)
+
+
+def blur_samples(traj: Trajectory, t_s: float, fx_px: float) -> Array:
+    """Orientations spread over the exposure (1-5 of them, more when turning fast)."""
+    return traj.R_enu_cam(t_s + _blur_offsets(traj, t_s, fx_px))
 
 
 def frame_orientations(traj: Trajectory, t_s: float, fx_px: float, readout_s: float, rows: int) -> Array:
@@ -576,10 +580,6 @@ def frame_orientations(traj: Trajectory, t_s: float, fx_px: float, readout_s: fl
     (n, rows, 3, 3), row r exposed around ``t_s + readout_s (r + 0.5) / rows``."""
     if readout_s <= 0.0:
         return blur_samples(traj, t_s, fx_px)
-    mid = t_s + 0.5 * readout_s
-    speed = float(np.linalg.norm(traj.omega_cam(np.array([mid]))[0]))
-    n = int(min(5, max(1, math.ceil(speed * EXPOSURE_TIME_S * fx_px / 1.2))))
-    blur = np.linspace(-0.5, 0.5, n) * EXPOSURE_TIME_S if n > 1 else np.zeros(1)
+    blur = _blur_offsets(traj, t_s + 0.5 * readout_s, fx_px)  # as many as the middle row needs
     row_t = t_s + readout_s * (np.arange(rows) + 0.5) / rows
-    times = (blur[:, None] + row_t[None, :]).ravel()
-    return traj.R_enu_cam(times).reshape(n, rows, 3, 3)
+    return traj.R_enu_cam((blur[:, None] + row_t[None, :]).ravel()).reshape(len(blur), rows, 3, 3)

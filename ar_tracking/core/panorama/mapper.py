@@ -21,6 +21,7 @@ No ROS here; the node is a thin wrapper.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -205,16 +206,16 @@ class PanoramaMapper:
             return self._lose(f'frame has no texture (std {texture:.1f})')
         status = 'tracked'
         res: TrackResult | None = None
+        # a rolling shutter's rows turn at the last rate known (the velocity, or the last one while lost)
+        motion = self._row_motion(self._recent_rate)
         if self._tracking or prior is not None:
             R_pred = self.predict(stamp_ns) if prior is None else np.asarray(prior, float)
-            motion = self._row_motion(self._velocity if self._velocity is not None else self._recent_rate)
             res = self.tracker.track(gray, K, R_pred, self.map, row_motion=motion)
             if not res.ok:
                 res = self.tracker.track(gray, K, R_pred, self.map, self.config.wide_radius_px, row_motion=motion)
         if res is None or not res.ok:
             status = 'relocalised'
             hint = last_R if prior is None else np.asarray(prior, float)
-            motion = self._row_motion(self._recent_rate)  # the rows of a lost frame: the last rate known
             for R_hyp in self.relocaliser.hypotheses(gray, K, hint, self.map):
                 res = self.tracker.track(gray, K, R_hyp, self.map, self.config.wide_radius_px, row_motion=motion)
                 if res.ok:
@@ -274,21 +275,17 @@ class PanoramaMapper:
             return None
         return np.asarray(omega, float), float(self.config.readout_s)
 
-    def _rate_to(self, R: Array, stamp_ns: int | None) -> Array | None:
+    def _rate_to(self, R: Array, stamp_ns: int | None, max_dt_s: float = 0.5) -> Array | None:
         """The camera's rate (rad/s, camera axes) from the last tracked frame to R."""
         if self._last_R is None or stamp_ns is None or self._last_stamp is None:
             return None
         dt = (stamp_ns - self._last_stamp) * 1e-9
-        return _log_rotation(self._last_R.T @ R) / dt if 0 < dt < 0.5 else None
+        return _log_rotation(self._last_R.T @ R) / dt if 0 < dt < max_dt_s else None
 
     def _accept(self, R: Array, stamp_ns: int | None, keep_velocity: bool = False) -> None:
-        if keep_velocity and self._last_R is not None and stamp_ns is not None and self._last_stamp is not None:
-            dt = (stamp_ns - self._last_stamp) * 1e-9
-            self._velocity = _log_rotation(self._last_R.T @ R) / dt if dt > 0 else None
-            if self._velocity is not None:
-                self._recent_rate = self._velocity
-        else:
-            self._velocity = None
+        self._velocity = self._rate_to(R, stamp_ns, math.inf) if keep_velocity else None
+        if self._velocity is not None:
+            self._recent_rate = self._velocity
         self._last_R = R
         self._last_stamp = stamp_ns
         self._tracking = True

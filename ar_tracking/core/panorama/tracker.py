@@ -26,8 +26,7 @@ from numpy.typing import NDArray
 
 from ..box_sums import window_box_sums
 from ..rotations import align_directions
-from .cylinder import row_rotations
-from .cylinder import camera_rays, project_to_image
+from .cylinder import camera_rays, project_to_image, row_rotations
 from .map import PanoramaMap
 
 Array = NDArray[np.float64]
