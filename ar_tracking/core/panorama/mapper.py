@@ -146,6 +146,10 @@ class PanoramaMapper:
         self.frame_size: tuple[int, int] | None = None
         self._last_R: Array | None = None
         self._last_stamp: int | None = None
+        # The last tracked frame at its rows' mean read time (R, stamp ns, s after the stamp;
+        # the stamp itself with a global shutter): what the rate is differenced from
+        # (see _row_centre).
+        self._last_centre: tuple[Array, int, float] | None = None
         self._velocity: Array | None = None  # rotation vector per second, camera frame
         self._recent_rate: Array | None = None  # the last velocity known (kept while lost)
         self._tracking = False
@@ -196,7 +200,7 @@ class PanoramaMapper:
                 return FrameResult(None, 'lost', reason='first frame has no texture')
             R = np.eye(3)
             n = self.map.map_frame(to_map, K, R, idx, 0.0, gray if to_map.ndim == 3 else None)
-            self._accept(R, stamp_ns)
+            self._accept(R, stamp_ns, self._row_centre(R, stamp_ns, None, None))
             self.frame_size = gray.shape
             return FrameResult(R, 'initialised', mapped_pixels=n)
         last_R = self._last_R
@@ -230,8 +234,9 @@ class PanoramaMapper:
             step = np.degrees(np.linalg.norm(_log_rotation(last_R.T @ R)))
             if step > self.config.max_step_deg:
                 return self._lose(f'rotation step of {step:.0f} deg between frames', res)
+        centre = self._row_centre(R, stamp_ns, res, motion)
         # the rate over the last frame interval turns the rows of this frame as it is mapped
-        self.map.row_motion = self._row_motion(self._rate_to(R, stamp_ns) if status == 'tracked' else None)
+        self.map.row_motion = self._row_motion(self._rate_to(centre) if status == 'tracked' else None)
         try:
             pixels = self.map.new_pixels(K, R, gray.shape)
             offset, gain = self._correction(res, stamp_ns, gray, K, pixels)
@@ -239,7 +244,7 @@ class PanoramaMapper:
                                                              gray if to_map.ndim == 3 else None, gain, pixels)
         finally:
             self.map.row_motion = None
-        self._accept(R, stamp_ns, keep_velocity=was_tracking)
+        self._accept(R, stamp_ns, centre, keep_velocity=was_tracking)
         return FrameResult(R, status, res, n, offset, intensity_gain=gain)
 
     def _correction(self, res: TrackResult, stamp_ns: int | None, gray: NDArray[np.uint8],
@@ -275,19 +280,42 @@ class PanoramaMapper:
             return None
         return np.asarray(omega, float), float(self.config.readout_s)
 
-    def _rate_to(self, R: Array, stamp_ns: int | None, max_dt_s: float = 0.5) -> Array | None:
-        """The camera's rate (rad/s, camera axes) from the last tracked frame to R."""
-        if self._last_R is None or stamp_ns is None or self._last_stamp is None:
-            return None
-        dt = (stamp_ns - self._last_stamp) * 1e-9
-        return _log_rotation(self._last_R.T @ R) / dt if 0 < dt < max_dt_s else None
+    @staticmethod
+    def _row_centre(R: Array, stamp_ns: int | None, res: TrackResult | None,
+                    motion: tuple[Array, float] | None) -> tuple[Array, int, float] | None:
+        """(R_pano_cam, stamp ns, s after it) of a frame at the mean read time of its inliers' rows.
 
-    def _accept(self, R: Array, stamp_ns: int | None, keep_velocity: bool = False) -> None:
-        self._velocity = self._rate_to(R, stamp_ns, math.inf) if keep_velocity else None
+        With a rolling shutter the fit turns each row by the assumed rate, so the stamp's
+        orientation carries the rate's error times that mean time, while the orientation at
+        the mean time does not (to first order). Differencing stamp orientations for the next
+        frame's rate closes a loop whose gain is about (mean row time) / (frame interval): at a
+        30 ms readout and 30 Hz, near or above one when the texture sits low in the image, and
+        the rate then oscillates frame to frame and grows until tracking is lost. Differencing
+        these centres opens the loop."""
+        if stamp_ns is None:
+            return None
+        if res is None or motion is None or res.row_time_s <= 0.0:
+            return R, stamp_ns, 0.0
+        t = res.row_time_s
+        return R @ _exp_rotation(motion[0] * t), stamp_ns, t
+
+    def _rate_to(self, centre: tuple[Array, int, float] | None, max_dt_s: float = 0.5) -> Array | None:
+        """The camera's rate (rad/s, camera axes) from the last tracked frame to ``centre``
+        (both at their rows' mean read time, :meth:`_row_centre`)."""
+        if self._last_centre is None or centre is None:
+            return None
+        (R0, t0, d0), (R1, t1, d1) = self._last_centre, centre
+        dt = (t1 - t0) * 1e-9 + (d1 - d0)
+        return _log_rotation(R0.T @ R1) / dt if 0 < dt < max_dt_s else None
+
+    def _accept(self, R: Array, stamp_ns: int | None, centre: tuple[Array, int, float] | None,
+                keep_velocity: bool = False) -> None:
+        self._velocity = self._rate_to(centre, math.inf) if keep_velocity else None
         if self._velocity is not None:
             self._recent_rate = self._velocity
         self._last_R = R
         self._last_stamp = stamp_ns
+        self._last_centre = centre
         self._tracking = True
 
     def _lose(self, reason: str, res: TrackResult | None = None) -> FrameResult:
