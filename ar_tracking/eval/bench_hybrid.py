@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import yaml
 from numpy.typing import NDArray
 
 from ..core.rotations import heading_tilt_error_deg, interpolate_rotations, quat_wxyz_to_xyzw, quat_xyzw_to_matrix
@@ -506,18 +507,20 @@ def _first_seconds_over_floor(rows: dict[str, Any]) -> float | None:
 
 def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), duration_s: float = 40.0,
                 profile: str | None = None, imu_time_offset_ms: float | None = None,
-                readout_ms: float = 0.0) -> dict[str, Any]:
+                readout_ms: float = 0.0, declare_readout: bool = True) -> dict[str, Any]:
     """The hybrid filter on fresh rotation_sweep seeds (the simulator's default, harder profile
     unless ``profile`` says otherwise): per seed the heading / tilt RMSE of orientation/global
     (hybrid), imu/data (sensor only) and reference/vqf (VQF on the same IMU samples), the
     hybrid's mean NEES, and a summary (median and worst hybrid heading, worst tilt, worst
     hybrid / VQF heading ratio). ``imu_time_offset_ms`` replaces the profile's camera-IMU time
     offset in every bag (make-bag ``--imu-time-offset-ms``), ``readout_ms`` gives the camera a
-    rolling shutter (``--readout-ms``). Commands per seed: make-bag, run (imu_magnetometer,
+    rolling shutter (``--readout-ms``), which the mapper is told (the bag's sidecar) unless
+    ``declare_readout`` is false (then it has to estimate it). Commands per seed: make-bag, run (imu_magnetometer,
     panorama_mapper, hybrid_orientation_filter), evaluate."""
     from ..ros.runner import GraphRunner
     from ..sim.bagmaker import make_bag
     from .evaluate import orientation_metrics
+    from .panorama_metrics import evaluate_panorama
     from .heading_floor import hand_motion_floor
     from .metrics import load_orientations
 
@@ -537,6 +540,12 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
                 kwargs['readout_s'] = readout_ms * 1e-3
             make_bag('rotation_sweep', bag, seed=seed, duration_s=duration_s, overwrite=True, **kwargs)
         sidecar = bag.with_name(bag.stem + '.params.yaml')
+        if readout_ms and not declare_readout and sidecar.exists():
+            params = yaml.safe_load(sidecar.read_text(encoding='utf-8'))
+            params.pop('panorama_mapper', None)
+            tag += '_undeclared'
+            sidecar = workdir / f'rotation_sweep_{tag}.params.yaml'
+            sidecar.write_text(yaml.safe_dump(params), encoding='utf-8')
         out = workdir / f'rotation_sweep_{tag}.out.mcap'
         GraphRunner(bag, out, params_files=[sidecar] if sidecar.exists() else [],
                     nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter']).run()
@@ -551,6 +560,8 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
         h, v = row['hybrid']['heading_rmse_deg'], row['vqf']['heading_rmse_deg']
         row['hybrid_over_vqf_heading'] = round(h / v, 4) if h is not None and v else None
         row['heading_split'] = heading_split(data)
+        pano = evaluate_panorama(out, seam=False) or {}
+        row['panorama'] = {k: pano.get(k) for k in ('lost_frames', 'tracking_rmse_deg')}
         if profile in (None, 'hard'):
             row['compass_floor_first_1s_deg'] = compass_floor_deg(seed, duration_s)
             row['hand_motion_floor'] = hand_motion_floor(seed, duration_s)
@@ -579,5 +590,5 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
                                                               if r['vqf']['heading_rmse_deg'] is not None])), 4) if rows else None,
     }
     return {'duration_s': duration_s, 'profile': profile or 'default', 'imu_time_offset_ms': imu_time_offset_ms,
-            'readout_ms': readout_ms,
+            'readout_ms': readout_ms, 'readout_declared': declare_readout,
             'per_seed': rows, 'summary': summary}

@@ -98,6 +98,9 @@ PARAMS = (
               'Rolling-shutter readout of the camera, s (0: a global shutter); the tracker and the map turn each row '
               'by the camera\'s rate, and panorama/orientation is the orientation at the frame\'s stamp',
               min_value=0.0, max_value=0.1, read_only=True),
+    ParamSpec('estimate_readout', True,
+              'Estimate the rolling shutter\'s readout from the tracked frames and use it in place of readout_s once '
+              'it is known (logged); readout_s is then only the start value', read_only=True),
     ParamSpec('min_inliers', 10,
               'A frame is tracked with at least this many inlier matches', min_value=3, max_value=1000, read_only=True),
     ParamSpec('min_inlier_ratio', 0.7,
@@ -161,9 +164,11 @@ class PanoramaMapperNode(TrackingNode):
                                   min_inliers=v['min_inliers'], min_inlier_ratio=v['min_inlier_ratio'],
                                   inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
             wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'], readout_s=v['readout_s'],
+            estimate_readout=v['estimate_readout'],
             offset_exposure=replace(OFFSET_EXPOSURE, smooth=v['edr_smooth']), edr_correction=v['edr_correction'],
         )
         self.core = PanoramaMapper(self.config)
+        self.readout_logged_s = self.config.readout_s
         self.color = color
         self.guard = StampGuard(reset_s)
         self.pairer: NearestStampPairer[Frame, tuple[np.ndarray, tuple[int, int]]] = NearestStampPairer(self.max_info_gap_ns)
@@ -250,6 +255,8 @@ class PanoramaMapperNode(TrackingNode):
         except PanoramaError as exc:
             self.warn_throttled(f'camera: {exc}, frame skipped')
             return
+        if self.core.readout_s != self.readout_logged_s:
+            self._log_readout()
         R = res.R_pano_cam
         if R is not None and np.all(np.isfinite(R)):
             # as CDR bytes (ros.cdr_views): the TransformStamped set_quaternion would fill
@@ -262,6 +269,22 @@ class PanoramaMapperNode(TrackingNode):
         if not self.core.map.empty and (self.last_map_pub_ns is None or t - self.last_map_pub_ns >= self.publish_period_ns):
             self._publish_map(t)
         self.core.background()  # finished tiles' keypoints: after the frame's outputs
+
+    def _log_readout(self) -> None:
+        """Log the readout in use when the estimate first replaces readout_s, and when it moves
+        by 2 ms or more (it moves a little with every frame)."""
+        now, last = self.core.readout_s, self.readout_logged_s
+        if abs(now - last) < 0.002 and (now == 0.0) == (last == 0.0):
+            return
+        self.readout_logged_s = now
+        est = self.core.readout_estimator.estimate()
+        frames = self.core.readout_estimator.frames
+        if now == 0.0:
+            self.get_logger().info(f'rolling shutter: {frames} tracked frames say a global shutter (readout 0)')
+        else:
+            sigma = est[1] * 1e3 if est is not None else float('nan')
+            self.get_logger().info(f'rolling shutter: readout {now * 1e3:.1f} +- {sigma:.1f} ms, estimated from '
+                                   f'{frames} tracked frames (rows are turned by it)')
 
     def _publish_map(self, t: int) -> None:
         self.last_map_pub_ns = t

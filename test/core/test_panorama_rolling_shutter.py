@@ -32,9 +32,16 @@ def rolling_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_bag('rotation_sweep', tmp_path_factory.mktemp('rs') / 'rs.mcap', seed=402, duration_s=8.0, readout_s=0.03)
 
 
-def _track(bag: Path, readout_s: float) -> tuple[float, int]:
-    """(RMS error deg of the tracked frames against the truth at their stamps, frames lost)."""
-    mapper = PanoramaMapper(replace(MapperConfig(), readout_s=readout_s))
+@pytest.fixture(scope='module')
+def global_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_bag('rotation_sweep', tmp_path_factory.mktemp('gs') / 'gs.mcap', seed=402, duration_s=8.0)
+
+
+def _track(bag: Path, readout_s: float, estimate: bool = False) -> tuple[float, int, set[float]]:
+    """(RMS error deg of the tracked frames against the truth at their stamps, frames lost,
+    the readouts the mapper used)."""
+    mapper = PanoramaMapper(replace(MapperConfig(), readout_s=readout_s, estimate_readout=estimate))
+    used = set()
     with BagReader(bag) as b:
         info = b.read_all('/camera/camera_info')[0][1]
         K = np.asarray(info.k, float).reshape(3, 3)
@@ -45,6 +52,7 @@ def _track(bag: Path, readout_s: float) -> tuple[float, int]:
             rgb = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3)
             res = mapper.process(rgb, K, t)
             mapper.background()
+            used.add(mapper.readout_s)
             R_true = traj.R_enu_cam(np.array([(t - START_NS) * 1e-9]))[0]
             if res.R_pano_cam is None:
                 continue
@@ -52,17 +60,32 @@ def _track(bag: Path, readout_s: float) -> tuple[float, int]:
                 R0, T0 = res.R_pano_cam, R_true
             # relative to the first frame: R0^T R against T0^T T
             errs.append(np.degrees(np.linalg.norm(so3_log((R0.T @ res.R_pano_cam).T @ (T0.T @ R_true)))))
-    return float(np.sqrt(np.mean(np.square(errs)))), mapper.lost_frames
+    return float(np.sqrt(np.mean(np.square(errs)))), mapper.lost_frames, used
 
 
 def test_a_rolling_shutter_is_tracked_row_by_row(rolling_bag: Path):
     """30 ms of readout during pans of up to 60 deg/s: one rotation per frame is off by the
     rows' turn and loses frames; with the readout, each row is turned by the camera's rate and
     the estimate is the stamp's orientation."""
-    global_err, global_lost = _track(rolling_bag, 0.0)
-    rs_err, rs_lost = _track(rolling_bag, 0.03)
+    global_err, global_lost, _ = _track(rolling_bag, 0.0)
+    rs_err, rs_lost, _ = _track(rolling_bag, 0.03)
     assert rs_err < 0.25 and rs_lost <= global_lost
     assert rs_err < 0.5 * global_err, (rs_err, global_err, rs_lost, global_lost)
+
+
+def test_an_unknown_readout_is_estimated_and_a_global_shutter_left_alone(rolling_bag: Path, global_bag: Path):
+    """Told nothing (readout_s 0), the mapper finds the 30 ms readout from its own frames in
+    the first seconds and loses no more frames than if told (its error stays above the told
+    one's: the map painted before the estimate carries the shear of those frames); on the same
+    motion with a global shutter it never turns a row."""
+    known_err, known_lost, _ = _track(rolling_bag, 0.03)
+    unaware_err, _, _ = _track(rolling_bag, 0.0)
+    err, lost, used = _track(rolling_bag, 0.0, estimate=True)
+    final = max(used)  # the estimate only grows from 0 here
+    assert abs(final - 0.03) < 0.004 and lost <= known_lost + 2, (final, lost, known_lost)
+    assert err < 0.6 * unaware_err and err < 2.5 * known_err, (err, unaware_err, known_err)
+    g_err, g_lost, g_used = _track(global_bag, 0.0, estimate=True)
+    assert g_used == {0.0} and g_lost == 0 and g_err < 0.1, (g_used, g_lost, g_err)
 
 
 def test_a_wrong_rate_dies_out_instead_of_feeding_back(rolling_bag: Path):

@@ -32,6 +32,8 @@ from numpy.typing import NDArray
 from .exposure import (OFFSET_EXPOSURE, ExposureConfig, ExposureFilter, OverlapExposureConfig,
                        fit_overlap_exposure)
 from .map import MapConfig, NewPixels, PanoramaMap, seam_error
+from .cylinder import project_to_image
+from .readout import Painting, ReadoutConfig, ReadoutEstimator, RowFit
 from .relocalise import Relocaliser, RelocaliserConfig
 from .tracker import ActiveSearchTracker, TrackerConfig, TrackResult
 from ...errors import ArTrackingError
@@ -60,6 +62,10 @@ class MapperConfig:
     #: after the stamp); 0 is a global shutter. With it the tracker and the map turn each row
     #: by the camera's rate (the constant-motion velocity) and the estimate is the stamp's.
     readout_s: float = 0.0
+    #: Estimate the readout from the tracked frames (:mod:`.readout`) and use the estimate in
+    #: place of ``readout_s`` once it is known (a bag seldom says what its camera's readout is).
+    estimate_readout: bool = True
+    readout_estimate: ReadoutConfig = field(default_factory=ReadoutConfig)
     #: Finished tiles whose keypoints are computed per background step.
     background_tiles: int = 4
     #: While the map has fewer keypoints, the background step does all queued tiles.
@@ -153,6 +159,12 @@ class PanoramaMapper:
         self._velocity: Array | None = None  # rotation vector per second, camera frame
         self._recent_rate: Array | None = None  # the last velocity known (kept while lost)
         self._tracking = False
+        self.readout_estimator = ReadoutEstimator(cfg.readout_estimate)
+        #: Frames that painted the map: index -> (R_pano_cam, rate rad/s camera axes or None
+        #: while unknown, readout its rows were turned by) - what the readout's estimate needs.
+        self._painted: dict[int, tuple[Array, Array | None, float]] = {}
+        #: The readout in use, s (``readout_s``, then the estimate).
+        self.readout_s = cfg.readout_s
 
     @property
     def initialised(self) -> bool:
@@ -200,6 +212,7 @@ class PanoramaMapper:
                 return FrameResult(None, 'lost', reason='first frame has no texture')
             R = np.eye(3)
             n = self.map.map_frame(to_map, K, R, idx, 0.0, gray if to_map.ndim == 3 else None)
+            self._painted[idx] = (R, None, 0.0)
             self._accept(R, stamp_ns, self._row_centre(R, stamp_ns, None, None))
             self.frame_size = gray.shape
             return FrameResult(R, 'initialised', mapped_pixels=n)
@@ -235,8 +248,15 @@ class PanoramaMapper:
             if step > self.config.max_step_deg:
                 return self._lose(f'rotation step of {step:.0f} deg between frames', res)
         centre = self._row_centre(R, stamp_ns, res, motion)
+        rate = self._rate_to(centre) if status == 'tracked' else None
+        if rate is not None:
+            previous = self._painted.get(idx - 1)
+            if previous is not None and previous[1] is None:  # painted before its rate was known
+                self._painted[idx - 1] = (previous[0], rate, previous[2])
+            if self.config.estimate_readout and res.row_fit is not None:
+                self.readout_estimator.add(self.readout_s, rate, R, *self._painting(res.row_fit, K, gray.shape[0]))
         # the rate over the last frame interval turns the rows of this frame as it is mapped
-        self.map.row_motion = self._row_motion(self._rate_to(centre) if status == 'tracked' else None)
+        self.map.row_motion = self._row_motion(rate)
         try:
             pixels = self.map.new_pixels(K, R, gray.shape)
             offset, gain = self._correction(res, stamp_ns, gray, K, pixels)
@@ -244,7 +264,11 @@ class PanoramaMapper:
                                                              gray if to_map.ndim == 3 else None, gain, pixels)
         finally:
             self.map.row_motion = None
+        if n:
+            self._painted[idx] = (R, rate, self.readout_s if rate is not None else 0.0)
         self._accept(R, stamp_ns, centre, keep_velocity=was_tracking)
+        if self.config.estimate_readout:
+            self.readout_s = self.readout_estimator.readout(self.config.readout_s)
         return FrameResult(R, status, res, n, offset, intensity_gain=gain)
 
     def _correction(self, res: TrackResult, stamp_ns: int | None, gray: NDArray[np.uint8],
@@ -274,11 +298,32 @@ class PanoramaMapper:
         """Keypoints of finished tiles, with the per-frame budget (see MapperConfig)."""
         return self.map.process_queue(self.config.background_tiles, self.config.min_keypoints)
 
+    def _painting(self, fit: RowFit, K: Array, height: int) -> tuple[RowFit | None, Painting | None]:
+        """The fit's rays whose map pixels came from a frame of known rate, with how that frame
+        painted them (:class:`.readout.Painting`)."""
+        uv = self.map.keypoints()[1][fit.keypoints]
+        ids = self.map.contribution[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)]
+        d = fit.rays + fit.residuals
+        n = ids.size
+        omega, rows, readout = np.zeros((n, 3)), np.full(n, np.nan), np.zeros(n)
+        for j in np.unique(ids).tolist():
+            R_j, w_j, s_j = self._painted.get(j, (np.eye(3), None, 0.0))
+            if w_j is None:
+                continue
+            m = ids == j
+            _, y, _ = project_to_image(K, d[m] @ R_j)
+            rows[m], omega[m], readout[m] = (y + 0.5) / height, R_j @ w_j, s_j
+        keep = np.isfinite(rows)
+        if not keep.any():
+            return None, None
+        sub = RowFit(fit.rays[keep], fit.residuals[keep], fit.rows[keep], fit.keypoints[keep])
+        return sub, Painting(omega[keep], rows[keep], readout[keep])
+
     def _row_motion(self, omega: Array | None) -> tuple[Array, float] | None:
         """(omega, readout) for the tracker and the map when the camera has a rolling shutter."""
-        if self.config.readout_s <= 0.0 or omega is None:
+        if self.readout_s == 0.0 or omega is None:
             return None
-        return np.asarray(omega, float), float(self.config.readout_s)
+        return np.asarray(omega, float), float(self.readout_s)
 
     @staticmethod
     def _row_centre(R: Array, stamp_ns: int | None, res: TrackResult | None,
