@@ -53,7 +53,7 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
             storage=args.storage, image_format=args.image_format, overwrite=True, progress=progress,
             profile=args.profile,
             imu_time_offset_s=None if args.imu_time_offset_ms is None else args.imu_time_offset_ms * 1e-3,
-            readout_s=args.readout_ms * 1e-3,
+            readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
         )
     finally:
         close()
@@ -365,9 +365,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--imu-time-offset-ms', type=float, default=None, metavar='MS',
                    help='rotation_sweep: the IMU and magnetometer stamps are this much later than the camera\'s for '
                         'the same instant (default: the profile\'s, 2-8 ms either sign in hard, 0 in kind)')
-    p.add_argument('--readout-ms', type=float, default=0.0, metavar='MS',
-                   help='rotation_sweep: a rolling-shutter camera, its rows read out over this time after the '
-                        'frame\'s stamp (default 0: a global shutter)')
+    p.add_argument('--readout-ms', type=float, default=None, metavar='MS',
+                   help='rotation_sweep: the camera\'s rolling shutter reads its rows out over this time after the '
+                        'frame\'s stamp, written to the sidecar (0: a global shutter; default: the profile\'s, 8-30 ms '
+                        'in hard, left out of the sidecar for panorama_mapper to estimate, 0 in kind)'),
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')

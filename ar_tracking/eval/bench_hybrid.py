@@ -507,15 +507,16 @@ def _first_seconds_over_floor(rows: dict[str, Any]) -> float | None:
 
 def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), duration_s: float = 40.0,
                 profile: str | None = None, imu_time_offset_ms: float | None = None,
-                readout_ms: float = 0.0, declare_readout: bool = True) -> dict[str, Any]:
+                readout_ms: float | None = None, declare_readout: bool = True) -> dict[str, Any]:
     """The hybrid filter on fresh rotation_sweep seeds (the simulator's default, harder profile
     unless ``profile`` says otherwise): per seed the heading / tilt RMSE of orientation/global
     (hybrid), imu/data (sensor only) and reference/vqf (VQF on the same IMU samples), the
     hybrid's mean NEES, and a summary (median and worst hybrid heading, worst tilt, worst
     hybrid / VQF heading ratio). ``imu_time_offset_ms`` replaces the profile's camera-IMU time
-    offset in every bag (make-bag ``--imu-time-offset-ms``), ``readout_ms`` gives the camera a
-    rolling shutter (``--readout-ms``), which the mapper is told (the bag's sidecar) unless
-    ``declare_readout`` is false (then it has to estimate it). Commands per seed: make-bag, run (imu_magnetometer,
+    offset in every bag (make-bag ``--imu-time-offset-ms``), ``readout_ms`` replaces the
+    profile's rolling-shutter readout (``--readout-ms``; 0 a global shutter), which the mapper
+    is then told (the bag's sidecar) unless ``declare_readout`` is false; the hard profile's
+    own readout (8-30 ms) it always has to estimate. Commands per seed: make-bag, run (imu_magnetometer,
     panorama_mapper, hybrid_orientation_filter), evaluate."""
     from ..ros.runner import GraphRunner
     from ..sim.bagmaker import make_bag
@@ -530,13 +531,13 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
     for seed in seeds:
         tag = f'seed{seed}_{duration_s:g}s' + (f'_{profile}' if profile else '') \
             + ('' if imu_time_offset_ms is None else f'_imu{imu_time_offset_ms:+g}ms') \
-            + (f'_rs{readout_ms:g}ms' if readout_ms else '')
+            + ('' if readout_ms is None else f'_rs{readout_ms:g}ms')
         bag = workdir / f'rotation_sweep_{tag}.mcap'
         if not bag.exists():
             kwargs: dict[str, Any] = {'profile': profile} if profile else {}
             if imu_time_offset_ms is not None:
                 kwargs['imu_time_offset_s'] = imu_time_offset_ms * 1e-3
-            if readout_ms:
+            if readout_ms is not None:
                 kwargs['readout_s'] = readout_ms * 1e-3
             make_bag('rotation_sweep', bag, seed=seed, duration_s=duration_s, overwrite=True, **kwargs)
         sidecar = bag.with_name(bag.stem + '.params.yaml')

@@ -99,7 +99,7 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
              session: str = 'authoring', storage: str = 'mcap', image_format: str = 'raw',
              overwrite: bool = False, progress: Callable[[float], None] | None = None,
              lighting: str | None = None, profile: str = 'hard', imu_time_offset_s: float | None = None,
-             readout_s: float = 0.0) -> Path:
+             readout_s: float | None = None) -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
@@ -108,7 +108,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     ``session``; e.g. a browsing walk under the authoring sun (the 'same lighting' column of
     Langlotz 2011 Fig. 7). ``imu_time_offset_s`` (rotation_sweep only): the IMU and
     magnetometer stamps minus the true time instead of the profile's offset; ``readout_s``
-    (rotation_sweep only): a rolling-shutter camera read out over that time. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
+    (rotation_sweep only): the camera's rolling-shutter readout instead of the profile's (hard:
+    8-30 ms per seed, not in the sidecar; kind: 0), written to the sidecar; 0 is a global shutter. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
     phone or camera) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
     :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
@@ -119,7 +120,7 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         raise SimError(f'unknown lighting {lighting!r} (use {" or ".join(SESSIONS)})')
     if imu_time_offset_s is not None:
         _check_sweep_seconds(scenario, 'IMU time offset', imu_time_offset_s, -1.0, 1.0)
-    if readout_s:
+    if readout_s is not None:
         _check_sweep_seconds(scenario, 'readout time', readout_s, 0.0, 0.1)
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
@@ -128,7 +129,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
             if p.exists():
                 raise SimError(f'{p}: already exists (choose another name or overwrite)')
     scn = REGISTRY[scenario]
-    req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s, float(readout_s))
+    req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s,
+                     None if readout_s is None else float(readout_s))
     try:
         with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
             scn.write_bag(bag, req, progress)

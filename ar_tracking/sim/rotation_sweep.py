@@ -84,6 +84,7 @@ HARD_HAND_TREMOR_ACCEL_M_S2 = (0.05, 0.2)  # per axis, at 1.5-3 Hz
 HARD_IRON_RESIDUAL_T = (0.4e-6, 1.2e-6)  # per axis, random sign: 1.5-5 deg of heading error swing
 HARD_SOFT_IRON_RESIDUAL = (0.2, 0.5)  # of the soft-iron correction's deviation from identity
 HARD_IMU_TIME_OFFSET_S = (0.002, 0.008)  # |offset|, random sign
+HARD_READOUT_S = (0.008, 0.030)  # a phone camera's rolling-shutter readout (not in the sidecar)
 HARD_EXPOSURE_JUMP_FACTOR = 1.5  # auto-exposure jumps of 30-75 % instead of 20-50 %
 
 #: Latitude/longitude around which the spots of all seeds lie (Graz), degrees.
@@ -360,20 +361,23 @@ class Scenario:
     #: IMU / magnetometer header stamp minus the true sample time (0 in the 'kind' profile).
     imu_time_offset_ns: int = 0
     #: Rolling-shutter readout of the camera, s: row r of a frame stamped t is exposed around
-    #: t + readout_s (r + 0.5) / rows (0: a global shutter, the profiles' default).
+    #: t + readout_s (r + 0.5) / rows (0: a global shutter, the 'kind' profile's).
     readout_s: float = 0.0
+    #: Whether the readout was asked for (and so goes into the sidecar, as a user who knows
+    #: their camera would give it) or is the hard profile's own (which a user seldom knows).
+    readout_declared: bool = False
 
 
 def make_scenario(seed: int, session: str, duration_s: float,
                   declination_rad: float = 0.0, profile: str = 'hard',
-                  imu_time_offset_s: float | None = None, readout_s: float = 0.0) -> Scenario:
+                  imu_time_offset_s: float | None = None, readout_s: float | None = None) -> Scenario:
     """The scenario for a seed and session; the spot (and so the GPS origin) is the seed's.
 
     ``profile``: 'hard' (default, a realistic phone) or 'kind' (the earlier, easier simulator);
     see the module docstring. ``imu_time_offset_s`` replaces the profile's camera-IMU time
     offset (e.g. a phone whose driver delays the camera's stamps by tens of ms); ``readout_s``
-    gives the camera a rolling shutter read out over that time after its stamp; everything
-    else stays the seed's."""
+    replaces the profile's rolling-shutter readout (hard: 8-30 ms, drawn per seed and session;
+    kind: 0, a global shutter); everything else stays the seed's."""
     if session not in SESSIONS:
         raise ValueError(f'unknown session {session!r} (use {" or ".join(SESSIONS)})')
     check_profile(profile)
@@ -391,6 +395,11 @@ def make_scenario(seed: int, session: str, duration_s: float,
             (1 if rng.random() < 0.5 else -1)
     if imu_time_offset_s is not None:
         offset_ns = int(round(imu_time_offset_s * 1e9))
+    readout = 0.0
+    if hard:
+        readout = float(rng_stream(seed, 'camera-readout', session).uniform(*HARD_READOUT_S))
+    if readout_s is not None:
+        readout = float(readout_s)
     return Scenario(
         seed=seed, session=session, duration_s=float(duration_s),
         trajectory=make_trajectory(seed, session, duration_s, profile), earth=earth,
@@ -400,7 +409,8 @@ def make_scenario(seed: int, session: str, duration_s: float,
         origin_lat_lon_alt=origin,
         profile=profile,
         imu_time_offset_ns=offset_ns,
-        readout_s=float(readout_s),
+        readout_s=readout,
+        readout_declared=readout_s is not None and readout_s > 0,
     )
 
 

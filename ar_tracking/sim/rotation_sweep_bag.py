@@ -62,7 +62,8 @@ class RotationSweep:
         return (f'rotation_sweep, seed {req.seed}, {req.session}, {req.duration_s:.1f} s, '
                 f'profile {req.profile}'
                 + ('' if req.imu_time_offset_s is None else f', IMU stamps {req.imu_time_offset_s * 1e3:+.1f} ms')
-                + (f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ''))
+                + ('' if req.readout_s is None else
+                   f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ', global shutter'))
 
 
 SCENARIO = RotationSweep()
@@ -190,7 +191,8 @@ _PROFILE_NOTES = {
 def write_sidecar(path: Path, scn: rs.Scenario, bag_path: Path) -> None:
     """The ROS 2 params file for this device (plain floats): the calibration under
     ``imu_magnetometer`` and the same values (:data:`HYBRID_CALIBRATION_KEYS`) under
-    ``hybrid_orientation_filter``; a rolling shutter's readout under ``panorama_mapper``."""
+    ``hybrid_orientation_filter``; a rolling shutter's readout under ``panorama_mapper`` when it
+    was asked for (the hard profile's own readout is left for the mapper to estimate)."""
     cal = rs.calibration_params(scn)
     doc = {'imu_magnetometer': {'ros__parameters': cal}}
     hybrid = {'hybrid_orientation_filter': {'ros__parameters': {
@@ -204,7 +206,7 @@ def write_sidecar(path: Path, scn: rs.Scenario, bag_path: Path) -> None:
             'calibrated mag = soft_iron_matrix @ (raw - hard_iron_offset).\n'
             f'# Simulator profile: {scn.profile} ({_PROFILE_NOTES[scn.profile]}).\n')
     dump = functools.partial(yaml.safe_dump, sort_keys=False, default_flow_style=None)
-    camera = '' if scn.readout_s <= 0 else (
+    camera = '' if not scn.readout_declared else (
         '# The camera has a rolling shutter: its rows are read out over this time after the stamp.\n'
         + dump({'panorama_mapper': {'ros__parameters': {'readout_s': float(scn.readout_s)}}}))
     path.write_text(head + dump(doc) + '# The same calibration for the hybrid filter, which '

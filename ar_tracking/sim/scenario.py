@@ -36,8 +36,9 @@ class BagRequest:
     profile: str = 'hard'
     #: rotation_sweep: the camera-IMU time offset instead of the profile's, s (None: the profile's)
     imu_time_offset_s: float | None = None
-    #: rotation_sweep: the camera's rolling-shutter readout time, s (0: a global shutter)
-    readout_s: float = 0.0
+    #: rotation_sweep: the camera's rolling-shutter readout time, s, instead of the profile's (0: a
+    #: global shutter; None: the profile's)
+    readout_s: float | None = None
 
 
 class ScenarioBag(Protocol):

@@ -34,7 +34,7 @@ def rolling_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope='module')
 def global_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return make_bag('rotation_sweep', tmp_path_factory.mktemp('gs') / 'gs.mcap', seed=402, duration_s=8.0)
+    return make_bag('rotation_sweep', tmp_path_factory.mktemp('gs') / 'gs.mcap', seed=402, duration_s=8.0, readout_s=0.0)
 
 
 def _track(bag: Path, readout_s: float, estimate: bool = False) -> tuple[float, int, set[float]]:

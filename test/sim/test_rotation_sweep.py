@@ -624,6 +624,20 @@ def test_rolling_shutter_frames_shear_during_a_pan(tmp_path: Path) -> None:
     assert abs(bottom) > 2.5 and abs(bottom) > 3 * abs(top)
 
 
+def test_the_hard_profile_has_a_rolling_shutter_it_does_not_declare() -> None:
+    """A phone camera reads its rows over 8-30 ms, and a user seldom knows how long: the hard
+    profile draws the readout per seed and session and leaves it out of the sidecar (the mapper
+    estimates it); an asked-for readout is declared; the kind profile stays a global shutter."""
+    hard = [rs.make_scenario(s, 'authoring', 5.0).readout_s for s in range(20)]
+    assert all(rs.HARD_READOUT_S[0] <= r <= rs.HARD_READOUT_S[1] for r in hard) and len(set(hard)) == 20
+    assert rs.make_scenario(3, 'browsing', 5.0).readout_s != rs.make_scenario(3, 'authoring', 5.0).readout_s
+    assert not rs.make_scenario(3, 'authoring', 5.0).readout_declared
+    assert rs.make_scenario(3, 'authoring', 5.0, profile='kind').readout_s == 0.0
+    asked = rs.make_scenario(3, 'authoring', 5.0, readout_s=0.02)
+    assert asked.readout_s == 0.02 and asked.readout_declared
+    assert rs.make_scenario(3, 'authoring', 5.0, readout_s=0.0).readout_s == 0.0
+
+
 def test_exposure_jumps_larger_in_hard_profile() -> None:
     hard = rs.make_exposure(SEED, 'authoring', 60.0)
     kind = rs.make_exposure(SEED, 'authoring', 60.0, profile='kind')
