@@ -170,7 +170,8 @@ def _session_maps(seed: int, trajectory: str, lighting: str, duration_s: float) 
     init = {edr: None for edr in mappers}
     est = {edr: PanoramaWorldEstimator(calibration, rs.R_IMU_CAM) for edr in mappers}
     for k, t in enumerate(cam_ns):
-        rgb = renderer.render(rs.blur_samples(scn.trajectory, t * 1e-9, cam.fx), float(gain[k]), wb[k])
+        rgb = renderer.render(rs.frame_orientations(scn.trajectory, t * 1e-9, cam.fx, scn.readout_s, cam.height),
+                              float(gain[k]), wb[k])
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
         for edr, m in mappers.items():
             res = m.process(gray, cam.K, int(t))
