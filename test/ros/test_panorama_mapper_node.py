@@ -190,3 +190,31 @@ def test_edr_correction_parameter_reaches_the_core(ros_context):
         node.destroy_node()
     with pytest.raises(ValueError, match='edr_correction'):
         PanoramaMapperNode(context=ros_context, parameter_overrides=[Parameter('edr_correction', value='affine')])
+
+
+def test_readout_estimate_parameter_and_its_log_line(ros_context, monkeypatch):
+    """estimate_readout reaches the core; a readout the core starts to use is logged once, and
+    again only when it moves by 2 ms or more, or back to a global shutter."""
+    node = PanoramaMapperNode(context=ros_context, parameter_overrides=[Parameter('estimate_readout', value=False)])
+    try:
+        assert node.core.config.estimate_readout is False
+    finally:
+        node.destroy_node()
+    node = PanoramaMapperNode(context=ros_context)
+    lines: list[str] = []
+
+    class Log:
+        def info(self, text: str) -> None:
+            lines.append(text)
+
+    monkeypatch.setattr(node, 'get_logger', lambda: Log())
+    try:
+        assert node.core.config.estimate_readout is True
+        for value in (0.0281, 0.0290, 0.0300, 0.0305, 0.0310, 0.0, 0.0):
+            node.core.readout_s = value
+            if value != node.readout_logged_s:
+                node._log_readout()
+        assert len(lines) == 3, lines
+        assert 'readout 28.1' in lines[0] and 'readout 30.5' in lines[1] and 'global shutter' in lines[2]
+    finally:
+        node.destroy_node()
