@@ -143,6 +143,23 @@ def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world):
     assert angle_deg(res.R_pano_cam, target) < 0.1
 
 
+@pytest.mark.parametrize('roll_deg', [4.0, -8.0])
+def test_relocalises_after_a_fast_pan_that_also_rolled_and_tilted_the_phone(world, roll_deg):
+    """After a fast pan the hand has also rolled and tilted the phone by a few degrees: at the
+    frame's edges that is more than the wide search, so a hypothesis that only shifts the last
+    orientation (yaw and tilt) fails to verify; one fitted on every tile match (a full rotation)
+    does."""
+    Rs = sweep(120, 2.0, seed=4)
+    mapper = PanoramaMapper()
+    run(mapper, world, Rs)
+    t = 200 * DT
+    assert mapper.process(np.full((H, W), 230, np.uint8), K, t).status == 'lost'
+    R_new = Rs[0] @ rot('y', 60.0) @ rot('x', 4.0) @ rot('z', roll_deg)
+    res = mapper.process(world.render(R_new), K, t + DT)
+    assert res.status == 'relocalised', res.reason
+    assert angle_deg(res.R_pano_cam, Rs[0].T @ R_new) < 0.1
+
+
 def test_translating_camera_is_reported_lost():
     mapper = PanoramaMapper()
     statuses = []

@@ -3,10 +3,14 @@
 
 The frame is warped onto the cylinder under a hint orientation (the last tracked one) at half
 resolution. A rotation about the cylinder axis is a pure horizontal shift of that warp, and a
-small tilt nearly a vertical one, so each finished tile (downsampled) is searched in the warp
-with normalised cross-correlation; every good match votes for a shift (du, dv) between where
-the hint puts the frame and where it is. The shifts agreed on by several tiles become
-orientation hypotheses, best first, for the tracker to verify with a wider active search.
+small tilt or roll nearly a local shift, so each finished tile (downsampled) is searched in the
+warp with normalised cross-correlation. Every good match is a correspondence: the tile's centre
+direction in the map, and the camera ray that saw it (where it sits in the warp, taken back
+through the hint). The rotations that most matches agree on (exhaustive two-point Kabsch
+hypotheses, consensus within ``consensus_px``, then a Kabsch fit on the consensus) are the
+orientation hypotheses, best first, for the tracker to verify with a wider active search. A
+full rotation, not only a shift: after a fast pan the hand has also tilted and rolled the phone
+by a few degrees, which moves a 320 px frame's edges by more than the tracker's wide search.
 """
 from __future__ import annotations
 
@@ -16,7 +20,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .cylinder import project_to_image, rotation_about_axis_y
+from ..rotations import align_directions
+from .cylinder import project_to_image
 from .map import PanoramaMap
 
 Array = NDArray[np.float64]
@@ -32,11 +37,10 @@ class RelocaliserConfig:
     #: At most this many tiles are tried (evenly spaced over the finished ones).
     max_tiles: int = 96
     max_hypotheses: int = 3
-
-
-def _rotation_about(axis: Array, angle: float) -> Array:
-    R, _ = cv2.Rodrigues((np.asarray(axis, float) / np.linalg.norm(axis) * angle).reshape(3, 1))
-    return R
+    #: Matches within this many map pixels of a rotation's prediction agree with it.
+    consensus_px: float = 6.0
+    #: The best this many tile matches (by NCC) form the hypotheses (pairs grow as its square).
+    max_matches: int = 24
 
 
 class Relocaliser:
@@ -88,8 +92,9 @@ class Relocaliser:
         # Pixels outside the frame must not attract matches: fill them with noise-free mean.
         fill = float(warp[valid].mean()) if valid.any() else 0.0
         warp = np.where(valid, warp, np.uint8(fill)).astype(np.uint8)
-        votes: dict[tuple[int, int], list[float]] = {}
-        ws = small.shape[1]
+        rays: list[Array] = []  # camera rays of the matches (through the hint)
+        dirs: list[Array] = []  # map directions of the matched tiles' centres
+        peaks: list[float] = []
         for t in tiles.tolist():
             r0, c0 = (t // tw) * ts, (t % tw) * ts
             tpl = small[r0:r0 + ts, c0:c0 + ts]
@@ -99,33 +104,40 @@ class Relocaliser:
             _, peak, _, loc = cv2.minMaxLoc(res)
             if peak < cfg.min_ncc:
                 continue
-            # Tile content at small (c0, r0) appears where the hint puts small (u0*s + x, v0*s + y).
-            du = (c0 - (u0 * s + loc[0]))
-            du = (du + ws / 2) % ws - ws / 2
-            dv = r0 - (v0 * s + loc[1])
-            key = (int(round(du / 2)), int(round(dv / 2)))
-            votes.setdefault(key, []).append(peak)
-        # Merge neighbouring bins.
-        scored = []
-        for key in votes:
-            near = [v for k2, vs_ in votes.items() if abs(k2[0] - key[0]) <= 1 and abs(k2[1] - key[1]) <= 1 for v in vs_]
-            scored.append((len(near), sum(near), key))
-        scored.sort(key=lambda e: (-e[0], -e[1], e[2]))
-        out: list[Array] = []
-        used: list[tuple[int, int]] = []
-        for n_votes, _, key in scored:
-            if n_votes < cfg.min_votes or len(out) >= cfg.max_hypotheses:
-                break
-            if any(abs(key[0] - k[0]) <= 1 and abs(key[1] - k[1]) <= 1 for k in used):
-                continue
-            used.append(key)
-            du_map, dv_map = 2 * key[0] / s, 2 * key[1] / s
-            yaw = du_map / geo.f
-            # A vertical shift is a tilt about the horizontal axis across the view direction.
-            view = R_hint[:, 2]
-            axis = np.array([view[2], 0.0, -view[0]])
-            R = rotation_about_axis_y(yaw) @ R_hint
-            if np.linalg.norm(axis) > 1e-6:
-                R = _rotation_about(rotation_about_axis_y(yaw) @ axis, -np.arctan(dv_map / geo.f)) @ R
-            out.append(R)
-        return out
+            half = ts / 2.0
+            dirs.append(geo.unproject(np.array([(c0 + half) / s]), np.array([(r0 + half) / s]))[0])
+            seen = geo.unproject(np.array([u0 + (loc[0] + half) / s]), np.array([v0 + (loc[1] + half) / s]))[0]
+            rays.append(R_hint.T @ seen)
+            peaks.append(float(peak))
+        if len(rays) < cfg.min_votes:
+            return []
+        best = np.argsort(-np.array(peaks), kind='stable')[:cfg.max_matches]
+        return _consensus_rotations(np.array(rays)[best], np.array(dirs)[best], cfg.consensus_px / geo.f,
+                                    cfg.min_votes, cfg.max_hypotheses)
+
+
+def _consensus_rotations(b: Array, d: Array, thr: float, min_votes: int, max_hypotheses: int) -> list[Array]:
+    """Rotations R with d_i ~ R b_i agreed on by the most matches: every pair of matches gives
+    a two-point Kabsch rotation, the one with the largest consensus (|R b - d| < thr; ties: the
+    smaller residual sum) is refitted on it; its matches are removed and the next one sought."""
+    n = b.shape[0]
+    i, j = np.triu_indices(n, 1)
+    keep = np.ones(n, bool)
+    out: list[Array] = []
+    while len(out) < max_hypotheses and np.count_nonzero(keep) >= min_votes:
+        pairs = [(a, c) for a, c in zip(i.tolist(), j.tolist()) if keep[a] and keep[c]]
+        best: tuple[int, float, NDArray[np.bool_]] | None = None
+        for a, c in pairs:
+            R = align_directions(b[[a, c]], d[[a, c]])
+            err = np.linalg.norm(b @ R.T - d, axis=1)
+            inl = keep & (err < thr)
+            score = (int(np.count_nonzero(inl)), -float(err[inl].sum()))
+            if best is None or score > (best[0], best[1]):
+                best = (score[0], score[1], inl)
+        if best is None or best[0] < min_votes:
+            break
+        inl = best[2]
+        R = align_directions(b[inl], d[inl])
+        out.append(R)
+        keep &= ~inl
+    return out
