@@ -183,10 +183,9 @@ def _sidecar(bag: Path) -> Path | None:
     return p if p.is_file() else None
 
 
-def load_device_params(files: Sequence[str | Path]) -> tuple[ImuCalibration, np.ndarray, float]:
-    """(calibration, R_imu_cam, declination_rad) from ROS 2 params files: the
-    ``hybrid_orientation_filter`` section (else ``imu_magnetometer``), later files win; with or
-    without ``ros__parameters``. BagError (one line) for an unreadable or invalid file."""
+def _node_params(files: Sequence[str | Path], nodes: Sequence[str]) -> dict[str, Any]:
+    """The parameters of ``nodes`` (later ones and later files win) in ROS 2 params files, with
+    or without ``ros__parameters``. BagError (one line) for an unreadable or invalid file."""
     values: dict[str, Any] = {}
     for f in files:
         try:
@@ -195,10 +194,32 @@ def load_device_params(files: Sequence[str | Path]) -> tuple[ImuCalibration, np.
             raise BagError(f'{f}: cannot read the params file ({str(exc).splitlines()[0]})') from None
         if not isinstance(doc, dict):
             raise BagError(f'{f}: a params file is a mapping of node names')
-        for node in ('imu_magnetometer', 'hybrid_orientation_filter'):
+        for node in nodes:
             sec = doc.get(node) or doc.get('/' + node) or {}
             sec = sec.get('ros__parameters', sec) if isinstance(sec, dict) else {}
             values.update(sec)
+    return values
+
+
+def load_camera_params(files: Sequence[str | Path]) -> tuple[float, bool]:
+    """(readout_s, estimate_readout) of the ``panorama_mapper`` section of ROS 2 params files
+    (the camera's rolling shutter, as the graph's mapper gets it); defaults 0 and True."""
+    values = _node_params(files, ('panorama_mapper',))
+    try:
+        readout = float(values.get('readout_s', 0.0))
+        estimate = values.get('estimate_readout', True)
+        if not math.isfinite(readout) or not 0.0 <= readout <= 0.1 or not isinstance(estimate, bool):
+            raise ValueError('readout_s must be in [0, 0.1] s and estimate_readout true or false')
+    except (TypeError, ValueError) as exc:
+        raise BagError(f'camera parameters in {", ".join(map(str, files))}: {exc}') from None
+    return readout, estimate
+
+
+def load_device_params(files: Sequence[str | Path]) -> tuple[ImuCalibration, np.ndarray, float]:
+    """(calibration, R_imu_cam, declination_rad) from ROS 2 params files: the
+    ``hybrid_orientation_filter`` section (else ``imu_magnetometer``), later files win; with or
+    without ``ros__parameters``. BagError (one line) for an unreadable or invalid file."""
+    values = _node_params(files, ('imu_magnetometer', 'hybrid_orientation_filter'))
     try:
         cal = ImuCalibration(gyro_bias=values.get('gyro_bias', [0.0] * 3),
                              accel_bias=values.get('accel_bias', [0.0] * 3),
@@ -238,8 +259,10 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
             side = _sidecar(bag)
             params_files = [side] if side is not None else []
         cal, R_imu_cam, decl = load_device_params(params_files)
+        readout_s, estimate_readout = load_camera_params(params_files)
         geo = CylinderGeometry()
-        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr)))
+        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), readout_s=readout_s,
+                                             estimate_readout=estimate_readout))
         world_est = PanoramaWorldEstimator(cal, R_imu_cam, WorldAlignmentConfig(declination_rad=decl))
         fixes, init_ns = _map_bag(bag, mapper, world_est, progress)
         if init_ns is None:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from ar_tracking.annotate import (Position, PositionError, load_device_params, parse_position,
+from ar_tracking.annotate import (Position, PositionError, load_camera_params, load_device_params, parse_position,
                                   position_direction, read_positions, write_panorama_png)
 from ar_tracking.core.annotations.world_orientation import DEFAULT_R_IMU_CAM, PanoramaWorldEstimator
 from ar_tracking.core.panorama.cylinder import CylinderGeometry
@@ -120,6 +120,21 @@ def test_device_params_from_either_node_section(tmp_path):
     bad.write_text('imu_magnetometer: {ros__parameters: {soft_iron_matrix: [0, 0, 0, 0, 0, 0, 0, 0, 0]}}')
     with pytest.raises(BagError, match='singular'):
         load_device_params([bad])
+
+
+def test_camera_params_give_annotate_the_graphs_rolling_shutter(tmp_path):
+    """annotate maps the authoring bag with the readout the graph's panorama_mapper gets."""
+    side = tmp_path / 'b.params.yaml'
+    side.write_text(yaml.safe_dump({'panorama_mapper': {'ros__parameters': {'readout_s': 0.025}}}))
+    assert load_camera_params([side]) == (0.025, True)
+    assert load_camera_params([]) == (0.0, True)
+    off = tmp_path / 'off.yaml'
+    off.write_text('panorama_mapper: {readout_s: 0.01, estimate_readout: false}')
+    assert load_camera_params([side, off]) == (0.01, False)
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('panorama_mapper: {ros__parameters: {readout_s: 2.0}}')
+    with pytest.raises(BagError, match='readout_s'):
+        load_camera_params([bad])
 
 
 def test_panorama_png_has_the_degree_grid(tmp_path):
