@@ -303,16 +303,15 @@ class PanoramaMapper:
         painted them (:class:`.readout.Painting`)."""
         uv = self.map.keypoints()[1][fit.keypoints]
         ids = self.map.contribution[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)]
-        d = fit.rays + fit.residuals
-        n = ids.size
-        omega, rows, readout = np.zeros((n, 3)), np.full(n, np.nan), np.zeros(n)
-        for j in np.unique(ids).tolist():
-            R_j, w_j, s_j = self._painted.get(j, (np.eye(3), None, 0.0))
-            if w_j is None:
-                continue
-            m = ids == j
-            _, y, _ = project_to_image(K, d[m] @ R_j)
-            rows[m], omega[m], readout[m] = (y + 0.5) / height, R_j @ w_j, s_j
+        frames, which = np.unique(ids, return_inverse=True)
+        recs = [self._painted.get(j, (np.eye(3), None, 0.0)) for j in frames.tolist()]
+        known = np.array([w is not None for _, w, _ in recs])[which]
+        R_j = np.stack([R for R, _, _ in recs])[which]  # (n, 3, 3) the painting frame of each ray
+        w_j = np.stack([np.zeros(3) if w is None else w for _, w, _ in recs])[which]
+        _, y, _ = project_to_image(K, np.einsum('nji,nj->ni', R_j, fit.rays + fit.residuals))
+        rows = np.where(known, (y + 0.5) / height, np.nan)
+        omega = np.einsum('nij,nj->ni', R_j, w_j)
+        readout = np.array([s_j for _, _, s_j in recs])[which]
         keep = np.isfinite(rows)
         if not keep.any():
             return None, None
