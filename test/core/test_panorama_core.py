@@ -257,3 +257,25 @@ def test_photo_mode_tracks_photos_20_degrees_apart(world):
         yaws.append(math.degrees(math.atan2(last[0, 2], last[2, 2])))
     steps = np.mod(np.diff(yaws), 360) - 360
     np.testing.assert_allclose(steps, -20.0, atol=0.3)
+
+
+def test_relocaliser_consensus_finds_the_rotation_most_tile_matches_agree_on():
+    """Tile matches as correspondences: 12 agree on one rotation (a few tenths of a pixel of
+    noise), 5 look-alikes agree on another 20 deg away, 6 are scattered; the hypotheses are the
+    two rotations, the larger consensus first, each refitted to well within the consensus."""
+    from ar_tracking.core.panorama.relocalise import _consensus_rotations
+
+    rng = np.random.default_rng(7)
+    f = 326.0
+    R_a, R_b = rot('y', 35.0) @ rot('x', 4.0) @ rot('z', -3.0), rot('y', 55.0)
+    rays = rng.normal(size=(23, 3)) * [0.3, 0.2, 0.0] + [0.0, 0.0, 1.0]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    d = np.empty_like(rays)
+    d[:12] = rays[:12] @ R_a.T + rng.normal(scale=0.3 / f, size=(12, 3))
+    d[12:17] = rays[12:17] @ R_b.T
+    d[17:] = rng.normal(size=(6, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    hyps = _consensus_rotations(rays, d, 6.0 / f, 3, 3)
+    assert len(hyps) == 2
+    assert angle_deg(hyps[0], R_a) < 0.2 and angle_deg(hyps[1], R_b) < 0.2  # the roll is the least sure
+    assert _consensus_rotations(rays[17:], d[17:], 6.0 / f, 3, 3) == []  # nothing agrees
