@@ -8,7 +8,7 @@ import pytest
 
 from ar_tracking.core.panorama.cylinder import camera_rays, project_to_image, project_xyz
 from ar_tracking.core.panorama.map import MapConfig, PanoramaMap
-from ar_tracking.core.panorama.tracker import ActiveSearchTracker, _hypothesis_votes, kabsch
+from ar_tracking.core.panorama.tracker import ActiveSearchTracker, pair_rotation_votes, kabsch
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -21,7 +21,7 @@ def _rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def test_hypothesis_votes_are_those_of_the_two_point_kabsch_rotations() -> None:
+def testpair_rotation_votes_are_those_of_the_two_point_kabsch_rotations() -> None:
     rng = np.random.default_rng(3)
     for _ in range(20):
         R_true = _rotation(rng)
@@ -34,7 +34,7 @@ def test_hypothesis_votes_are_those_of_the_two_point_kabsch_rotations() -> None:
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
         R_pred = _rotation(rng)
         thr = 4e-3
-        votes = _hypothesis_votes(b, d, pairs, R_pred, thr)
+        votes = pair_rotation_votes(b, d, pairs, R_pred, thr)
         assert votes.shape == (pairs.shape[0] + 1, n)
         Rs = [kabsch(b[p], d[p]) for p in pairs] + [R_pred]
         expect = np.array([np.linalg.norm(b @ R.T - d, axis=1) < thr for R in Rs])
@@ -45,9 +45,9 @@ def test_hypothesis_votes_are_those_of_the_two_point_kabsch_rotations() -> None:
         assert votes[:-1].sum(axis=1).max() >= 30  # an outlier-free pair finds the 32 inliers
 
 
-def test_hypothesis_votes_of_a_degenerate_pair_are_empty() -> None:
+def testpair_rotation_votes_of_a_degenerate_pair_are_empty() -> None:
     b = _unit(np.array([[0.1, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.2, 1.0]]))
-    votes = _hypothesis_votes(b, b.copy(), np.array([[0, 1], [0, 2]]), np.eye(3), 1e-3)
+    votes = pair_rotation_votes(b, b.copy(), np.array([[0, 1], [0, 2]]), np.eye(3), 1e-3)
     assert not votes[0].any()  # b0 == b1: no rotation defined
     assert votes[1].all() and votes[2].all()  # identity is exact
 

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from ..rotations import align_directions
 from .cylinder import project_to_image
 from .map import PanoramaMap
+from .tracker import pair_rotation_votes
 
 Array = NDArray[np.float64]
 
@@ -118,26 +119,20 @@ class Relocaliser:
 
 def _consensus_rotations(b: Array, d: Array, thr: float, min_votes: int, max_hypotheses: int) -> list[Array]:
     """Rotations R with d_i ~ R b_i agreed on by the most matches: every pair of matches gives
-    a two-point Kabsch rotation, the one with the largest consensus (|R b - d| < thr; ties: the
-    smaller residual sum) is refitted on it; its matches are removed and the next one sought."""
-    n = b.shape[0]
-    i, j = np.triu_indices(n, 1)
-    keep = np.ones(n, bool)
+    a two-point Kabsch rotation (:func:`.tracker.pair_rotation_votes`), the one with the largest
+    consensus (|R b - d| < thr) is refitted on it; its matches are removed and the next one sought."""
+    keep = np.ones(b.shape[0], bool)
     out: list[Array] = []
-    while len(out) < max_hypotheses and np.count_nonzero(keep) >= min_votes:
-        pairs = [(a, c) for a, c in zip(i.tolist(), j.tolist()) if keep[a] and keep[c]]
-        best: tuple[int, float, NDArray[np.bool_]] | None = None
-        for a, c in pairs:
-            R = align_directions(b[[a, c]], d[[a, c]])
-            err = np.linalg.norm(b @ R.T - d, axis=1)
-            inl = keep & (err < thr)
-            score = (int(np.count_nonzero(inl)), -float(err[inl].sum()))
-            if best is None or score > (best[0], best[1]):
-                best = (score[0], score[1], inl)
-        if best is None or best[0] < min_votes:
+    while len(out) < max_hypotheses:
+        idx = np.flatnonzero(keep)
+        if idx.size < max(min_votes, 2):
             break
-        inl = best[2]
-        R = align_directions(b[inl], d[inl])
-        out.append(R)
-        keep &= ~inl
+        votes = pair_rotation_votes(b[idx], d[idx], np.column_stack(np.triu_indices(idx.size, 1)), None, thr)
+        counts = votes.sum(axis=1)
+        best = int(np.argmax(counts))
+        if counts[best] < min_votes:
+            break
+        inl = idx[votes[best]]
+        out.append(align_directions(b[inl], d[inl]))
+        keep[inl] = False
     return out

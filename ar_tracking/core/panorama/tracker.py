@@ -119,11 +119,12 @@ def _pair_frames(v: Array) -> Array:
     return F
 
 
-def _hypothesis_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Array, thr: float
-                      ) -> NDArray[np.bool_]:
+def pair_rotation_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Array | None, thr: float
+                        ) -> NDArray[np.bool_]:
     """(M + 1, n) inlier masks |R_m b_i - d_i| < thr of the two-point Kabsch rotations R_m of
-    the index ``pairs`` (M, 2) and of ``R_pred`` (the last row): the RANSAC hypotheses, which
-    only vote (the estimate is the Kabsch fit on the winner's inliers).
+    the index ``pairs`` (M, 2) and of ``R_pred`` (the last row; (M, n) without one): the RANSAC
+    hypotheses, which only vote (the estimate is the Kabsch fit on the winner's inliers). The
+    tracker's RANSAC and the relocaliser's consensus over tile matches both use it.
 
     The two-point Kabsch rotation in closed form: with s = b0 + b1 and t = b0 - b1 the
     correlation matrix is H = d0 b0^T + d1 b1^T = (s_d s_b^T + t_d t_b^T) / 2, whose singular
@@ -133,9 +134,10 @@ def _hypothesis_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Arra
     SVD (4 times the cost) and no rotation formed. A degenerate pair votes for nothing."""
     Fb = _pair_frames(b[pairs])
     Fd = _pair_frames(d[pairs])
-    m = pairs.shape[0] + 1
-    Fb = np.concatenate([Fb, np.eye(3)[None]])  # R_pred: |b - R_pred^T d|
-    Fd = np.concatenate([Fd, R_pred[None]])
+    if R_pred is not None:
+        Fb = np.concatenate([Fb, np.eye(3)[None]])  # R_pred: |b - R_pred^T d|
+        Fd = np.concatenate([Fd, R_pred[None]])
+    m = Fb.shape[0]
     n = b.shape[0]
     diff = (b @ Fb.transpose(1, 0, 2).reshape(3, 3 * m) - d @ Fd.transpose(1, 0, 2).reshape(3, 3 * m))
     diff = diff.reshape(n, m, 3)
@@ -267,7 +269,7 @@ class ActiveSearchTracker:
         nk = k.size
         pairs = self._rng.integers(0, nk, size=(cfg.ransac_iterations, 2))
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-        inside = _hypothesis_votes(b, d, pairs, R_pred, thr)
+        inside = pair_rotation_votes(b, d, pairs, R_pred, thr)
         inl = inside[int(np.argmax(inside.sum(axis=1)))]
         R = R_pred
         for _ in range(2):
