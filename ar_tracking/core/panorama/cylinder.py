@@ -119,11 +119,11 @@ def row_rotations(row_motion: tuple[Array, float], y: ArrayLike, height: int) ->
     image rows ``y``, ``exp(omega dt)`` with ``dt = readout (y + 0.5) / height`` (``row_motion`` =
     (omega rad/s in camera axes, readout s)); R_pano_cam at row y is R_pano_cam(stamp) times it."""
     omega, readout = row_motion
-    dt = row_times(readout, y, height)
+    dt = _row_times(readout, y, height)
     return Rotation.from_rotvec(np.asarray(omega, float)[None, :] * dt[:, None]).as_matrix()
 
 
-def row_times(readout: float, y: ArrayLike, height: int) -> Array:
+def _row_times(readout: float, y: ArrayLike, height: int) -> Array:
     """When rows ``y`` (clipped to the image, NaN as row 0) were read after the stamp, s."""
     rows = np.clip(np.nan_to_num(np.asarray(y, dtype=float), nan=0.0, posinf=height, neginf=0.0), 0.0, height)
     return readout * (rows + 0.5) / height
@@ -140,7 +140,7 @@ def to_row_cameras(row_motion: tuple[Array, float], y: Array, height: int, px: A
     if rate < 1e-12 or readout <= 0.0:
         return px, py, pz
     kx, ky, kz = (float(c) for c in w / rate)
-    theta = -rate * row_times(readout, y, height)  # turning back
+    theta = -rate * _row_times(readout, y, height)  # turning back
     c, s = np.cos(theta), np.sin(theta)
     dot = (kx * px + ky * py + kz * pz) * (1.0 - c)
     cx, cy, cz = ky * pz - kz * py, kz * px - kx * pz, kx * py - ky * px  # k x p

@@ -256,7 +256,7 @@ class PanoramaMapper:
             if self.config.estimate_readout and res.row_fit is not None:
                 self.readout_estimator.add(self.readout_s, rate, R, *self._painting(res.row_fit, K, gray.shape[0]))
         # the rate over the last frame interval turns the rows of this frame as it is mapped
-        self.map.row_motion = self._row_motion(rate)
+        paint_motion = self.map.row_motion = self._row_motion(rate)
         try:
             pixels = self.map.new_pixels(K, R, gray.shape)
             offset, gain = self._correction(res, stamp_ns, gray, K, pixels)
@@ -265,7 +265,7 @@ class PanoramaMapper:
         finally:
             self.map.row_motion = None
         if n:
-            self._painted[idx] = (R, rate, self.readout_s if rate is not None else 0.0)
+            self._painted[idx] = (R, rate, 0.0 if paint_motion is None else paint_motion[1])
         self._accept(R, stamp_ns, centre, keep_velocity=was_tracking)
         if self.config.estimate_readout:
             self.readout_s = self.readout_estimator.readout(self.config.readout_s)
@@ -330,17 +330,18 @@ class PanoramaMapper:
         """(R_pano_cam, stamp ns, s after it) of a frame at the mean read time of its inliers' rows.
 
         With a rolling shutter the fit turns each row by the assumed rate, so the stamp's
-        orientation carries the rate's error times that mean time, while the orientation at
-        the mean time does not (to first order). Differencing stamp orientations for the next
+        orientation carries the rate's error times that mean time (the readout times the
+        inliers' mean row position), while the orientation at the mean time does not (to first
+        order). Differencing stamp orientations for the next
         frame's rate closes a loop whose gain is about (mean row time) / (frame interval): at a
         30 ms readout and 30 Hz, near or above one when the texture sits low in the image, and
         the rate then oscillates frame to frame and grows until tracking is lost. Differencing
         these centres opens the loop."""
         if stamp_ns is None:
             return None
-        if res is None or motion is None or res.row_time_s <= 0.0:
+        if res is None or motion is None or res.row_fit is None:
             return R, stamp_ns, 0.0
-        t = res.row_time_s
+        t = motion[1] * float(np.mean(res.row_fit.rows))
         return R @ _exp_rotation(motion[0] * t), stamp_ns, t
 
     def _rate_to(self, centre: tuple[Array, int, float] | None, max_dt_s: float = 0.5) -> Array | None:

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from ..box_sums import window_box_sums
 from ..rotations import align_directions
-from .cylinder import camera_rays, project_to_image, row_rotations, row_times
+from .cylinder import camera_rays, project_to_image, row_rotations
 from .map import PanoramaMap
 from .readout import RowFit
 
@@ -89,9 +89,6 @@ class TrackResult:
     photometric_pairs: int = 0
     #: Standard error of ``intensity_offset`` (spread of the kept pairs / sqrt(n)), 8-bit units.
     intensity_offset_se: float = float('inf')
-    #: Rolling shutter: mean time after the stamp at which the inliers' rows were read, s (0 for
-    #: a global shutter). The fit is least sensitive to the assumed rate at that time.
-    row_time_s: float = 0.0
     #: The inliers of the fit, for the readout's estimate (:mod:`.readout`); None on failure.
     row_fit: RowFit | None = None
 
@@ -306,13 +303,12 @@ class ActiveSearchTracker:
                 log_gain, log_se = _trimmed_mean_se(np.log(t_mean[k][use]) - np.log(f_mean[use]))
         ok = n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * n
         reason = '' if ok else f'{n_in} inliers of {n} searched keypoints'
-        row_time = float(np.mean(row_times(row_motion[1], my[inl], h))) if row_motion is not None and n_in else 0.0
         fit = None
         if ok:
             rays = b[inl] @ R.T
             fit = RowFit(rays, d[inl] - rays, (my[inl] + 0.5) / h, idx[k][inl])
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
-                           log_gain, log_se, pairs_used, offset_se, row_time, fit)
+                           log_gain, log_se, pairs_used, offset_se, fit)
 
     def _spread(self, idx: NDArray[np.int64], x: Array, y: Array, score: Array, w: int, h: int
                 ) -> NDArray[np.int64]:
