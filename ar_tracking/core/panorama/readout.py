@@ -98,12 +98,10 @@ def frame_reading(fit: RowFit, omega_pano: Array, readout_used_s: float, paintin
     if n < 3:
         return None
     motion = v[:, None] * np.asarray(omega_pano, float)[None, :]  # v_i Omega
-    q_axis = motion.copy()
-    o_axis = readout_used_s * motion
+    q_axis, o_axis = motion, readout_used_s * motion
     if painting is not None:
         paint = painting.rows[:, None] * painting.omega_pano  # v_j Omega_j
-        q_axis -= paint
-        o_axis -= painting.readout_s[:, None] * paint
+        q_axis, o_axis = motion - paint, o_axis - painting.readout_s[:, None] * paint
     q = np.cross(q_axis, p)  # dr/ds per ray
     y = r + np.cross(o_axis, p)  # = dtheta x p + s q
     # A_tt = sum I - p p^T; A_ts = sum p x q; A_ss = sum |q|^2; g_t = sum p x y; g_s = sum q . y
@@ -160,8 +158,7 @@ class ReadoutEstimator:
             # Cauchy about the running mean, in the reading's sigma widened by the readings'
             # scatter (a reading's own sigma leaves out the model's errors, and a weight in it
             # alone would freeze an early estimate).
-            mean = self._sws / self._sw
-            scatter = max(self._sws2 / self._sw - mean * mean, 0.0)
+            mean, scatter = self._moments()
             z = (s - mean) / math.sqrt(1.0 / info + scatter) / c.cauchy_sigmas
             w = info / (1.0 + z * z)
         keep = 1.0 - 1.0 / max(c.memory_readings, 1.0)
@@ -170,6 +167,11 @@ class ReadoutEstimator:
         self._sws2 = keep * self._sws2 + w * s * s
         self._n_eff = keep * self._n_eff + 1.0
         self._n += 1
+
+    def _moments(self) -> tuple[float, float]:
+        """Weighted mean and variance of the readings kept."""
+        mean = self._sws / self._sw
+        return mean, max(self._sws2 / self._sw - mean * mean, 0.0)
 
     @property
     def frames(self) -> int:
@@ -181,9 +183,8 @@ class ReadoutEstimator:
         any reading."""
         if self._n == 0 or self._sw <= 0:
             return None
-        mean = self._sws / self._sw
-        chi2 = max(self._sws2 - self._sw * mean * mean, 0.0)  # sum w (s - mean)^2
-        scale = max(1.0, chi2 / max(self._n_eff - 1.0, 1.0))
+        mean, var = self._moments()
+        scale = max(1.0, self._sw * var / max(self._n_eff - 1.0, 1.0))  # sum w (s - mean)^2 / dof
         return mean, math.sqrt(scale / self._sw)
 
     def readout(self, configured_s: float) -> float:
