@@ -255,8 +255,7 @@ class PanoramaMapperNode(TrackingNode):
         except PanoramaError as exc:
             self.warn_throttled(f'camera: {exc}, frame skipped')
             return
-        if self.core.readout_s != self.readout_logged_s:
-            self._log_readout()
+        self._log_readout()
         R = res.R_pano_cam
         if R is not None and np.all(np.isfinite(R)):
             # as CDR bytes (ros.cdr_views): the TransformStamped set_quaternion would fill

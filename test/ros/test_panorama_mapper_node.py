@@ -212,8 +212,7 @@ def test_readout_estimate_parameter_and_its_log_line(ros_context, monkeypatch):
         assert node.core.config.estimate_readout is True
         for value in (0.0281, 0.0290, 0.0300, 0.0305, 0.0310, 0.0, 0.0):
             node.core.readout_s = value
-            if value != node.readout_logged_s:
-                node._log_readout()
+            node._log_readout()
         assert len(lines) == 3, lines
         assert 'readout 28.1' in lines[0] and 'readout 30.5' in lines[1] and 'global shutter' in lines[2]
     finally:
