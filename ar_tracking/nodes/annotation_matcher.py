@@ -1,8 +1,9 @@
 """annotation_matcher: re-detects stored annotations in the panorama being built (Langlotz 2011
 sec. 3.2, 4.2, 4.3).
 
-Subscribes ``panorama/image`` (mono16/mono8 map) and ``panorama/tiles`` (mono8, 255 finished,
-same stamp as the map) from panorama_mapper, ``gps/fix`` (NavSatFix) to load the annotations
+Subscribes ``panorama/image`` (mono16/mono8 map) and ``panorama/tiles`` (mono8, nonzero finished,
+same stamp as the map; a new nonzero value means the map was painted again - the rolling
+shutter's readout became known - and its tiles are matched again) from panorama_mapper, ``gps/fix`` (NavSatFix) to load the annotations
 within ``radius_m`` from the store (all of them when GPS is poor), and for the sensor prior
 ``orientation/panorama_in_world`` (TransformStamped enu -> panorama) or ``orientation/global``
 (Imu, camera in ENU, paired by stamp with ``panorama/orientation``), averaged over all samples
@@ -183,6 +184,13 @@ PARAMS = (
 #: Node parameters in degrees whose :class:`MatchConfig` field is in map pixels.
 _DEG_TO_PX = {'prior_window_deg': 'prior_window_px', 'local_support_deg': 'local_support_px',
               'bracket_support_deg': 'bracket_support_px', 'matched_agreement_deg': 'matched_agreement_px'}
+
+
+def _tile_generation(tiles: np.ndarray) -> int | None:
+    """The value of the finished tiles of a ``panorama/tiles`` image (255 as first painted, one
+    less each time the map was painted again), None while none is finished."""
+    finished = tiles[tiles > 0]
+    return int(finished.max()) if finished.size else None
 
 
 def match_config(values: dict[str, Any], f: float) -> MatchConfig:
@@ -388,11 +396,19 @@ class AnnotationMatcherNode(TrackingNode):
             self.pending_tiles = (t, tiles)
 
     def _queue_tiles(self, tiles: np.ndarray) -> None:
+        before = None if self.finished_tiles is None else _tile_generation(self.finished_tiles)
+        now = _tile_generation(tiles)
         self.finished_tiles = tiles
+        if self.detector is not None and before is not None and now is not None and now != before:
+            # What was matched in the old tiles was matched in pixels that are no longer there.
+            self.get_logger().info('panorama/tiles: the map was painted again (its camera\'s rolling shutter '
+                                   'became known): matching starts over on its tiles')
+            self.set_annotations(self.annotations)
         if self.detector is not None:
             self.detector.add_finished_tiles(tiles)
 
     def _reset_panorama(self) -> None:
+        self.finished_tiles = None
         self.gray = self.mapped = None
         self.map_stamp = None
         self.pending_tiles = None
@@ -531,3 +547,4 @@ def main(args: list[str] | None = None) -> int:
 
 if __name__ == '__main__':
     raise SystemExit(main())
+

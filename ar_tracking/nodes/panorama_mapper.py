@@ -6,8 +6,10 @@ Subscribes ``camera/image_raw`` (sensor_msgs/Image) and ``camera/image_raw/compr
 frame, ``panorama/orientation`` (TransformStamped, frame_id ``panorama``, child
 ``camera_optical``, rotation R_panorama_cam, the image's stamp), and at ``publish_rate_hz``
 (by image stamps, so lockstep runs are reproducible) the map ``panorama/image`` (mono16 or
-rgb16, linearly tone-mapped EDR map) and ``panorama/tiles`` (mono8, one pixel per tile, 255
-finished), latched. A frame that cannot be tracked (lost, textureless, translating camera) is
+rgb16, linearly tone-mapped EDR map) and ``panorama/tiles`` (mono8, one pixel per tile, nonzero
+finished: 255, one less each time the map is painted again), latched. A camera with a rolling
+shutter whose readout is not given is mapped as a global shutter until the readout is estimated
+(``estimate_readout``), then the map is painted again from the frames so far (once). A frame that cannot be tracked (lost, textureless, translating camera) is
 not published; bad messages are dropped with a throttled warning. The algorithm is
 :mod:`ar_tracking.core.panorama`; this node converts and publishes.
 """

@@ -129,6 +129,9 @@ class PanoramaMap:
         self._kp_score: list[Array] = []
         self._kp_cache: tuple[Array, Array, Array] | None = None
         self.version = 0  # bumped whenever pixels are written
+        #: How many times the panorama's map was painted again from scratch (:mod:`.repaint`):
+        #: its finished tiles are then new, and :meth:`tiles_image` says so.
+        self.generation = 0
         #: (omega rad/s camera axes, readout s) of the frame being mapped when its camera has a
         #: rolling shutter (set by the mapper per frame), else None: see cylinder.row_rotations.
         self.row_motion: tuple[Array, float] | None = None
@@ -160,8 +163,12 @@ class PanoramaMap:
         return self._kp_cache
 
     def tiles_image(self) -> NDArray[np.uint8]:
-        """One pixel per tile: 255 finished, 0 otherwise (the ``panorama/tiles`` product)."""
-        return np.where(self.tile_state > 0, 255, 0).astype(np.uint8).reshape(self.tiles_shape)
+        """One pixel per tile (the ``panorama/tiles`` product): 0 unfinished, nonzero finished -
+        255 in the map as first painted, one less for each time it was painted again
+        (:attr:`generation`; never below 1), so that a consumer of the finished tiles sees that
+        they changed."""
+        value = max(255 - self.generation, 1)
+        return np.where(self.tile_state > 0, value, 0).astype(np.uint8).reshape(self.tiles_shape)
 
     def finished_tiles(self) -> NDArray[np.int64]:
         return np.flatnonzero(self.tile_state > 0)

@@ -35,6 +35,7 @@ from .map import MapConfig, NewPixels, PanoramaMap, seam_error
 from .cylinder import project_to_image
 from .readout import Painting, ReadoutConfig, ReadoutEstimator, RowFit
 from .relocalise import Relocaliser, RelocaliserConfig
+from .repaint import EarlyFrame, EarlyFrames, repaint
 from .tracker import ActiveSearchTracker, TrackerConfig, TrackResult
 from ...errors import ArTrackingError
 
@@ -66,6 +67,10 @@ class MapperConfig:
     #: place of ``readout_s`` once it is known (a bag seldom says what its camera's readout is).
     estimate_readout: bool = True
     readout_estimate: ReadoutConfig = field(default_factory=ReadoutConfig)
+    #: With ``readout_s`` 0 and the estimate on, the frames mapped before the estimate is
+    #: applied are kept, up to this many MB, and the map is painted again from them with the
+    #: estimated readout when it is (:mod:`.repaint`); 0 never repaints.
+    repaint_max_mb: float = 96.0
     #: Finished tiles whose keypoints are computed per background step.
     background_tiles: int = 4
     #: While the map has fewer keypoints, the background step does all queued tiles.
@@ -165,6 +170,11 @@ class PanoramaMapper:
         self._painted: dict[int, tuple[Array, Array | None, float]] = {}
         #: The readout in use, s (``readout_s``, then the estimate).
         self.readout_s = cfg.readout_s
+        #: The frames mapped as a global shutter until the estimate replaces readout 0 (then
+        #: None: the map was repainted, or there is nothing to repaint).
+        self._early: EarlyFrames | None = None
+        if cfg.estimate_readout and cfg.readout_s == 0.0 and cfg.repaint_max_mb > 0:
+            self._early = EarlyFrames(int(cfg.repaint_max_mb * 2 ** 20))
 
     @property
     def initialised(self) -> bool:
@@ -213,6 +223,8 @@ class PanoramaMapper:
             R = np.eye(3)
             n = self.map.map_frame(to_map, K, R, idx, 0.0, gray if to_map.ndim == 3 else None)
             self._painted[idx] = (R, None, 0.0)
+            if self._early is not None:
+                self._early.add(EarlyFrame(idx, to_map, gray if to_map.ndim == 3 else None, K, R, 0.5, 0.0, 1.0))
             self._accept(R, stamp_ns, self._row_centre(R, stamp_ns, None, None))
             self.frame_size = gray.shape
             return FrameResult(R, 'initialised', mapped_pixels=n)
@@ -264,12 +276,38 @@ class PanoramaMapper:
                                                              gray if to_map.ndim == 3 else None, gain, pixels)
         finally:
             self.map.row_motion = None
+        row_centre = float(np.mean(res.row_fit.rows)) if res.row_fit is not None else 0.5
         if n:
             self._painted[idx] = (R, rate, 0.0 if paint_motion is None else paint_motion[1])
+            if self._early is not None and paint_motion is None:
+                self._early.add(EarlyFrame(idx, to_map, gray if to_map.ndim == 3 else None, K, R,
+                                           row_centre, offset, gain))
         self._accept(R, stamp_ns, centre, keep_velocity=was_tracking)
         if self.config.estimate_readout:
             self.readout_s = self.readout_estimator.readout(self.config.readout_s)
+            if self._early is not None and self.readout_s != 0.0:
+                self._repaint(row_centre)
         return FrameResult(R, status, res, n, offset, intensity_gain=gain)
+
+    def _repaint(self, row_centre: float) -> None:
+        """The readout estimate has just replaced 0: paint the map again from the frames kept
+        (:mod:`.repaint`, once), and move the last frame into it (its R was fitted as a global
+        shutter, at ``row_centre`` of the readout)."""
+        early, self._early = self._early, None
+        if early is None or not early.frames:
+            if early is not None:
+                logger.info('readout estimated after the early frames outgrew repaint_max_mb: not repainted')
+            return
+        readout = self.readout_s
+        rates = {i: rec[1] for i, rec in self._painted.items()}
+        self.map, moved = repaint(early.frames, rates, readout, self.config.map, self.map.generation + 1)
+        for i, R_i in moved.items():
+            self._painted[i] = (R_i, self._painted[i][1], readout)
+        if self._last_R is not None and self._last_centre is not None:
+            omega = self._recent_rate if self._recent_rate is not None else np.zeros(3)
+            R_fit, stamp, _ = self._last_centre
+            self._last_centre = (R_fit, stamp, readout * row_centre)
+            self._last_R = R_fit @ _exp_rotation(-omega * readout * row_centre)
 
     def _correction(self, res: TrackResult, stamp_ns: int | None, gray: NDArray[np.uint8],
                     K: Array, pixels: NewPixels | None) -> tuple[float, float]:
