@@ -65,12 +65,12 @@ class Harness:
         self.pub_fix.publish(fix_msg(t, lat, lon, status, sigma))
         spin_until(self.ex, lambda: False, 0.05)
 
-    def map(self, t, gray, mapped, encoding='mono16'):
+    def map(self, t, gray, mapped, encoding='mono16', tile_value=255):
         arr = np.where(mapped, np.clip(gray * 257.0, 1, 65535), 0).astype(np.uint16) if encoding == 'mono16' else gray
         img = array_to_image(arr, encoding)
         img.header.stamp = to_stamp(t)
         img.header.frame_id = 'panorama'
-        tiles = array_to_image(tiles_of(mapped), 'mono8')
+        tiles = array_to_image(np.where(tiles_of(mapped) > 0, tile_value, 0).astype(np.uint8), 'mono8')
         tiles.header.stamp = to_stamp(t)
         self.pub_map.publish(img)
         self.pub_tiles.publish(tiles)
@@ -97,6 +97,29 @@ def test_matches_store_annotations_in_the_map(ros_context, tmp_path):
     assert h.alignments
     R = rotation_from_quaternion(h.alignments[-1].transform.rotation)
     assert np.degrees(np.arccos(np.clip((np.trace(R.T @ case.R_target_source) - 1) / 2, -1, 1))) < 0.2
+
+
+def test_a_repainted_map_is_matched_again(ros_context, tmp_path):
+    """panorama_mapper paints its map again once a rolling shutter's readout is known and says so
+    by the finished tiles' value (255, then 254): what was matched in the old pixels is
+    dropped and every finished tile is matched again; the same value again changes nothing."""
+    case = make_case(seed=11)
+    store = make_store(tmp_path / 'a.db', case)
+    h = Harness(ros_context, {'store_path': str(store), 'budget_ms': 1000.0})
+    h.fix(T0)
+    n_tiles = int((tiles_of(case.mapped) > 0).sum())
+    h.map(T0 + 1, case.target, case.mapped)
+    first = h.node.detector
+    assert spin_until(h.ex, lambda: first.tiles_done == n_tiles and h.markers, 10.0)
+    h.map(T0 + 2, case.target, case.mapped)  # the same map, later: nothing new to match
+    spin_until(h.ex, lambda: False, 0.2)
+    assert h.node.detector is first and first.tiles_done == n_tiles
+    h.markers.clear()
+    h.map(T0 + 3, case.target, case.mapped, tile_value=254)
+    assert spin_until(h.ex, lambda: h.node.detector is not first and h.node.detector.tiles_done == n_tiles
+                      and h.markers, 10.0)
+    spin_until(h.ex, lambda: False, 0.2)
+    assert len({m.text for m in h.markers[-1].markers if m.action == 0}) == 6
 
 
 def test_landmarks_are_loaded_matched_and_never_published(ros_context, tmp_path):
