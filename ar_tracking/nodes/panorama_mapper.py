@@ -171,6 +171,7 @@ class PanoramaMapperNode(TrackingNode):
         )
         self.core = PanoramaMapper(self.config)
         self.readout_logged_s = self.config.readout_s
+        self.generation_logged = 0  # the map generation last logged (core/panorama/repaint.py)
         self.color = color
         self.guard = StampGuard(reset_s)
         self.pairer: NearestStampPairer[Frame, tuple[np.ndarray, tuple[int, int]]] = NearestStampPairer(self.max_info_gap_ns)
@@ -273,7 +274,14 @@ class PanoramaMapperNode(TrackingNode):
 
     def _log_readout(self) -> None:
         """Log the readout in use when the estimate first replaces readout_s, and when it moves
-        by 2 ms or more (it moves a little with every frame)."""
+        by 2 ms or more (it moves a little with every frame); and when the map was painted
+        again with it."""
+        generation = self.core.map.generation
+        if generation != self.generation_logged:
+            self.generation_logged = generation
+            if generation:
+                self.get_logger().info('rolling shutter: the map is painted again from the frames mapped before the '
+                                       'readout was known (they had been mapped as a global shutter)')
         now, last = self.core.readout_s, self.readout_logged_s
         if abs(now - last) < 0.002 and (now == 0.0) == (last == 0.0):
             return

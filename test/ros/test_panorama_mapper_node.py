@@ -194,7 +194,7 @@ def test_edr_correction_parameter_reaches_the_core(ros_context):
 
 def test_readout_estimate_parameter_and_its_log_line(ros_context, monkeypatch):
     """estimate_readout reaches the core; a readout the core starts to use is logged once, and
-    again only when it moves by 2 ms or more, or back to a global shutter."""
+    again only when it moves by 2 ms or more, or back to a global shutter; a repainted map once."""
     node = PanoramaMapperNode(context=ros_context, parameter_overrides=[Parameter('estimate_readout', value=False)])
     try:
         assert node.core.config.estimate_readout is False
@@ -215,5 +215,9 @@ def test_readout_estimate_parameter_and_its_log_line(ros_context, monkeypatch):
             node._log_readout()
         assert len(lines) == 3, lines
         assert 'readout 28.1' in lines[0] and 'readout 30.5' in lines[1] and 'global shutter' in lines[2]
+        node.core.map.generation = 1  # the core painted its map again (core/panorama/repaint.py)
+        node._log_readout()
+        node._log_readout()
+        assert len(lines) == 4 and 'painted again' in lines[3], lines
     finally:
         node.destroy_node()
