@@ -38,16 +38,18 @@ def global_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_bag('rotation_sweep', tmp_path_factory.mktemp('gs') / 'gs.mcap', seed=402, duration_s=8.0, readout_s=0.0)
 
 
-def _track(bag: Path, readout_s: float, estimate: bool = False) -> tuple[float, int, set[float]]:
-    """(RMS error deg of the tracked frames against the truth at their stamps, frames lost,
-    the readouts the mapper used)."""
+def _track(bag: Path, readout_s: float, estimate: bool = False, after_s: float = 0.0) -> tuple[float, int, set[float]]:
+    """(RMS error deg of the tracked frames against the truth at their stamps, after the one
+    rotation panorama -> world that fits them best (the panorama frame is where the first frame
+    pointed, which is what the hybrid filter estimates; frames from ``after_s`` into the bag),
+    frames lost, the readouts the mapper used)."""
     mapper = PanoramaMapper(replace(MapperConfig(), readout_s=readout_s, estimate_readout=estimate))
     used = set()
     with BagReader(bag) as b:
         info = b.read_all('/camera/camera_info')[0][1]
         K = np.asarray(info.k, float).reshape(3, 3)
         traj = rs.make_trajectory(402, 'authoring', 8.0)  # the truth at any time (the camera's stamps)
-        errs, R0, T0 = [], None, None
+        rel = []  # R_world_pano of each tracked frame: truth times the estimate's inverse
         for _, m in b.read_all('/camera/image_raw'):
             t = stamp_to_ns(m.header.stamp)
             rgb = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3)
@@ -55,12 +57,11 @@ def _track(bag: Path, readout_s: float, estimate: bool = False) -> tuple[float, 
             mapper.background()
             used.add(mapper.readout_s)
             R_true = traj.R_enu_cam(np.array([(t - START_NS) * 1e-9]))[0]
-            if res.R_pano_cam is None:
-                continue
-            if R0 is None:
-                R0, T0 = res.R_pano_cam, R_true
-            # relative to the first frame: R0^T R against T0^T T
-            errs.append(np.degrees(np.linalg.norm(so3_log((R0.T @ res.R_pano_cam).T @ (T0.T @ R_true)))))
+            if res.R_pano_cam is not None and t - START_NS >= after_s * 1e9:
+                rel.append(R_true @ res.R_pano_cam.T)
+    U, _, Vt = np.linalg.svd(np.sum(rel, axis=0))  # their chordal mean
+    M = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    errs = [np.degrees(np.linalg.norm(so3_log(M.T @ W))) for W in rel]
     return float(np.sqrt(np.mean(np.square(errs)))), mapper.lost_frames, used
 
 
@@ -76,16 +77,20 @@ def test_a_rolling_shutter_is_tracked_row_by_row(rolling_bag: Path):
 
 def test_an_unknown_readout_is_estimated_and_a_global_shutter_left_alone(rolling_bag: Path, global_bag: Path):
     """Told nothing (readout_s 0), the mapper finds the 30 ms readout from its own frames in
-    the first seconds and loses no more frames than if told (its error stays above the told
-    one's: the frames before the estimate were fitted sheared, and the map, painted again from
-    them, keeps the panorama frame of the first one's rows' mean read time); on the same
+    the first seconds and loses no more frames than if told (the frames before the estimate
+    were fitted sheared: over the whole bag its error stays above the told one's, after them it
+    is as small); on the same
     motion with a global shutter it never turns a row."""
     known_err, known_lost, _ = _track(rolling_bag, 0.03)
     unaware_err, _, _ = _track(rolling_bag, 0.0)
     err, lost, used = _track(rolling_bag, 0.0, estimate=True)
     final = max(used)  # the estimate only grows from 0 here
     assert abs(final - 0.03) < 0.004 and lost <= known_lost + 2, (final, lost, known_lost)
-    assert err < 0.6 * unaware_err and err < 2.5 * known_err, (err, unaware_err, known_err)
+    assert err < 0.6 * unaware_err and err < 4.0 * known_err, (err, unaware_err, known_err)
+    # once the readout is known (about 1.3 s in) and the map painted again, as good as told
+    late_err, _, _ = _track(rolling_bag, 0.0, estimate=True, after_s=2.0)
+    known_late, _, _ = _track(rolling_bag, 0.03, after_s=2.0)
+    assert late_err < 1.5 * known_late, (late_err, known_late)
     g_err, g_lost, g_used = _track(global_bag, 0.0, estimate=True)
     assert g_used == {0.0} and g_lost == 0 and g_err < 0.1, (g_used, g_lost, g_err)
 
@@ -147,6 +152,36 @@ def test_early_frames_and_their_stamp_orientation():
     R_stamp = so3_exp(np.array([0.2, -0.1, 0.3]))
     R_fit = R_stamp @ so3_exp(omega * readout * centre)  # the orientation at the mean read time
     assert np.allclose(stamp_orientation(R_fit, omega, readout, centre), R_stamp)
+
+
+def test_the_frame_to_frame_rotation_keeps_time_with_the_camera(rolling_bag: Path):
+    """The orientation reported for a frame is its stamp's: the frame-to-frame rotations match
+    the true ones at the same stamps best with no shift. The fit turns the rows by the previous
+    frame pair's rate; taken back from the rows' mean read time with that rate, the hand's
+    changes of rate made the rotations lag the truth by 4 ms at a 30 ms readout (twice this
+    residual), which the hybrid filter's camera-IMU offset estimate took for a time offset."""
+    mapper = PanoramaMapper(replace(MapperConfig(), readout_s=0.03, estimate_readout=False))
+    traj = rs.make_trajectory(402, 'authoring', 8.0)
+    est = []
+    with BagReader(rolling_bag) as b:
+        K = np.asarray(b.read_all('/camera/camera_info')[0][1].k, float).reshape(3, 3)
+        for _, m in b.read_all('/camera/image_raw'):
+            t = stamp_to_ns(m.header.stamp)
+            res = mapper.process(np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3), K, t)
+            mapper.background()
+            if res.R_pano_cam is not None:
+                est.append(((t - START_NS) * 1e-9, res.R_pano_cam))
+    tv = np.array([s for s, _ in est])
+    k = np.flatnonzero((np.diff(tv) < 0.05) & (tv[:-1] > 0.5))
+    dt = np.diff(tv)[k, None]
+    rates = np.array([so3_log(est[j][1].T @ est[j + 1][1]) for j in k]) / dt
+    residual = {}
+    for shift_ms in range(-6, 13):
+        Ra, Rb = traj.R_enu_cam(tv[k] + shift_ms * 1e-3), traj.R_enu_cam(tv[k + 1] + shift_ms * 1e-3)
+        true_rates = np.array([so3_log(a.T @ b) for a, b in zip(Ra, Rb)]) / dt
+        residual[shift_ms] = float(np.sqrt(np.mean(np.sum((rates - true_rates) ** 2, axis=1))))
+    best = min(residual, key=residual.__getitem__)
+    assert abs(best) <= 2 and residual[0] < 0.014, (best, residual)
 
 
 def test_a_wrong_rate_dies_out_instead_of_feeding_back(rolling_bag: Path):

@@ -267,6 +267,8 @@ class PanoramaMapper:
                 self._painted[idx - 1] = (previous[0], rate, previous[2])
             if self.config.estimate_readout and res.row_fit is not None:
                 self.readout_estimator.add(self.readout_s, rate, R, *self._painting(res.row_fit, K, gray.shape[0]))
+            if motion is not None and centre is not None:
+                R = self._restamp(centre, rate)
         # the rate over the last frame interval turns the rows of this frame as it is mapped
         paint_motion = self.map.row_motion = self._row_motion(rate)
         try:
@@ -381,6 +383,17 @@ class PanoramaMapper:
             return R, stamp_ns, 0.0
         t = motion[1] * float(np.mean(res.row_fit.rows))
         return R @ _exp_rotation(motion[0] * t), stamp_ns, t
+
+    @staticmethod
+    def _restamp(centre: tuple[Array, int, float], rate: Array) -> Array:
+        """The stamp's R_pano_cam from the orientation at the rows' mean read time, turned back
+        by this frame pair's rate. The fit turned the rows by the previous pair's rate, whose
+        error times the mean read time is in the fit's stamp orientation; the rate over the
+        last interval is 1.5 frame intervals more recent. (With the previous rate the visual
+        rotations lagged the gyro's by about 7 ms at a 28 ms readout, a bias of the camera-IMU
+        time offset; the hand's tremor changes the rate from frame to frame.)"""
+        R_centre, _, after_s = centre
+        return R_centre @ _exp_rotation(-rate * after_s)
 
     def _rate_to(self, centre: tuple[Array, int, float] | None, max_dt_s: float = 0.5) -> Array | None:
         """The camera's rate (rad/s, camera axes) from the last tracked frame to ``centre``
