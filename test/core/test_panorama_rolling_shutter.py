@@ -151,7 +151,7 @@ def test_early_frames_and_their_stamp_orientation():
     omega, readout, centre = np.array([0.1, 0.8, -0.05]), 0.03, 0.4
     R_stamp = so3_exp(np.array([0.2, -0.1, 0.3]))
     R_fit = R_stamp @ so3_exp(omega * readout * centre)  # the orientation at the mean read time
-    assert np.allclose(stamp_orientation(R_fit, omega, readout, centre), R_stamp)
+    assert np.allclose(stamp_orientation(R_fit, omega, readout * centre), R_stamp)
 
 
 def test_the_frame_to_frame_rotation_keeps_time_with_the_camera(rolling_bag: Path):

@@ -35,7 +35,7 @@ from .map import MapConfig, NewPixels, PanoramaMap, seam_error
 from .cylinder import project_to_image
 from .readout import Painting, ReadoutConfig, ReadoutEstimator, RowFit
 from .relocalise import Relocaliser, RelocaliserConfig
-from .repaint import EarlyFrame, EarlyFrames, repaint
+from .repaint import EarlyFrame, EarlyFrames, repaint, stamp_orientation
 from .tracker import ActiveSearchTracker, TrackerConfig, TrackResult
 from ...errors import ArTrackingError
 
@@ -268,7 +268,12 @@ class PanoramaMapper:
             if self.config.estimate_readout and res.row_fit is not None:
                 self.readout_estimator.add(self.readout_s, rate, R, *self._painting(res.row_fit, K, gray.shape[0]))
             if motion is not None and centre is not None:
-                R = self._restamp(centre, rate)
+                # The fit turned the rows by the previous pair's rate, and its error times the
+                # rows' mean read time went into its stamp orientation; the rate of the pair this
+                # frame closes is 1.5 frame intervals more recent. (With the previous one the
+                # frame-to-frame rotations lagged the truth by 4-7 ms at 28-30 ms readouts - the
+                # hand changes its rate from frame to frame - and biased the camera-IMU offset.)
+                R = stamp_orientation(centre[0], rate, centre[2])
         # the rate over the last frame interval turns the rows of this frame as it is mapped
         paint_motion = self.map.row_motion = self._row_motion(rate)
         try:
@@ -281,7 +286,7 @@ class PanoramaMapper:
         row_centre = float(np.mean(res.row_fit.rows)) if res.row_fit is not None else 0.5
         if n:
             self._painted[idx] = (R, rate, 0.0 if paint_motion is None else paint_motion[1])
-            if self._early is not None and paint_motion is None:
+            if self._early is not None:
                 self._early.add(EarlyFrame(idx, to_map, gray if to_map.ndim == 3 else None, K, R,
                                            row_centre, offset, gain))
         self._accept(R, stamp_ns, centre, keep_velocity=was_tracking)
@@ -309,7 +314,7 @@ class PanoramaMapper:
             omega = self._recent_rate if self._recent_rate is not None else np.zeros(3)
             R_fit, stamp, _ = self._last_centre
             self._last_centre = (R_fit, stamp, readout * row_centre)
-            self._last_R = R_fit @ _exp_rotation(-omega * readout * row_centre)
+            self._last_R = stamp_orientation(R_fit, omega, readout * row_centre)
 
     def _correction(self, res: TrackResult, stamp_ns: int | None, gray: NDArray[np.uint8],
                     K: Array, pixels: NewPixels | None) -> tuple[float, float]:
@@ -383,17 +388,6 @@ class PanoramaMapper:
             return R, stamp_ns, 0.0
         t = motion[1] * float(np.mean(res.row_fit.rows))
         return R @ _exp_rotation(motion[0] * t), stamp_ns, t
-
-    @staticmethod
-    def _restamp(centre: tuple[Array, int, float], rate: Array) -> Array:
-        """The stamp's R_pano_cam from the orientation at the rows' mean read time, turned back
-        by this frame pair's rate. The fit turned the rows by the previous pair's rate, whose
-        error times the mean read time is in the fit's stamp orientation; the rate over the
-        last interval is 1.5 frame intervals more recent. (With the previous rate the visual
-        rotations lagged the gyro's by about 7 ms at a 28 ms readout, a bias of the camera-IMU
-        time offset; the hand's tremor changes the rate from frame to frame.)"""
-        R_centre, _, after_s = centre
-        return R_centre @ _exp_rotation(-rate * after_s)
 
     def _rate_to(self, centre: tuple[Array, int, float] | None, max_dt_s: float = 0.5) -> Array | None:
         """The camera's rate (rad/s, camera axes) from the last tracked frame to ``centre``

@@ -74,12 +74,12 @@ class EarlyFrames:
         self.bytes += size
 
 
-def stamp_orientation(R_fit: Array, omega: Array, readout_s: float, row_centre: float) -> Array:
-    """R_pano_cam at the stamp of a frame fitted as a global shutter: the fit's R is the
-    orientation at the mean read time of its inliers' rows (``readout_s * row_centre`` after the
-    stamp), and the camera turned at ``omega`` (rad/s, camera axes) in between."""
-    R, _ = cv2.Rodrigues((-np.asarray(omega, float) * readout_s * row_centre).reshape(3, 1))
-    return np.asarray(R_fit @ R, dtype=np.float64)
+def stamp_orientation(R_read: Array, omega: Array, after_s: float) -> Array:
+    """R_pano_cam at a frame's stamp from its orientation ``after_s`` later (the mean read time
+    of the rows a fit's inliers were on: a fit as a global shutter finds that one), the camera
+    turning at ``omega`` (rad/s, camera axes) in between."""
+    R, _ = cv2.Rodrigues((-np.asarray(omega, float) * after_s).reshape(3, 1))
+    return np.asarray(R_read @ R, dtype=np.float64)
 
 
 def repaint(frames: list[EarlyFrame], rates: dict[int, Array | None], readout_s: float,
@@ -94,7 +94,7 @@ def repaint(frames: list[EarlyFrame], rates: dict[int, Array | None], readout_s:
     for f in frames:
         rate = rates.get(f.index)
         omega = np.zeros(3) if rate is None else np.asarray(rate, float)
-        R = stamp_orientation(f.R, omega, readout_s, f.row_centre)
+        R = stamp_orientation(f.R, omega, readout_s * f.row_centre)
         moved[f.index] = R
         pano.row_motion = (omega, float(readout_s))
         try:
