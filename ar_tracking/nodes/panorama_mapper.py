@@ -9,8 +9,9 @@ frame, ``panorama/orientation`` (TransformStamped, frame_id ``panorama``, child
 rgb16, linearly tone-mapped EDR map) and ``panorama/tiles`` (mono8, one pixel per tile, nonzero
 finished: 255, one less each time the map is painted again), latched. A camera with a rolling
 shutter whose readout is not given is mapped as a global shutter until the readout is estimated
-(``estimate_readout``), then the map is painted again from the frames so far (once). A frame that cannot be tracked (lost, textureless, translating camera) is
-not published; bad messages are dropped with a throttled warning. The algorithm is
+(``estimate_readout``), then the map is painted again from the frames so far (once, from up to
+``repaint_max_mb`` of them). A frame that cannot be tracked (lost, textureless, translating
+camera) is not published; bad messages are dropped with a throttled warning. The algorithm is
 :mod:`ar_tracking.core.panorama`; this node converts and publishes.
 """
 from __future__ import annotations
@@ -103,6 +104,10 @@ PARAMS = (
     ParamSpec('estimate_readout', True,
               'Estimate the rolling shutter\'s readout from the tracked frames and use it in place of readout_s once '
               'it is known (logged); readout_s is then only the start value', read_only=True),
+    ParamSpec('repaint_max_mb', 96.0,
+              'With readout_s 0 and estimate_readout, the frames mapped before the readout is known are kept, up to '
+              'this many MB, and the map is painted again from them once it is (0: never)',
+              min_value=0.0, max_value=4096.0, read_only=True),
     ParamSpec('min_inliers', 10,
               'A frame is tracked with at least this many inlier matches', min_value=3, max_value=1000, read_only=True),
     ParamSpec('min_inlier_ratio', 0.7,
@@ -166,7 +171,7 @@ class PanoramaMapperNode(TrackingNode):
                                   min_inliers=v['min_inliers'], min_inlier_ratio=v['min_inlier_ratio'],
                                   inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
             wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'], readout_s=v['readout_s'],
-            estimate_readout=v['estimate_readout'],
+            estimate_readout=v['estimate_readout'], repaint_max_mb=v['repaint_max_mb'],
             offset_exposure=replace(OFFSET_EXPOSURE, smooth=v['edr_smooth']), edr_correction=v['edr_correction'],
         )
         self.core = PanoramaMapper(self.config)

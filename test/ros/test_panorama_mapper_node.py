@@ -195,9 +195,10 @@ def test_edr_correction_parameter_reaches_the_core(ros_context):
 def test_readout_estimate_parameter_and_its_log_line(ros_context, monkeypatch):
     """estimate_readout reaches the core; a readout the core starts to use is logged once, and
     again only when it moves by 2 ms or more, or back to a global shutter; a repainted map once."""
-    node = PanoramaMapperNode(context=ros_context, parameter_overrides=[Parameter('estimate_readout', value=False)])
+    node = PanoramaMapperNode(context=ros_context, parameter_overrides=[Parameter('estimate_readout', value=False),
+                                                                        Parameter('repaint_max_mb', value=0.0)])
     try:
-        assert node.core.config.estimate_readout is False
+        assert node.core.config.estimate_readout is False and node.core.config.repaint_max_mb == 0.0
     finally:
         node.destroy_node()
     node = PanoramaMapperNode(context=ros_context)
