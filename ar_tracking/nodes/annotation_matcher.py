@@ -4,8 +4,9 @@ sec. 3.2, 4.2, 4.3).
 Subscribes ``panorama/image`` (mono16/mono8 map) and ``panorama/tiles`` (mono8, nonzero finished,
 same stamp as the map; a new nonzero value means the map was painted again - the rolling
 shutter's readout became known - and its tiles are matched again) from panorama_mapper,
-``gps/fix`` (NavSatFix) to load the annotations within ``radius_m`` from the store (all of them when GPS is poor), and for the sensor prior
-``orientation/panorama_in_world`` (TransformStamped enu -> panorama) or ``orientation/global``
+``gps/fix`` (NavSatFix) to load the annotations within ``radius_m`` from the store (all of them
+when GPS is poor), and for the sensor prior ``orientation/panorama_in_world`` (TransformStamped
+enu -> panorama) or ``orientation/global``
 (Imu, camera in ENU, paired by stamp with ``panorama/orientation``), averaged over all samples
 of the current panorama (chordal mean: the panorama does not turn; weighted by the inverse heading
 variance of ``orientation/global``). Newly finished tiles go to a
