@@ -201,18 +201,22 @@ def _node_params(files: Sequence[str | Path], nodes: Sequence[str]) -> dict[str,
     return values
 
 
-def load_camera_params(files: Sequence[str | Path]) -> tuple[float, bool]:
-    """(readout_s, estimate_readout) of the ``panorama_mapper`` section of ROS 2 params files
-    (the camera's rolling shutter, as the graph's mapper gets it); defaults 0 and True."""
+def load_camera_params(files: Sequence[str | Path]) -> dict[str, Any]:
+    """The camera's rolling shutter as the graph's mapper gets it, from the ``panorama_mapper``
+    section of ROS 2 params files: :class:`MapperConfig` fields ``readout_s`` (default 0),
+    ``estimate_readout`` (True) and ``repaint_max_mb`` (the config's default)."""
     values = _node_params(files, ('panorama_mapper',))
     try:
         readout = float(values.get('readout_s', 0.0))
         estimate = values.get('estimate_readout', True)
+        repaint = float(values.get('repaint_max_mb', MapperConfig.repaint_max_mb))
         if not math.isfinite(readout) or not 0.0 <= readout <= 0.1 or not isinstance(estimate, bool):
             raise ValueError('readout_s must be in [0, 0.1] s and estimate_readout true or false')
+        if not math.isfinite(repaint) or repaint < 0.0:
+            raise ValueError('repaint_max_mb must be 0 or more')
     except (TypeError, ValueError) as exc:
         raise BagError(f'camera parameters in {", ".join(map(str, files))}: {exc}') from None
-    return readout, estimate
+    return {'readout_s': readout, 'estimate_readout': estimate, 'repaint_max_mb': repaint}
 
 
 def load_device_params(files: Sequence[str | Path]) -> tuple[ImuCalibration, np.ndarray, float]:
@@ -259,10 +263,8 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
             side = _sidecar(bag)
             params_files = [side] if side is not None else []
         cal, R_imu_cam, decl = load_device_params(params_files)
-        readout_s, estimate_readout = load_camera_params(params_files)
         geo = CylinderGeometry()
-        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), readout_s=readout_s,
-                                             estimate_readout=estimate_readout))
+        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), **load_camera_params(params_files)))
         world_est = PanoramaWorldEstimator(cal, R_imu_cam, WorldAlignmentConfig(declination_rad=decl))
         fixes, init_ns = _map_bag(bag, mapper, world_est, progress)
         if init_ns is None:

@@ -123,18 +123,20 @@ def test_device_params_from_either_node_section(tmp_path):
 
 
 def test_camera_params_give_annotate_the_graphs_rolling_shutter(tmp_path):
-    """annotate maps the authoring bag with the readout the graph's panorama_mapper gets."""
+    """annotate maps the authoring bag with the rolling shutter the graph's panorama_mapper gets
+    (readout, its estimate, the repaint's budget)."""
     side = tmp_path / 'b.params.yaml'
     side.write_text(yaml.safe_dump({'panorama_mapper': {'ros__parameters': {'readout_s': 0.025}}}))
-    assert load_camera_params([side]) == (0.025, True)
-    assert load_camera_params([]) == (0.0, True)
+    assert load_camera_params([side]) == {'readout_s': 0.025, 'estimate_readout': True, 'repaint_max_mb': 96.0}
+    assert load_camera_params([]) == {'readout_s': 0.0, 'estimate_readout': True, 'repaint_max_mb': 96.0}
     off = tmp_path / 'off.yaml'
-    off.write_text('panorama_mapper: {readout_s: 0.01, estimate_readout: false}')
-    assert load_camera_params([side, off]) == (0.01, False)
-    bad = tmp_path / 'bad.yaml'
-    bad.write_text('panorama_mapper: {ros__parameters: {readout_s: 2.0}}')
-    with pytest.raises(BagError, match='readout_s'):
-        load_camera_params([bad])
+    off.write_text('panorama_mapper: {readout_s: 0.01, estimate_readout: false, repaint_max_mb: 0}')
+    assert load_camera_params([side, off]) == {'readout_s': 0.01, 'estimate_readout': False, 'repaint_max_mb': 0.0}
+    for text, what in (('{readout_s: 2.0}', 'readout_s'), ('{repaint_max_mb: -1}', 'repaint_max_mb')):
+        bad = tmp_path / 'bad.yaml'
+        bad.write_text(f'panorama_mapper: {{ros__parameters: {text}}}')
+        with pytest.raises(BagError, match=what):
+            load_camera_params([bad])
 
 
 def test_panorama_png_has_the_degree_grid(tmp_path):
