@@ -21,7 +21,7 @@ def _rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def testpair_rotation_votes_are_those_of_the_two_point_kabsch_rotations() -> None:
+def test_pair_rotation_votes_are_those_of_the_two_point_kabsch_rotations() -> None:
     rng = np.random.default_rng(3)
     for _ in range(20):
         R_true = _rotation(rng)
@@ -45,7 +45,7 @@ def testpair_rotation_votes_are_those_of_the_two_point_kabsch_rotations() -> Non
         assert votes[:-1].sum(axis=1).max() >= 30  # an outlier-free pair finds the 32 inliers
 
 
-def testpair_rotation_votes_of_a_degenerate_pair_are_empty() -> None:
+def test_pair_rotation_votes_of_a_degenerate_pair_are_empty() -> None:
     b = _unit(np.array([[0.1, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.2, 1.0]]))
     votes = pair_rotation_votes(b, b.copy(), np.array([[0, 1], [0, 2]]), np.eye(3), 1e-3)
     assert not votes[0].any()  # b0 == b1: no rotation defined
