@@ -143,10 +143,10 @@ def test_early_frames_and_their_stamp_orientation():
     img = np.zeros((10, 20), np.uint8)
     early = EarlyFrames(max_bytes=3 * img.nbytes)
     for k in range(3):
-        early.add(EarlyFrame(k, img, None, np.eye(3), np.eye(3), 0.5, 0.0, 1.0))
+        early.add(EarlyFrame(k, img, None, np.eye(3), 0.5, 0.0, 1.0))
     img[0, 0] = 9  # the caller reuses its buffer
     assert early.frames is not None and len(early.frames) == 3 and early.frames[0].image[0, 0] == 0
-    early.add(EarlyFrame(3, img, None, np.eye(3), np.eye(3), 0.5, 0.0, 1.0))
+    early.add(EarlyFrame(3, img, None, np.eye(3), 0.5, 0.0, 1.0))
     assert early.frames is None and early.bytes == 0
     omega, readout, centre = np.array([0.1, 0.8, -0.05]), 0.03, 0.4
     R_stamp = so3_exp(np.array([0.2, -0.1, 0.3]))

@@ -213,6 +213,7 @@ class PanoramaMapper:
         to_map = frame if self.config.map.channels == 3 else gray
         if to_map.ndim == 2 and self.config.map.channels == 3:
             to_map = np.asarray(cv2.cvtColor(gray, cv2.COLOR_GRAY2RGB), dtype=np.uint8)
+        gray_of_rgb = gray if to_map.ndim == 3 else None  # what map_frame samples a colour frame's grey from
         self.frame_index += 1
         idx = self.frame_index
         was_tracking = self._tracking
@@ -221,11 +222,11 @@ class PanoramaMapper:
                 self.lost_frames += 1
                 return FrameResult(None, 'lost', reason='first frame has no texture')
             R = np.eye(3)
-            n = self.map.map_frame(to_map, K, R, idx, 0.0, gray if to_map.ndim == 3 else None)
+            n = self.map.map_frame(to_map, K, R, idx, 0.0, gray_of_rgb)
             self._painted[idx] = (R, None, 0.0)
             if self._early is not None:
-                self._early.add(EarlyFrame(idx, to_map, gray if to_map.ndim == 3 else None, K, R, 0.5, 0.0, 1.0))
-            self._accept(R, stamp_ns, self._row_centre(R, stamp_ns, None, None))
+                self._early.add(EarlyFrame(idx, to_map, gray_of_rgb, K, 0.5, 0.0, 1.0))
+            self._accept(R, stamp_ns, self._row_centre(R, stamp_ns, 0.5, None))
             self.frame_size = gray.shape
             return FrameResult(R, 'initialised', mapped_pixels=n)
         last_R = self._last_R
@@ -259,7 +260,9 @@ class PanoramaMapper:
             step = np.degrees(np.linalg.norm(_log_rotation(last_R.T @ R)))
             if step > self.config.max_step_deg:
                 return self._lose(f'rotation step of {step:.0f} deg between frames', res)
-        centre = self._row_centre(R, stamp_ns, res, motion)
+        # the inliers' mean row position (row + 0.5) / height; a tracked frame has its fit
+        row_centre = float(np.mean(res.row_fit.rows)) if res.row_fit is not None else 0.5
+        centre = self._row_centre(R, stamp_ns, row_centre, motion)
         rate = self._rate_to(centre) if status == 'tracked' else None
         if rate is not None:
             previous = self._painted.get(idx - 1)
@@ -279,16 +282,13 @@ class PanoramaMapper:
         try:
             pixels = self.map.new_pixels(K, R, gray.shape)
             offset, gain = self._correction(res, stamp_ns, gray, K, pixels)
-            n = 0 if pixels is None else self.map.map_frame(to_map, K, R, idx, offset,
-                                                             gray if to_map.ndim == 3 else None, gain, pixels)
+            n = 0 if pixels is None else self.map.map_frame(to_map, K, R, idx, offset, gray_of_rgb, gain, pixels)
         finally:
             self.map.row_motion = None
-        row_centre = float(np.mean(res.row_fit.rows)) if res.row_fit is not None else 0.5
         if n:
             self._painted[idx] = (R, rate, 0.0 if paint_motion is None else paint_motion[1])
             if self._early is not None:
-                self._early.add(EarlyFrame(idx, to_map, gray if to_map.ndim == 3 else None, K, R,
-                                           row_centre, offset, gain))
+                self._early.add(EarlyFrame(idx, to_map, gray_of_rgb, K, row_centre, offset, gain))
         self._accept(R, stamp_ns, centre, keep_velocity=was_tracking)
         if self.config.estimate_readout:
             self.readout_s = self.readout_estimator.readout(self.config.readout_s)
@@ -306,8 +306,7 @@ class PanoramaMapper:
                 logger.info('readout estimated after the early frames outgrew repaint_max_mb: not repainted')
             return
         readout = self.readout_s
-        rates = {i: rec[1] for i, rec in self._painted.items()}
-        self.map, moved = repaint(early.frames, rates, readout, self.config.map, self.map.generation + 1)
+        self.map, moved = repaint(early.frames, self._painted, readout, self.config.map, self.map.generation + 1)
         for i, R_i in moved.items():
             self._painted[i] = (R_i, self._painted[i][1], readout)
         if self._last_R is not None and self._last_centre is not None:
@@ -370,9 +369,10 @@ class PanoramaMapper:
         return np.asarray(omega, float), float(self.readout_s)
 
     @staticmethod
-    def _row_centre(R: Array, stamp_ns: int | None, res: TrackResult | None,
+    def _row_centre(R: Array, stamp_ns: int | None, row_centre: float,
                     motion: tuple[Array, float] | None) -> tuple[Array, int, float] | None:
-        """(R_pano_cam, stamp ns, s after it) of a frame at the mean read time of its inliers' rows.
+        """(R_pano_cam, stamp ns, s after it) of a frame at the mean read time of its inliers' rows
+        (``row_centre``: their mean row position, (row + 0.5) / height).
 
         With a rolling shutter the fit turns each row by the assumed rate, so the stamp's
         orientation carries the rate's error times that mean time (the readout times the
@@ -384,9 +384,9 @@ class PanoramaMapper:
         these centres opens the loop."""
         if stamp_ns is None:
             return None
-        if res is None or motion is None or res.row_fit is None:
+        if motion is None:
             return R, stamp_ns, 0.0
-        t = motion[1] * float(np.mean(res.row_fit.rows))
+        t = motion[1] * row_centre
         return R @ _exp_rotation(motion[0] * t), stamp_ns, t
 
     def _rate_to(self, centre: tuple[Array, int, float] | None, max_dt_s: float = 0.5) -> Array | None:

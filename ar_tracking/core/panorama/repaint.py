@@ -21,6 +21,7 @@ so far stay valid to a fraction of that shear). Done once per panorama; the map'
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -42,8 +43,6 @@ class EarlyFrame:
     #: The grey version of an RGB ``image`` (None for a grey one).
     gray: NDArray[np.uint8] | None
     K: Array
-    #: R_pano_cam as tracked with readout 0.
-    R: Array
     #: The fit's inliers' mean row position, (row + 0.5) / height: 0.5 for the first frame
     #: (all its rows painted the map) or without a fit.
     row_centre: float
@@ -69,7 +68,7 @@ class EarlyFrames:
             self.frames, self.bytes = None, 0
             return
         self.frames.append(EarlyFrame(frame.index, frame.image.copy(),
-                                      None if frame.gray is None else frame.gray.copy(), frame.K, frame.R,
+                                      None if frame.gray is None else frame.gray.copy(), frame.K,
                                       frame.row_centre, frame.offset, frame.gain))
         self.bytes += size
 
@@ -82,19 +81,20 @@ def stamp_orientation(R_read: Array, omega: Array, after_s: float) -> Array:
     return np.asarray(R_read @ R, dtype=np.float64)
 
 
-def repaint(frames: list[EarlyFrame], rates: dict[int, Array | None], readout_s: float,
+def repaint(frames: list[EarlyFrame], painted: Mapping[int, tuple[Array, Array | None, float]], readout_s: float,
             config: MapConfig, generation: int) -> tuple[PanoramaMap, dict[int, Array]]:
     """A new map painted from ``frames`` in order, each at its stamp orientation with its rows
-    turned by its rate (``rates``: frame index -> rad/s in camera axes, None or absent: not known,
-    taken as 0) over ``readout_s``. Returns the map (``generation`` set, every finished tile's
-    keypoints computed) and each frame's new R_pano_cam."""
+    turned by its rate over ``readout_s``. ``painted``: the mapper's record of each frame index
+    (R_pano_cam as tracked with readout 0, the rate in rad/s camera axes or None when not known -
+    taken as 0 -, the readout it was painted with). Returns the map (``generation`` set, every
+    finished tile's keypoints computed) and each frame's new R_pano_cam."""
     pano = PanoramaMap(config)
     pano.generation = generation
     moved: dict[int, Array] = {}
     for f in frames:
-        rate = rates.get(f.index)
+        R_fit, rate, _ = painted[f.index]
         omega = np.zeros(3) if rate is None else np.asarray(rate, float)
-        R = stamp_orientation(f.R, omega, readout_s * f.row_centre)
+        R = stamp_orientation(R_fit, omega, readout_s * f.row_centre)
         moved[f.index] = R
         pano.row_motion = (omega, float(readout_s))
         try:
