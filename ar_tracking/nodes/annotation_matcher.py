@@ -253,6 +253,8 @@ class AnnotationMatcherNode(TrackingNode):
         self.map_stamp: int | None = None
         self.pending_tiles: tuple[int, np.ndarray] | None = None
         self.finished_tiles: np.ndarray | None = None
+        #: The finished tiles' value in the last panorama/tiles (_tile_generation), None before any.
+        self.tile_value: int | None = None
         self.last_query_ns: int | None = None
         self.R_enu_pano: np.ndarray | None = None
         self.prior_sum = np.zeros((3, 3))  # sum of the orientation samples of this panorama
@@ -397,19 +399,21 @@ class AnnotationMatcherNode(TrackingNode):
             self.pending_tiles = (t, tiles)
 
     def _queue_tiles(self, tiles: np.ndarray) -> None:
-        before = None if self.finished_tiles is None else _tile_generation(self.finished_tiles)
-        now = _tile_generation(tiles)
         self.finished_tiles = tiles
-        if self.detector is not None and before is not None and now is not None and now != before:
-            # What was matched in the old tiles was matched in pixels that are no longer there.
-            self.get_logger().info('panorama/tiles: the map was painted again (its camera\'s rolling shutter '
-                                   'became known): matching starts over on its tiles')
-            self.set_annotations(self.annotations)
+        value = _tile_generation(tiles)
+        if value is not None:
+            if self.detector is not None and self.tile_value is not None and value != self.tile_value:
+                # What was matched in the old tiles was matched in pixels that are no longer there.
+                self.get_logger().info('panorama/tiles: the map was painted again (its camera\'s rolling shutter '
+                                       'became known): matching starts over on its tiles')
+                self.set_annotations(self.annotations)
+            self.tile_value = value
         if self.detector is not None:
             self.detector.add_finished_tiles(tiles)
 
     def _reset_panorama(self) -> None:
         self.finished_tiles = None
+        self.tile_value = None
         self.gray = self.mapped = None
         self.map_stamp = None
         self.pending_tiles = None
