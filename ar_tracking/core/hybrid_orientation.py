@@ -8,7 +8,9 @@ result stayed a near-constant offset of 1-3 degrees). Here:
   (integrates the gyro from the last global orientation, with a gyro bias learnt against the
   visual tracker while it works);
 * :class:`RotationBuffer`, to pair the visual and inertial streams by stamp (slerp between the
-  bracketing samples, never arrival order).
+  bracketing samples, never arrival order);
+* :class:`StreamLag`, how far the visual stream's stamps trail the IMU's when its messages
+  arrive, so that a camera pipeline's latency is not taken for a lost tracker.
 """
 from __future__ import annotations
 
@@ -86,6 +88,36 @@ class RotationBuffer:
         if t1 - t0 > self.max_gap_ns:
             return None
         return slerp(self.R[i - 1], self.R[i], (t_ns - t0) / (t1 - t0))
+
+
+class StreamLag:
+    """How far one stream's stamps trail another's when its messages arrive.
+
+    A phone's camera frame reaches the tracker tens to hundreds of milliseconds after its
+    exposure, and the tracker adds its own time, while IMU samples arrive within a few ms of
+    their stamps; a bag recorded at arrival keeps that order. Judged by stamps alone (the newest
+    IMU stamp against the newest visual stamp) every frame of such a stream looks late, and the
+    tracker would be declared lost on every frame. The lag is measured at each arrival of the
+    trailing stream (the leading stream's newest stamp minus the arriving stamp) and taken as
+    the median of the last ``window`` arrivals (one slow frame does not move it), never below 0.
+    """
+
+    def __init__(self, window: int = 31) -> None:
+        self._lags: Deque[int] = deque(maxlen=int(window))
+        self.ns = 0
+        self.known = False
+
+    def clear(self) -> None:
+        self._lags.clear()
+        self.ns = 0
+        self.known = False
+
+    def add(self, lead_ns: int, t_ns: int) -> None:
+        """One arrival of the trailing stream (stamp ``t_ns``) while the leading stream's newest
+        stamp is ``lead_ns``."""
+        self._lags.append(int(lead_ns) - int(t_ns))
+        self.ns = max(0, int(np.median(np.fromiter(self._lags, dtype=np.int64, count=len(self._lags)))))
+        self.known = True
 
 
 # ----------------------------------------------------------------------------------------------
@@ -167,9 +199,16 @@ class GyroBackup:
         """Set the backup to the fused orientation at a visual frame's stamp."""
         R = np.asarray(R_enu_cam, dtype=float)
         if self.t_ns is not None and self.omega is not None and self.t_ns > t_ns:
-            # The gyro is already ahead of the frame: bring the anchor to the gyro's time.
-            w_cam = self.R_imu_cam.T @ (self.omega - self.bias)
-            R = R @ so3_exp(w_cam * ((self.t_ns - int(t_ns)) * 1e-9))
+            # The gyro is already ahead of the frame (a camera pipeline's latency): bring the
+            # anchor to the gyro's time through the gyro's own rotation since the frame, or, when
+            # the chain does not reach back that far, the last rate held.
+            dt = (self.t_ns - int(t_ns)) * 1e-9
+            C_then = self.chain.at(int(t_ns))
+            if C_then is not None:
+                dR_imu = (C_then.T @ self._chain_R) @ so3_exp(-self.bias * dt)
+                R = R @ (self.R_imu_cam.T @ dR_imu @ self.R_imu_cam)
+            else:
+                R = R @ so3_exp(self.R_imu_cam.T @ (self.omega - self.bias) * dt)
         self.R_enu_cam = R
         self.cov = np.array(cov_enu, dtype=float)
         self.anchor_ns = int(t_ns)

@@ -27,6 +27,8 @@ field's windows are too coarse in time.)
 """
 from __future__ import annotations
 
+from collections import deque
+
 import bisect
 import math
 from dataclasses import dataclass
@@ -237,11 +239,11 @@ class ImuClock:
         self.estimator = estimator
         self.repair_ns = int(repair_ns)
         self._settled = False
-        self._kept: list[tuple[Any, ...]] | None = [] if estimator is not None else None
+        self._kept: deque[tuple[Any, ...]] | None = deque() if estimator is not None else None
 
     def add(self, sample: tuple[Any, ...], omega_imu: Array, keep: bool) -> bool:
         """One IMU sample (``sample[0]`` its IMU stamp, ns) with its gyro rate; ``keep``: it may
-        need re-pairing later (the visual stream has started). True when the offset has just
+        need re-pairing later. True when the offset has just
         become known (then :meth:`take_kept` has the samples so far, this one excluded)."""
         if self.estimator is None:
             return False
@@ -265,10 +267,16 @@ class ImuClock:
         if int(sample[0]) - int(self._kept[0][0]) > self.repair_ns:
             self._kept = None  # too late to re-pair: the offset applies from then on
 
+    def trim_kept(self, oldest_ns: int) -> None:
+        """Let go of the kept samples stamped before ``oldest_ns`` (IMU clock): before the visual
+        stream starts only its first frame's latency back needs keeping."""
+        while self._kept and int(self._kept[0][0]) < oldest_ns:
+            self._kept.popleft()
+
     def take_kept(self) -> list[tuple[Any, ...]] | None:
         """The kept samples (once; None when there is nothing to re-pair)."""
         kept, self._kept = self._kept, None
-        return kept
+        return None if kept is None else list(kept)
 
     def add_visual(self, t_ns: int, R_ref_cam: Array) -> None:
         if self.estimator is not None:
@@ -287,4 +295,4 @@ class ImuClock:
         if self.estimator is not None:
             self.estimator.reset()
             self._settled = False
-            self._kept = []
+            self._kept = deque()

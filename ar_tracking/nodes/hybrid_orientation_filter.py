@@ -35,7 +35,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
-from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer
+from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer, StreamLag
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..core.time_offset import ImuClock, TimeOffsetConfig, TimeOffsetEstimator
 from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig, WorldAlignmentEstimate
@@ -70,6 +70,9 @@ _HARD_IRON_REPORT = 0.06
 _HARD_IRON_REPORT_SIGMA_RAD = np.radians(1.0)
 #: The first seconds of IMU samples kept to re-pair once the time offset settles, ns.
 _REPAIR_NS = 10_000_000_000
+#: Before the first visual orientation arrives, IMU and field samples of this long are kept
+#: (the first frame's stamp can be this much older than the IMU's newest: camera latency), ns.
+_PRE_VISION_NS = 1_000_000_000
 
 
 class HybridOrientationFilterNode(TrackingNode):
@@ -161,6 +164,9 @@ class HybridOrientationFilterNode(TrackingNode):
         #: IMU samples (t, accel, omega) and field samples (t, field), camera clock, waiting for
         #: the visual orientation at their stamps.
         self.pending: deque[tuple[Any, ...]] = deque()
+        #: How far panorama/orientation's stamps trail the IMU's on arrival (camera and tracker
+        #: latency): vision is lost only when it is this much later than visual_timeout_s.
+        self.visual_lag = StreamLag()
         self._hard_iron_reported = False
         self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
         self.last_visual_ns: int | None = None
@@ -249,6 +255,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.clock.restart()  # its stamps start over; the offset applied so far is kept
         self.visual.clear()
         self.pending.clear()
+        self.visual_lag.clear()
         for guard in self.stamp_guards.values():
             guard.reset()
         self.last_visual_ns = self.last_imu_ns = self.last_backup_pub_ns = self.last_published_ns = None
@@ -288,12 +295,13 @@ class HybridOrientationFilterNode(TrackingNode):
         """Feed pending IMU and field samples to the alignment, each with the visual orientation
         at its own stamp."""
         newest_visual = self.visual.newest_ns
+        wait_ns = self._visual_wait_ns()
         while self.pending:
             entry = self.pending[0]
             t_s = entry[0]
             if newest_visual is None or newest_visual < t_s:
                 # Wait for a visual sample at or after t_s, unless vision is lost by now.
-                if self.last_imu_ns is not None and self.last_imu_ns - t_s > self.visual_timeout_ns:
+                if self.last_imu_ns is not None and self.last_imu_ns - t_s > wait_ns:
                     self.pending.popleft()
                     continue
                 break
@@ -305,6 +313,12 @@ class HybridOrientationFilterNode(TrackingNode):
                 self.align.add_field(t_s, R_pano_cam @ self.R_imu_cam.T, entry[1])
             else:
                 self.align.add(t_s, R_pano_cam @ self.R_imu_cam.T, entry[1], None, entry[2])
+
+    def _visual_wait_ns(self) -> int:
+        """How far the IMU's stamps may run ahead of the newest visual stamp before the tracker
+        counts as lost: visual_timeout_s plus the visual stream's usual lag (before the first
+        frame has arrived, the pre-vision buffer's span)."""
+        return self.visual_timeout_ns + (self.visual_lag.ns if self.visual_lag.known else _PRE_VISION_NS)
 
     # -- callbacks -------------------------------------------------------------------------
 
@@ -344,6 +358,8 @@ class HybridOrientationFilterNode(TrackingNode):
             self.backup.visual.clear()
             self.clock.forget_kept()
         self.last_visual_ns = t_v
+        if self.last_imu_ns is not None:
+            self.visual_lag.add(self.last_imu_ns, t_v)
         self.visual.add(t_v, R_pano_cam)
         self.backup.add_visual(t_v, R_pano_cam)
         self.clock.add_visual(t_v, R_pano_cam)
@@ -396,8 +412,7 @@ class HybridOrientationFilterNode(TrackingNode):
         if float(field @ field) <= 0.0:
             self.warn_throttled('imu/mag field has zero norm, message dropped')
             return
-        if self.last_visual_ns is None:
-            return
+        # Kept from the start: the first frame may arrive after samples of its own time.
         self.clock.keep((t_m, field))
         self.pending.append((t_m - self.clock.offset_ns, field))
         self._resolve()
@@ -414,17 +429,18 @@ class HybridOrientationFilterNode(TrackingNode):
         if not self._stamp_ok('imu', t_imu, 'imu/data_raw'):
             return
         sample = (t_imu, self.calibration.accel(accel), self.calibration.gyro(omega))
-        if self.clock.add(sample, sample[2], keep=self.last_visual_ns is not None):
+        if self.clock.add(sample, sample[2], keep=True):
             self._offset_settled(self.clock.take_kept())
+        if self.last_visual_ns is None:  # before vision only the last _PRE_VISION_NS are kept
+            self.clock.trim_kept(t_imu - _PRE_VISION_NS)
         t_g = t_imu - self.clock.offset_ns  # in the camera's clock from here on
         self.last_imu_ns = t_g
         self.backup.add_gyro(t_g, sample[2])
-        if self.last_visual_ns is not None:
-            self.pending.append((t_g, *sample[1:]))
-            self._resolve()
+        self.pending.append((t_g, *sample[1:]))
+        self._resolve()
         if self.last_visual_ns is None or self.backup.R_enu_cam is None or not self.align.ready:
             return
-        lost_for = t_g - self.last_visual_ns
+        lost_for = t_g - self.last_visual_ns - self.visual_lag.ns
         if lost_for <= self.visual_timeout_ns:
             if self.gyro_rate_output and t_g > self.last_visual_ns:
                 self._publish(t_g, self.backup.R_enu_cam, self.backup.cov, None)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ar_tracking.core.hybrid_orientation import GyroBackup, RotationBuffer
+from ar_tracking.core.hybrid_orientation import GyroBackup, RotationBuffer, StreamLag
 from ar_tracking.core.rotations import heading_tilt_error_deg, rot_z, so3_exp, so3_log
 
 R0_ENU_CAM = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # level, looking north
@@ -85,3 +85,31 @@ def test_gyro_backup_learns_the_bias_from_vision_and_integrates():
     assert gb.cov[0, 0] > 1e-6  # the covariance grew
 
 
+
+
+def test_stream_lag_is_the_median_lag_of_recent_arrivals_never_below_zero():
+    lag = StreamLag(window=5)
+    assert not lag.known and lag.ns == 0
+    for lead, t in ((1300, 1000), (1600, 1310), (1900, 1600), (9000, 1900), (2200, 1910)):
+        lag.add(lead, t)  # one slow frame (7100) does not move the median
+    assert lag.known and lag.ns == 300
+    lag.clear()
+    lag.add(1000, 1200)  # the trailing stream ahead: no lag
+    assert lag.known and lag.ns == 0
+
+
+def test_a_late_frame_anchors_the_backup_through_the_gyro_since_its_stamp():
+    """The gyro is 0.3 s ahead of a frame (camera latency) while the phone turns with a changing
+    rate: the anchor is carried to the gyro's time by the gyro's own rotation since the frame,
+    not by the last rate held for 0.3 s."""
+    gb = GyroBackup(R_IMU_CAM)
+
+    def heading(t_s: float) -> float:
+        return 0.6 * math.sin(2.0 * t_s)  # rate 1.2 cos(2t) rad/s
+
+    for k in range(131):  # 1.3 s at 100 Hz
+        t_s = k * 0.01
+        w_cam = np.array([0.0, 1.2 * math.cos(2.0 * t_s), 0.0])  # about camera y: heading, clockwise
+        gb.add_gyro(k * 10_000_000, R_IMU_CAM @ w_cam)
+    gb.anchor(1_000_000_000, camera(heading(1.0)), np.eye(3) * 1e-6)  # the frame of t = 1 s
+    assert heading_error_deg(gb.R_enu_cam, camera(heading(1.3))) < 0.05

@@ -53,6 +53,7 @@ class Harness:
         assert spin_until(self.ex, lambda: all(p.get_subscription_count() > 0 for p in pubs)
                           and self.node.pub_global.get_subscription_count() > 0)
         self.sent = 0
+        self.late: list[tuple[int, np.ndarray]] = []  # frames not yet arrived (play's visual_lag_s)
         self.ahrs_sent: list[np.ndarray] = []
 
     def _count(self) -> int:
@@ -105,12 +106,14 @@ class Harness:
         self.send(self.pub_mag, msg)
 
     def play(self, t0_s, t1_s, rng, sensor=True, visual=True, field_turn=0.0, pose=False, ahrs=False,
-             R_pano_enu=R_PANO_ENU, hard_iron=None, imu_offset_ns=0, mag_every=1, mag_shift_s=0.0):
+             R_pano_enu=R_PANO_ENU, hard_iron=None, imu_offset_ns=0, mag_every=1, mag_shift_s=0.0,
+             visual_lag_s=0.0):
         """IMU + field at 50 Hz (hand acceleration and noise), vision at 25 Hz, the motion of
         truth(); ``field_turn`` turns the horizontal field (|B| and dip kept); ``hard_iron`` (T,
         imu frame) is added to every field sample; ``imu_offset_ns`` is added to the stamps of
         imu/data_raw and imu/mag (a camera-IMU time offset); the field is sampled every
-        ``mag_every`` IMU samples, ``mag_shift_s`` after them (a magnetometer of its own rate)."""
+        ``mag_every`` IMU samples, ``mag_shift_s`` after them (a magnetometer of its own rate); a
+        frame arrives after the IMU samples of the next ``visual_lag_s`` (camera latency)."""
         hard_iron = np.zeros(3) if hard_iron is None else hard_iron
         for k in range(int(round(t0_s * 50)), int(round(t1_s * 50))):
             t = k / 50.0
@@ -128,7 +131,10 @@ class Harness:
             if ahrs:
                 self.sensor(t_ns, rot_z(rng.normal(0, 0.02)) @ R @ R_IMU_CAM.T)
             if visual and k % 2 == 0:
-                self.visual(t_ns, R_pano_enu @ R, pose=pose)
+                self.late.append((t_ns, R_pano_enu @ R))
+            while self.late and self.late[0][0] + visual_lag_s * 1e9 <= t_ns:
+                t_v, R_v = self.late.pop(0)
+                self.visual(t_v, R_v, pose=pose)
 
     def close(self):
         self.ex.shutdown()
@@ -447,3 +453,26 @@ def test_a_magnetometer_of_its_own_rate_is_paired_by_its_own_stamps(ros_context)
     # every field sample once (not once per IMU sample next to it), the last few still waiting
     assert 95 <= used['own rate'] <= 100 and 390 <= used['with the imu'] <= 400, used
     assert worst['own rate'] < 1.5 * worst['with the imu'] + 0.05, worst
+
+
+def test_a_camera_stream_that_arrives_late_is_not_taken_for_a_lost_tracker(ros_context):
+    """Frames that reach the node 0.3 s after IMU samples of the same time (a phone's camera
+    pipeline and tracker; a bag recorded at arrival keeps that order): every frame is published
+    at its own stamp, no gyro backup in between, the samples are paired as without the lag, and
+    the heading is as good."""
+    used, worst, stamps = {}, {}, {}
+    for lag in (0.0, 0.3):
+        h = Harness(ros_context, {'estimate_time_offset': False})
+        try:
+            h.play(0.0, 6.0, np.random.default_rng(11), visual_lag_s=lag)
+            stamps[lag] = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec) - T0 for m in h.out]
+            worst[lag] = max(abs(heading_err(m)) for m, t in zip(h.out, stamps[lag]) if 3e9 <= t <= 5.6e9)
+            used[lag] = (h.node.align._n, h.node.align._field_samples)
+        finally:
+            h.close()
+    assert all(t % 40_000_000 == 0 for t in stamps[0.3]), 'an output between frames: the backup'
+    assert len(stamps[0.3]) >= len(stamps[0.0]) - 9  # the frames still on their way at the end
+    # the IMU and field samples the lagging stream still waits for are the last 0.3 s (15 each)
+    assert used[0.0][0] - 16 <= used[0.3][0] <= used[0.0][0], used
+    assert used[0.0][1] - 16 <= used[0.3][1] <= used[0.0][1], used
+    assert abs(worst[0.3] - worst[0.0]) < 0.01, worst  # the same estimates at the same stamps
