@@ -54,6 +54,7 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
             profile=args.profile,
             imu_time_offset_s=None if args.imu_time_offset_ms is None else args.imu_time_offset_ms * 1e-3,
             readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
+            camera_latency_s=None if args.camera_latency_ms is None else args.camera_latency_ms * 1e-3,
         )
     finally:
         close()
@@ -368,7 +369,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--readout-ms', type=float, default=None, metavar='MS',
                    help='rotation_sweep: the camera\'s rolling shutter reads its rows out over this time after the '
                         'frame\'s stamp, written to the sidecar (0: a global shutter; default: the profile\'s, 8-30 ms '
-                        'in hard, left out of the sidecar for panorama_mapper to estimate, 0 in kind)'),
+                        'in hard, left out of the sidecar for panorama_mapper to estimate, 0 in kind)')
+    p.add_argument('--camera-latency-ms', type=float, default=None, metavar='MS',
+                   help='rotation_sweep: each camera frame is logged (arrives) this long after its stamp, behind '
+                        'the IMU samples of its time (default: the profile\'s, 30-120 ms in hard, 0 in kind)'),
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')

@@ -99,7 +99,7 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
              session: str = 'authoring', storage: str = 'mcap', image_format: str = 'raw',
              overwrite: bool = False, progress: Callable[[float], None] | None = None,
              lighting: str | None = None, profile: str = 'hard', imu_time_offset_s: float | None = None,
-             readout_s: float | None = None) -> Path:
+             readout_s: float | None = None, camera_latency_s: float | None = None) -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
@@ -109,7 +109,9 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     Langlotz 2011 Fig. 7). ``imu_time_offset_s`` (rotation_sweep only): the IMU and
     magnetometer stamps minus the true time instead of the profile's offset; ``readout_s``
     (rotation_sweep only): the camera's rolling-shutter readout instead of the profile's (hard:
-    8-30 ms per seed, not in the sidecar; kind: 0), written to the sidecar; 0 is a global shutter. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
+    8-30 ms per seed, not in the sidecar; kind: 0), written to the sidecar; 0 is a global shutter;
+    ``camera_latency_s`` (rotation_sweep only): how long after its stamp each camera frame is
+    logged (hard: 30-120 ms per seed; kind: 0). ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
     phone or camera) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
     :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
@@ -122,6 +124,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         _check_sweep_seconds(scenario, 'IMU time offset', imu_time_offset_s, -1.0, 1.0)
     if readout_s is not None:
         _check_sweep_seconds(scenario, 'readout time', readout_s, 0.0, 0.1)
+    if camera_latency_s is not None:
+        _check_sweep_seconds(scenario, 'camera latency', camera_latency_s, 0.0, 1.0)
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:
@@ -130,7 +134,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
                 raise SimError(f'{p}: already exists (choose another name or overwrite)')
     scn = REGISTRY[scenario]
     req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s,
-                     None if readout_s is None else float(readout_s))
+                     None if readout_s is None else float(readout_s),
+                     None if camera_latency_s is None else float(camera_latency_s))
     try:
         with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
             scn.write_bag(bag, req, progress)

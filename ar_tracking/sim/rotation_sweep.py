@@ -36,7 +36,10 @@ Profiles (``profile`` argument of :func:`make_scenario`):
   jumps 1.5 times larger; and a **camera-IMU time offset**: the IMU and magnetometer header
   stamps are the true sample time plus a constant offset of 2-8 ms (either sign,
   :attr:`Scenario.imu_time_offset_ns`), while camera stamps and the ground truth
-  (``/ground_truth/*``) carry the true capture time.
+  (``/ground_truth/*``) carry the true capture time; and a **camera pipeline latency**: a
+  frame is written to the bag (arrives) 30-120 ms after its stamp
+  (:attr:`Scenario.camera_latency_ns`), behind the IMU samples of that time, as in a bag a
+  phone records at arrival.
 * ``'kind'``: the earlier, easier simulator (hand sway of 1 cm, phone 2-4 cm from the turning
   axis, half the disturbances change |B| and dip, calibration 1-3 % off, constant gyro bias, no
   time offset). Its bags are byte for byte those of the simulator before the profiles existed
@@ -56,6 +59,7 @@ from numpy.typing import NDArray
 from .imu import imu_samples, specific_force_cam
 from .phone_sensors import (Disturbances, EarthField, SensorErrors, heading_deflection, make_disturbances,
                             make_hard_sensor_errors, make_sensor_errors)
+from .gps import EARTH_RADIUS_M, GPS_RATE_HZ, GpsSamples, simulate_gps  # noqa: F401 (re-exported)
 from .rng import rng_stream
 
 Array = NDArray[np.float64]
@@ -69,7 +73,6 @@ R0_ENU_CAM = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 IMU_RATE_HZ = 100
 CAMERA_RATE_HZ = 30
-GPS_RATE_HZ = 1
 MAX_PAN_PEAK_DEG_S = 84.0  # leaves room for hand tremor below the 90 deg/s limit
 EXPOSURE_TIME_S = 0.012
 
@@ -85,12 +88,12 @@ HARD_IRON_RESIDUAL_T = (0.4e-6, 1.2e-6)  # per axis, random sign: 1.5-5 deg of h
 HARD_SOFT_IRON_RESIDUAL = (0.2, 0.5)  # of the soft-iron correction's deviation from identity
 HARD_IMU_TIME_OFFSET_S = (0.002, 0.008)  # |offset|, random sign
 HARD_READOUT_S = (0.008, 0.030)  # a phone camera's rolling-shutter readout (not in the sidecar)
+HARD_CAMERA_LATENCY_S = (0.03, 0.12)  # a frame is logged this long after its stamp (pipeline latency)
 HARD_EXPOSURE_JUMP_FACTOR = 1.5  # auto-exposure jumps of 30-75 % instead of 20-50 %
 
 #: Latitude/longitude around which the spots of all seeds lie (Graz), degrees.
 BASE_LATITUDE_DEG = 47.06
 BASE_LONGITUDE_DEG = 15.45
-EARTH_RADIUS_M = 6_378_137.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -366,18 +369,23 @@ class Scenario:
     #: Whether the readout was asked for (and so goes into the sidecar, as a user who knows
     #: their camera would give it) or is the hard profile's own (which a user seldom knows).
     readout_declared: bool = False
+    #: How long after its stamp a camera frame is logged, ns (the order it arrives in: a phone's
+    #: camera pipeline delivers frames tens of ms after the IMU samples of the same time).
+    camera_latency_ns: int = 0
 
 
 def make_scenario(seed: int, session: str, duration_s: float,
                   declination_rad: float = 0.0, profile: str = 'hard',
-                  imu_time_offset_s: float | None = None, readout_s: float | None = None) -> Scenario:
+                  imu_time_offset_s: float | None = None, readout_s: float | None = None,
+                  camera_latency_s: float | None = None) -> Scenario:
     """The scenario for a seed and session; the spot (and so the GPS origin) is the seed's.
 
     ``profile``: 'hard' (default, a realistic phone) or 'kind' (the earlier, easier simulator);
     see the module docstring. ``imu_time_offset_s`` replaces the profile's camera-IMU time
     offset (e.g. a phone whose driver delays the camera's stamps by tens of ms); ``readout_s``
     replaces the profile's rolling-shutter readout (hard: 8-30 ms, drawn per seed and session;
-    kind: 0, a global shutter); everything else stays the seed's."""
+    kind: 0, a global shutter); ``camera_latency_s`` the camera frames' arrival latency (hard:
+    30-120 ms; kind: 0); everything else stays the seed's."""
     if session not in SESSIONS:
         raise ValueError(f'unknown session {session!r} (use {" or ".join(SESSIONS)})')
     check_profile(profile)
@@ -400,6 +408,11 @@ def make_scenario(seed: int, session: str, duration_s: float,
         readout = float(rng_stream(seed, 'camera-readout', session).uniform(*HARD_READOUT_S))
     if readout_s is not None:
         readout = float(readout_s)
+    latency = 0.0
+    if hard:
+        latency = float(rng_stream(seed, 'camera-latency', session).uniform(*HARD_CAMERA_LATENCY_S))
+    if camera_latency_s is not None:
+        latency = float(camera_latency_s)
     return Scenario(
         seed=seed, session=session, duration_s=float(duration_s),
         trajectory=make_trajectory(seed, session, duration_s, profile), earth=earth,
@@ -411,6 +424,7 @@ def make_scenario(seed: int, session: str, duration_s: float,
         imu_time_offset_ns=offset_ns,
         readout_s=readout,
         readout_declared=readout_s is not None and readout_s > 0,
+        camera_latency_ns=int(round(latency * 1e9)),
     )
 
 
@@ -456,36 +470,6 @@ def simulate_imu(scn: Scenario, t_s: Array) -> ImuSamples:
         extra_field_t=np.linalg.norm(b_meas, axis=1) - np.linalg.norm(b),
         gyro_bias_rad_s=err.gyro_bias_at(t_s),
     )
-
-
-@dataclass(frozen=True)
-class GpsSamples:
-    """GPS fixes (degrees, metres) and the noise they were made with."""
-
-    t_s: Array
-    latitude_deg: Array
-    longitude_deg: Array
-    altitude_m: Array
-    sigma_horizontal_m: float
-    sigma_vertical_m: float
-
-
-def simulate_gps(scn: Scenario, t_s: Array, sigma_h_m: float = 3.0, sigma_v_m: float = 5.0,
-                 correlation_s: float = 20.0) -> GpsSamples:
-    """Fixes of the true position with slowly wandering (Gauss-Markov) metre-level errors."""
-    rng = rng_stream(scn.seed, 'gps', scn.session)
-    n = len(t_s)
-    phi = math.exp(-1.0 / (GPS_RATE_HZ * correlation_s))
-    err = np.zeros((n, 3))
-    sig = np.array([sigma_h_m, sigma_h_m, sigma_v_m])
-    err[0] = rng.normal(0, sig)
-    for k in range(1, n):
-        err[k] = phi * err[k - 1] + math.sqrt(1 - phi * phi) * rng.normal(0, sig)
-    pos = scn.trajectory.position(t_s) + err
-    lat0, lon0, alt0 = scn.origin_lat_lon_alt
-    lat = lat0 + np.degrees(pos[:, 1] / EARTH_RADIUS_M)
-    lon = lon0 + np.degrees(pos[:, 0] / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
-    return GpsSamples(np.asarray(t_s, float), lat, lon, alt0 + pos[:, 2], sigma_h_m, sigma_v_m)
 
 
 @dataclass(frozen=True)

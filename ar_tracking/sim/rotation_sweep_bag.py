@@ -49,13 +49,15 @@ class RotationSweep:
 
     def write_bag(self, bag: BagWriter, req: BagRequest, progress: Progress | None) -> None:
         scn = rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
-                              imu_time_offset_s=req.imu_time_offset_s, readout_s=req.readout_s)
+                              imu_time_offset_s=req.imu_time_offset_s, readout_s=req.readout_s,
+                              camera_latency_s=req.camera_latency_s)
         world, light, pano = session_view(req.seed, req.session, req.lighting)
         _write_all(bag, scn, world, light, pano, Plan.make(scn, pano), req.image_format, progress)
 
     def write_sidecars(self, sidecar: Path, bag_path: Path, req: BagRequest) -> None:
         write_sidecar(sidecar, rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
-                                                imu_time_offset_s=req.imu_time_offset_s, readout_s=req.readout_s),
+                                                imu_time_offset_s=req.imu_time_offset_s, readout_s=req.readout_s,
+                                                camera_latency_s=req.camera_latency_s),
                       bag_path)
 
     def summary(self, req: BagRequest) -> str:
@@ -63,7 +65,8 @@ class RotationSweep:
                 f'profile {req.profile}'
                 + ('' if req.imu_time_offset_s is None else f', IMU stamps {req.imu_time_offset_s * 1e3:+.1f} ms')
                 + ('' if req.readout_s is None else
-                   f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ', global shutter'))
+                   f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ', global shutter')
+                + ('' if req.camera_latency_s is None else f', camera latency {req.camera_latency_s * 1e3:.0f} ms'))
 
 
 SCENARIO = RotationSweep()
@@ -143,12 +146,15 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, 
     bag.write(TOPIC_GT_ANNOTATIONS, first_ns, m.markers(
         first_ns, [a.label for a in world.anchors], [a.position_enu for a in world.anchors]))
 
-    # (stamp, stream, part, k): IMU + magnetometer (0, 0), ground truth (0, 1), GPS, camera;
-    # with no offset this is the order of the earlier simulator (IMU, truth, GPS, camera).
+    # (log time, stream, part, k): IMU + magnetometer (0, 0), ground truth (0, 1), GPS, camera;
+    # with no offset and no latency this is the order of the earlier simulator (IMU, truth,
+    # GPS, camera). A camera frame is logged camera_latency_ns after its stamp (it arrives
+    # behind the IMU samples of its time); every message keeps its stamp in its header.
+    lat = int(scn.camera_latency_ns)
     events = sorted([(int(s) + off, 0, 0, k) for k, s in enumerate(plan.imu_ns)]
                     + [(int(s), 0, 1, k) for k, s in enumerate(plan.imu_ns)]
                     + [(int(s), 1, 0, k) for k, s in enumerate(plan.gps_ns)]
-                    + [(int(s), 2, 0, k) for k, s in enumerate(plan.cam_ns)])
+                    + [(int(s) + lat, 2, 0, k) for k, s in enumerate(plan.cam_ns)])
     n_cam = len(plan.cam_ns)
     report_every = max(1, n_cam // 50)
     for stamp, kind, part, k in events:
@@ -169,11 +175,13 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, 
                                               gps.altitude_m[k], gps.sigma_horizontal_m,
                                               gps.sigma_vertical_m))
         else:
-            R = rs.frame_orientations(scn.trajectory, stamp * 1e-9, cam.fx, scn.readout_s, cam.height)
+            t_ns = int(plan.cam_ns[k])  # the frame's stamp; ns is when it arrives
+            R = rs.frame_orientations(scn.trajectory, t_ns * 1e-9, cam.fx, scn.readout_s, cam.height)
             rgb = renderer.render(R, float(plan.gain[k]), plan.wb[k])
-            bag.write(TOPIC_CAMERA_INFO, ns, m.camera_info(ns, cam))
-            bag.write(image_topic, ns, m.image(ns, rgb) if image_format == 'raw'
-                      else m.compressed(ns, rgb))
+            stamp_ns = START_NS + t_ns
+            bag.write(TOPIC_CAMERA_INFO, ns, m.camera_info(stamp_ns, cam))
+            bag.write(image_topic, ns, m.image(stamp_ns, rgb) if image_format == 'raw'
+                      else m.compressed(stamp_ns, rgb))
             if progress is not None and (k % report_every == 0 or k == n_cam - 1):
                 progress((k + 1) / n_cam)
 

@@ -39,6 +39,8 @@ class BagRequest:
     #: rotation_sweep: the camera's rolling-shutter readout time, s, instead of the profile's (0: a
     #: global shutter; None: the profile's)
     readout_s: float | None = None
+    #: rotation_sweep: how long after its stamp a camera frame is logged, s (None: the profile's)
+    camera_latency_s: float | None = None
 
 
 class ScenarioBag(Protocol):

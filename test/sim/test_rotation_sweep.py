@@ -139,17 +139,21 @@ def test_topics_types_rates_and_frames(authoring_bag: Path, data: dict[str, list
         topics = bag.topics
     assert topics['/tf_static'] == 'tf2_msgs/msg/TFMessage'
     assert topics['/ground_truth/annotations'] == 'visualization_msgs/msg/MarkerArray'
+    scn = rs.make_scenario(SEED, 'authoring', DURATION_S)
+    latency = scn.camera_latency_ns  # the hard profile's: frames are logged after their stamps
+    assert 30_000_000 <= latency <= 120_000_000
     for topic, (msgtype, rate, frame) in expected.items():
         assert topics[topic] == msgtype
         msgs = data[topic]
         assert len(msgs) == int(DURATION_S * rate), topic
         stamps = np.array([stamp_to_ns(m.header.stamp) for _, m in msgs])
-        assert np.array_equal(stamps, [t for t, _ in msgs]), 'log time must equal header stamp'
+        late = latency if topic.startswith('/camera/') else 0
+        assert np.array_equal(stamps + late, [t for t, _ in msgs]), 'log time = header stamp (+ camera latency)'
         assert np.allclose(np.diff(stamps), 1e9 / rate, atol=1), topic
         assert {m.header.frame_id for _, m in msgs} == {frame}, topic
     # IMU and magnetometer share stamps, the ground truth is at the true sample times (the
     # stamps minus the camera-IMU time offset); camera_info pairs with every image.
-    off = rs.make_scenario(SEED, 'authoring', DURATION_S).imu_time_offset_ns
+    off = scn.imu_time_offset_ns
     imu_stamps = np.array([t for t, _ in data['/imu/data_raw']])
     assert np.array_equal([t for t, _ in data['/imu/mag']], imu_stamps)
     for topic in ('/ground_truth/orientation', '/ground_truth/pose',
@@ -157,7 +161,7 @@ def test_topics_types_rates_and_frames(authoring_bag: Path, data: dict[str, list
         assert np.array_equal([t for t, _ in data[topic]], imu_stamps - off), topic
     assert [t for t, _ in data['/camera/camera_info']] == [t for t, _ in data['/camera/image_raw']]
     first = data['/ground_truth/orientation'][0][0]
-    assert data['/camera/image_raw'][0][0] == first == bagmaker.START_NS
+    assert data['/camera/image_raw'][0][0] - latency == first == bagmaker.START_NS
     assert imu_stamps[0] == bagmaker.START_NS + off
     (t_tf, tf), = data['/tf_static']
     assert t_tf == bagmaker.START_NS + min(0, off)  # the first message of the bag
