@@ -172,6 +172,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.last_visual_ns: int | None = None
         self.last_imu_ns: int | None = None
         self.last_backup_pub_ns: int | None = None
+        self.first_ahrs_ns: int | None = None  # the first imu/data stamp (start-up hold)
         self.last_published_ns: int | None = None
         self.panorama_frame = 'panorama'
         self.published = 0
@@ -259,6 +260,7 @@ class HybridOrientationFilterNode(TrackingNode):
         for guard in self.stamp_guards.values():
             guard.reset()
         self.last_visual_ns = self.last_imu_ns = self.last_backup_pub_ns = self.last_published_ns = None
+        self.first_ahrs_ns = None
 
     def _stamp_ok(self, key: str, t_ns: int, what: str) -> bool:
         verdict = self.stamp_guards[key].check(t_ns)
@@ -487,6 +489,14 @@ class HybridOrientationFilterNode(TrackingNode):
             return
         if not self._stamp_ok('ahrs', t_s, 'imu/data'):
             return
+        if self.last_visual_ns is None:
+            # At start-up a camera's first frame may still be on its way (frames arrive behind the
+            # IMU by the pipeline's latency): imu/data is followed once visual_timeout_s of it has
+            # passed without one, so that a camera graph does not start on the AHRS and jump.
+            if self.first_ahrs_ns is None:
+                self.first_ahrs_ns = t_s
+            if t_s - self.first_ahrs_ns < self.visual_timeout_ns:
+                return
         frame = msg.header.frame_id.lstrip('/')
         R_enu_cam = R_enu_imu if frame == self.camera_frame else R_enu_imu @ self.R_imu_cam
         self._publish(t_s, R_enu_cam, cov, None)

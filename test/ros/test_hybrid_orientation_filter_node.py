@@ -222,8 +222,10 @@ def test_without_a_camera_the_output_is_the_ahrs_in_the_camera_frame(ros_context
     h = Harness(ros_context)
     try:
         h.play(0.0, 1.0, np.random.default_rng(5), visual=False, ahrs=True)
-        assert spin_until(h.ex, lambda: len(h.out) >= 50, 2.0) and len(h.out) == 50
-        for m, R_enu_imu in zip(h.out, h.ahrs_sent):
+        # after visual_timeout_s (0.2 s) without a frame: every imu/data sample from then on
+        assert spin_until(h.ex, lambda: len(h.out) >= 40, 2.0) and len(h.out) == 40
+        assert h.out[0].header.stamp == to_stamp(T0 + 200_000_000)
+        for m, R_enu_imu in zip(h.out, h.ahrs_sent[10:]):
             assert np.allclose(rotation_from_quaternion(m.orientation), R_enu_imu @ R_IMU_CAM, atol=1e-9)
             assert m.orientation_covariance[8] == pytest.approx(0.02 ** 2)
     finally:
@@ -476,3 +478,15 @@ def test_a_camera_stream_that_arrives_late_is_not_taken_for_a_lost_tracker(ros_c
     assert used[0.0][0] - 16 <= used[0.3][0] <= used[0.0][0], used
     assert used[0.0][1] - 16 <= used[0.3][1] <= used[0.0][1], used
     assert abs(worst[0.3] - worst[0.0]) < 0.01, worst  # the same estimates at the same stamps
+
+
+def test_a_camera_graph_does_not_start_on_the_ahrs_while_its_first_frame_is_on_its_way(ros_context):
+    """imu/data from the start, the first frame 0.1 s later (within visual_timeout_s): no output
+    follows the AHRS; every output is a frame's."""
+    h = Harness(ros_context)
+    try:
+        h.play(0.0, 2.0, np.random.default_rng(12), ahrs=True, visual_lag_s=0.1)
+        stamps = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec) - T0 for m in h.out]
+        assert len(stamps) >= 40 and all(t % 40_000_000 == 0 for t in stamps), stamps[:10]
+    finally:
+        h.close()
