@@ -13,12 +13,30 @@ from pathlib import Path
 logger = logging.getLogger('ar_tracking.eval.bench')
 
 
+def reusable_sweep_bag(path: Path) -> bool:
+    """Whether a rotation_sweep bag a bench made before can be used again: it exists and was
+    made by this simulator revision (a hard bag records it; a kind bag, frozen byte for byte,
+    records nothing). A stale one is said so, and made again by the caller."""
+    from ..io.bags import read_metadata
+    from ..sim.rotation_sweep_bag import SIM_METADATA, SIM_REVISION
+
+    if not path.exists():
+        return False
+    meta = read_metadata(path, SIM_METADATA)
+    if meta is None or meta.get('revision') == SIM_REVISION:
+        return True
+    logger.info('%s was made by an earlier simulator (revision %s, now %s): making it again',
+                path, meta.get('revision', 'before 18'), SIM_REVISION)
+    return False
+
+
 def benchmark_bag(workdir: Path, duration_s: float, seed: int = 1) -> Path:
-    """The rotation_sweep bag the graph benchmark runs on (made once, then reused)."""
+    """The rotation_sweep bag the graph benchmark runs on (made once, then reused while the
+    simulator's revision is the same)."""
     from ..sim.bagmaker import make_bag
 
     path = workdir / f'rotation_sweep_seed{seed}_{duration_s:g}s.mcap'
-    if not path.exists():
+    if not reusable_sweep_bag(path):
         logger.info('making the benchmark bag %s', path)
         make_bag('rotation_sweep', path, seed=seed, duration_s=duration_s, overwrite=True)
     return path

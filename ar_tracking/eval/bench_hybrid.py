@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from ..core.rotations import heading_tilt_error_deg, interpolate_rotations, quat_wxyz_to_xyzw, quat_xyzw_to_matrix
 from . import SHARED_DATA
+from .bench_bag import reusable_sweep_bag
 
 if TYPE_CHECKING:
     from .metrics import BagOrientations
@@ -533,7 +534,7 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
             + ('' if imu_time_offset_ms is None else f'_imu{imu_time_offset_ms:+g}ms') \
             + ('' if readout_ms is None else f'_rs{readout_ms:g}ms')
         bag = workdir / f'rotation_sweep_{tag}.mcap'
-        if not bag.exists():
+        if not reusable_sweep_bag(bag):
             kwargs: dict[str, Any] = {'profile': profile} if profile else {}
             if imu_time_offset_ms is not None:
                 kwargs['imu_time_offset_s'] = imu_time_offset_ms * 1e-3

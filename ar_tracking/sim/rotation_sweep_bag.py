@@ -37,6 +37,9 @@ from .scenario import BagRequest, Progress
 
 #: MCAP metadata record naming the simulator profile of a hard rotation_sweep bag (evaluation only).
 SIM_METADATA = 'ar_tracking.simulator'
+#: The hard profile's revision, in that record: raised whenever the same seed gives another bag
+#: (18: camera frames logged after their stamps), so that a bench does not reuse a stale bag.
+SIM_REVISION = '18'
 #: Auto-exposure only half compensates the scene brightness (a sunnier day stays brighter).
 EXPOSURE_TARGET = 0.2
 EXPOSURE_COMPENSATION = 0.4
@@ -138,7 +141,8 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, 
     first_ns = START_NS + min(0, off)
     if scn.profile != 'kind':  # kind bags stay byte for byte those of the earlier simulator
         bag.add_metadata(SIM_METADATA, {'scenario': 'rotation_sweep', 'profile': scn.profile,
-                                        'seed': str(scn.seed), 'session': scn.session})
+                                        'seed': str(scn.seed), 'session': scn.session,
+                                        'revision': SIM_REVISION})
 
     bag.write(TOPIC_TF_STATIC, first_ns, msg_class('tf2_msgs/msg/TFMessage')(transforms=[
         m.transform_stamped(first_ns, FRAME_IMU, FRAME_CAMERA, np.zeros(3),

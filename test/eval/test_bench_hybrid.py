@@ -65,3 +65,25 @@ def test_repoimu_excerpt_is_scored_after_a_constant_rotation():
     assert trial['ahrs']['n'] > 8000
     assert trial['ahrs']['heading_rmse_deg'] < 2.0 and trial['ahrs']['tilt_rmse_deg'] < 1.5
     assert trial['ahrs']['aligned_by_deg'] > 1.0  # the truth's frame is relative
+
+
+def test_a_bench_reuses_a_simulated_bag_only_from_this_simulator_revision(tmp_path, caplog):
+    """A bag made by an earlier simulator (same seed, other bytes) is made again, not reused."""
+    from ar_tracking.eval.bench_bag import reusable_sweep_bag
+    from ar_tracking.io.bags import BagReader, BagWriter
+    from ar_tracking.sim.bagmaker import make_bag
+    from ar_tracking.sim.rotation_sweep_bag import SIM_METADATA
+
+    assert not reusable_sweep_bag(tmp_path / 'none.mcap')
+    hard = make_bag('rotation_sweep', tmp_path / 'hard.mcap', seed=3, duration_s=1.0)
+    kind = make_bag('rotation_sweep', tmp_path / 'kind.mcap', seed=3, duration_s=1.0, profile='kind')
+    assert reusable_sweep_bag(hard) and reusable_sweep_bag(kind)  # kind bags are frozen
+    old = tmp_path / 'old.mcap'  # the hard bag as the simulator before revisions wrote it
+    with BagReader(hard) as src, BagWriter(old) as dst:
+        dst.add_metadata(SIM_METADATA, {'scenario': 'rotation_sweep', 'profile': 'hard', 'seed': '3',
+                                        'session': 'authoring'})
+        for m in src.messages(['/imu/data_raw']):
+            dst.write(m.topic, m.log_time_ns, src.deserialize(m))
+    with caplog.at_level('INFO', logger='ar_tracking.eval.bench'):
+        assert not reusable_sweep_bag(old)
+    assert 'made by an earlier simulator' in caplog.text
