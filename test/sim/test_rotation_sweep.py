@@ -235,11 +235,13 @@ def test_sidecar_params(profile: str, request: pytest.FixtureRequest) -> None:
 
 
 def test_profile_recorded_for_evaluation(authoring_bag: Path, kind_bag: Path) -> None:
-    """Hard bags name their profile in an MCAP metadata record; kind bags carry none, exactly
-    like the bags of the earlier simulator."""
+    """Hard bags name their profile and the simulator's revision in an MCAP metadata record;
+    kind bags carry none, exactly like the bags of the earlier simulator."""
+    from ar_tracking.sim.rotation_sweep_bag import SIM_REVISION
+
     assert read_metadata(authoring_bag, bagmaker.SIM_METADATA) == {
         'scenario': 'rotation_sweep', 'profile': 'hard', 'seed': str(SEED),
-        'session': 'authoring'}
+        'session': 'authoring', 'revision': SIM_REVISION}
     assert read_metadata(kind_bag, bagmaker.SIM_METADATA) is None
 
 
