@@ -97,7 +97,9 @@ PARAMS = (
               'Largest gap between two visual orientations that is interpolated across, s',
               min_value=0.0, max_value=10.0),
     ParamSpec('visual_timeout_s', 0.2,
-              'No visual orientation for this long (in stamps): the tracker is lost, the gyro backup publishes',
+              'No visual orientation for this long (in stamps) beyond the visual stream\'s usual lag behind the IMU '
+              '(camera and tracker latency, measured): the tracker is lost, the gyro backup publishes; at start-up '
+              'imu/data is followed after this long without a frame',
               min_value=0.0, max_value=60.0),
     ParamSpec('backup_rate_hz', 30.0,
               'Rate of orientation/global from the gyro backup, Hz', min_value=0.1, max_value=1000.0),
