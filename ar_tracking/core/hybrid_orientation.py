@@ -119,6 +119,11 @@ class StreamLag:
         self.ns = max(0, int(np.median(np.fromiter(self._lags, dtype=np.int64, count=len(self._lags)))))
         self.known = True
 
+    @property
+    def settled(self) -> bool:
+        """Whether a full window of arrivals went into the lag."""
+        return len(self._lags) == self._lags.maxlen
+
 
 # ----------------------------------------------------------------------------------------------
 # Gyro backup while the visual tracker is lost.

@@ -73,6 +73,8 @@ _REPAIR_NS = 10_000_000_000
 #: Before the first visual orientation arrives, IMU and field samples of this long are kept
 #: (the first frame's stamp can be this much older than the IMU's newest: camera latency), ns.
 _PRE_VISION_NS = 1_000_000_000
+#: A visual lag worth telling the user about once, ns.
+_LAG_REPORT_NS = 20_000_000
 
 
 class HybridOrientationFilterNode(TrackingNode):
@@ -168,6 +170,7 @@ class HybridOrientationFilterNode(TrackingNode):
         #: latency): vision is lost only when it is this much later than visual_timeout_s.
         self.visual_lag = StreamLag()
         self._hard_iron_reported = False
+        self._lag_reported = False
         self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
         self.last_visual_ns: int | None = None
         self.last_imu_ns: int | None = None
@@ -362,6 +365,11 @@ class HybridOrientationFilterNode(TrackingNode):
         self.last_visual_ns = t_v
         if self.last_imu_ns is not None:
             self.visual_lag.add(self.last_imu_ns, t_v)
+            if not self._lag_reported and self.visual_lag.settled and self.visual_lag.ns >= _LAG_REPORT_NS:
+                self._lag_reported = True
+                self.get_logger().info(
+                    f'panorama/orientation arrives {self.visual_lag.ns * 1e-6:.0f} ms behind the IMU samples of its '
+                    'time (camera and tracker latency): the tracker counts as lost only visual_timeout_s beyond that')
         self.visual.add(t_v, R_pano_cam)
         self.backup.add_visual(t_v, R_pano_cam)
         self.clock.add_visual(t_v, R_pano_cam)

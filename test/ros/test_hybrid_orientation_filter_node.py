@@ -457,7 +457,7 @@ def test_a_magnetometer_of_its_own_rate_is_paired_by_its_own_stamps(ros_context)
     assert worst['own rate'] < 1.5 * worst['with the imu'] + 0.05, worst
 
 
-def test_a_camera_stream_that_arrives_late_is_not_taken_for_a_lost_tracker(ros_context):
+def test_a_camera_stream_that_arrives_late_is_not_taken_for_a_lost_tracker(ros_context, capfd):
     """Frames that reach the node 0.3 s after IMU samples of the same time (a phone's camera
     pipeline and tracker; a bag recorded at arrival keeps that order): every frame is published
     at its own stamp, no gyro backup in between, the samples are paired as without the lag, and
@@ -472,6 +472,7 @@ def test_a_camera_stream_that_arrives_late_is_not_taken_for_a_lost_tracker(ros_c
             used[lag] = (h.node.align._n, h.node.align._field_samples)
         finally:
             h.close()
+    assert capfd.readouterr().err.count('arrives 300 ms behind the IMU samples') == 1  # said once
     assert all(t % 40_000_000 == 0 for t in stamps[0.3]), 'an output between frames: the backup'
     assert len(stamps[0.3]) >= len(stamps[0.0]) - 9  # the frames still on their way at the end
     # the IMU and field samples the lagging stream still waits for are the last 0.3 s (15 each)
