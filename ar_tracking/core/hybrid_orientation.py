@@ -205,8 +205,9 @@ class GyroBackup:
         R = np.asarray(R_enu_cam, dtype=float)
         if self.t_ns is not None and self.omega is not None and self.t_ns > t_ns:
             # The gyro is already ahead of the frame (a camera pipeline's latency): bring the
-            # anchor to the gyro's time through the gyro's own rotation since the frame, or, when
-            # the chain does not reach back that far, the last rate held.
+            # anchor to the gyro's time through the gyro's own rotation since the frame (the bias
+            # removed to first order), or, when the chain does not reach back that far, the last
+            # rate held.
             dt = (self.t_ns - int(t_ns)) * 1e-9
             C_then = self.chain.at(int(t_ns))
             if C_then is not None:

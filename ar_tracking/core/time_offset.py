@@ -27,10 +27,9 @@ field's windows are too coarse in time.)
 """
 from __future__ import annotations
 
-from collections import deque
-
 import bisect
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -243,8 +242,8 @@ class ImuClock:
 
     def add(self, sample: tuple[Any, ...], omega_imu: Array, keep: bool) -> bool:
         """One IMU sample (``sample[0]`` its IMU stamp, ns) with its gyro rate; ``keep``: it may
-        need re-pairing later. True when the offset has just
-        become known (then :meth:`take_kept` has the samples so far, this one excluded)."""
+        need re-pairing later. True when the offset has just become known (then
+        :meth:`take_kept` has the samples so far, this one excluded)."""
         if self.estimator is None:
             return False
         t_imu = int(sample[0])

@@ -13,6 +13,9 @@ from .rng import rng_stream
 
 Array = NDArray[np.float64]
 
+GPS_RATE_HZ = 1
+EARTH_RADIUS_M = 6_378_137.0
+
 
 class _Path(Protocol):
     def position(self, t_s: Array) -> Array: ...
@@ -25,9 +28,6 @@ class Located(Protocol):
     session: str
     trajectory: _Path
     origin_lat_lon_alt: tuple[float, float, float]
-
-GPS_RATE_HZ = 1
-EARTH_RADIUS_M = 6_378_137.0
 
 
 @dataclass(frozen=True)
