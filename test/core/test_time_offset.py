@@ -20,18 +20,22 @@ def _motion(t: np.ndarray) -> np.ndarray:
 
 
 def _feed(est_or_clock, offset_s: float, duration_s: float = 12.0, seed: int = 0, still: bool = False,
-          gyro_bias=(0.01, -0.02, 0.005)) -> None:
+          gyro_bias=(0.01, -0.02, 0.005), late_first_s: float = 0.0, late_by_s: float = 0.0) -> None:
     """Gyro at 200 Hz stamped on the IMU clock (truth + offset), with noise and a bias; frames at
-    30 Hz on the camera clock, integrated exactly from the same rate (fine steps), with noise."""
+    30 Hz on the camera clock, integrated exactly from the same rate (fine steps), with noise;
+    the frames of the first ``late_first_s`` show the orientation ``late_by_s`` after their
+    stamp (a tracker that has not yet estimated its rolling shutter's readout)."""
     rng = np.random.default_rng(seed)
     fine = np.arange(0.0, duration_s, 1e-4)
     rate = np.zeros((len(fine), 3)) if still else _motion(fine)
     R = np.eye(3)
     frames = {}
     frame_every = int(round(1 / 30 / 1e-4))
+    late = int(round(late_by_s / 1e-4))
     for k, w in enumerate(rate):
-        if k % frame_every == 0:
-            frames[k] = R @ so3_exp(rng.normal(0.0, 3e-4, 3))  # ~0.02 deg of tracker noise
+        shown = k - late if fine[k] - late_by_s < late_first_s else k  # the frame stamped then
+        if shown >= 0 and shown % frame_every == 0:
+            frames[shown] = R @ so3_exp(rng.normal(0.0, 3e-4, 3))  # ~0.02 deg of tracker noise
         R = R @ so3_exp(w * 1e-4)
     events = []
     for k in range(0, len(fine), 50):  # 200 Hz
@@ -52,7 +56,7 @@ def _feed(est_or_clock, offset_s: float, duration_s: float = 12.0, seed: int = 0
 
 @pytest.mark.parametrize('offset_ms', [-30.0, 0.0, 7.0, 45.0])
 def test_the_offset_is_found_with_an_honest_sigma(offset_ms):
-    est = TimeOffsetEstimator(R_IMU_CAM)
+    est = TimeOffsetEstimator(R_IMU_CAM, TimeOffsetConfig(skip_first_s=0.0))  # settled from its first frame
     _feed(est, offset_ms * 1e-3)
     found = est.estimate()
     assert found is not None
@@ -157,3 +161,15 @@ def test_a_real_hardware_synchronised_camera_imu_pair():
     for shift in (0.0, 25.0, -40.0):
         found = result[f'shift_{shift:+g}ms']
         assert abs(found['offset_ms'] - shift) < 1.0 and found['sigma_ms'] < 0.5, (shift, found)
+
+
+def test_the_trackers_first_second_is_left_out():
+    """A tracker that shows the orientation 13 ms after each stamp for its first second (half a
+    26 ms readout it has not yet estimated), then at its stamps: with that second the offset is
+    pulled towards 13 ms, without it (the default) it is the device's."""
+    found = {}
+    for skip in (0.0, 1.0):
+        est = TimeOffsetEstimator(R_IMU_CAM, TimeOffsetConfig(skip_first_s=skip))
+        _feed(est, 0.005, duration_s=4.0, late_first_s=1.0, late_by_s=0.013)
+        found[skip] = est.estimate()[0] * 1e3
+    assert abs(found[1.0] - 5.0) < 0.75 and found[0.0] - 5.0 > 2.5, found
