@@ -104,20 +104,22 @@ class StreamLag:
 
     def __init__(self, window: int = 31) -> None:
         self._lags: Deque[int] = deque(maxlen=int(window))
-        self.ns = 0
-        self.known = False
+        self.ns = 0  # kept: read at every IMU sample
 
     def clear(self) -> None:
         self._lags.clear()
         self.ns = 0
-        self.known = False
 
     def add(self, lead_ns: int, t_ns: int) -> None:
         """One arrival of the trailing stream (stamp ``t_ns``) while the leading stream's newest
         stamp is ``lead_ns``."""
         self._lags.append(int(lead_ns) - int(t_ns))
         self.ns = max(0, int(np.median(np.fromiter(self._lags, dtype=np.int64, count=len(self._lags)))))
-        self.known = True
+
+    @property
+    def known(self) -> bool:
+        """Whether any arrival went into the lag."""
+        return bool(self._lags)
 
     @property
     def settled(self) -> bool:

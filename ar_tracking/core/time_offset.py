@@ -250,9 +250,9 @@ class ImuClock:
         self._settled = False
         self._kept: deque[tuple[Any, ...]] | None = deque() if estimator is not None else None
 
-    def add(self, sample: tuple[Any, ...], omega_imu: Array, keep: bool) -> bool:
-        """One IMU sample (``sample[0]`` its IMU stamp, ns) with its gyro rate; ``keep``: it may
-        need re-pairing later. True when the offset has just become known (then
+    def add(self, sample: tuple[Any, ...], omega_imu: Array) -> bool:
+        """One IMU sample (``sample[0]`` its IMU stamp, ns) with its gyro rate, kept for
+        re-pairing while the offset is unknown. True when the offset has just become known (then
         :meth:`take_kept` has the samples so far, this one excluded)."""
         if self.estimator is None:
             return False
@@ -265,12 +265,12 @@ class ImuClock:
                 self._settled = True
                 return True
             return False
-        self.keep(sample, keep)
+        self.keep(sample)
         return False
 
-    def keep(self, sample: tuple[Any, ...], keep: bool = True) -> None:
+    def keep(self, sample: tuple[Any, ...]) -> None:
         """Keep a sample (stamp first, IMU clock) for re-pairing while the offset is unknown."""
-        if self._kept is None or self._settled or not keep:
+        if self._kept is None or self._settled:
             return
         self._kept.append(sample)
         if int(sample[0]) - int(self._kept[0][0]) > self.repair_ns:

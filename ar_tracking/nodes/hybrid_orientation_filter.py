@@ -439,7 +439,7 @@ class HybridOrientationFilterNode(TrackingNode):
         if not self._stamp_ok('imu', t_imu, 'imu/data_raw'):
             return
         sample = (t_imu, self.calibration.accel(accel), self.calibration.gyro(omega))
-        if self.clock.add(sample, sample[2], keep=True):
+        if self.clock.add(sample, sample[2]):
             self._offset_settled(self.clock.take_kept())
         if self.last_visual_ns is None:  # before vision only the last _PRE_VISION_NS are kept
             self.clock.trim_kept(t_imu - _PRE_VISION_NS)

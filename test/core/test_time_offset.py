@@ -45,7 +45,7 @@ def _feed(est_or_clock, offset_s: float, duration_s: float = 12.0, seed: int = 0
     for t_ns, kind, value in sorted(events, key=lambda e: (e[0], e[1])):
         if isinstance(est_or_clock, ImuClock):
             if kind == 0:
-                est_or_clock.add((t_ns, 'sample'), value, keep=True)
+                est_or_clock.add((t_ns, 'sample'), value)
             else:
                 est_or_clock.add_visual(t_ns, value)
         elif kind == 0:
@@ -104,8 +104,8 @@ def test_imu_clock_hands_back_the_first_samples_once_when_the_offset_settles():
     handed: list = []
     original = clock.add
 
-    def add(sample, omega, keep):
-        settled = original(sample, omega, keep)
+    def add(sample, omega):
+        settled = original(sample, omega)
         if settled:
             handed.append(clock.take_kept())
         return settled
@@ -119,14 +119,14 @@ def test_imu_clock_hands_back_the_first_samples_once_when_the_offset_settles():
 
     forgotten = ImuClock(5_000_000, TimeOffsetEstimator(R_IMU_CAM))
     forgotten.forget_kept()  # the tracker was lost: nothing before is re-paired
-    assert forgotten.add((T0, 'sample'), np.zeros(3), keep=True) is False
+    assert forgotten.add((T0, 'sample'), np.zeros(3)) is False
     assert forgotten.take_kept() is None and forgotten.offset_ns == 5_000_000
     forgotten.restart()  # a bag loop: the new session's first seconds are kept again
-    forgotten.add((T0, 'sample'), np.zeros(3), keep=True)
+    forgotten.add((T0, 'sample'), np.zeros(3))
     assert forgotten.take_kept() == [(T0, 'sample')]
 
     fixed = ImuClock(-8_000_000, None)  # estimation off: the known offset, nothing kept
-    assert fixed.add((T0, 'sample'), np.zeros(3), keep=True) is False and fixed.offset_ns == -8_000_000
+    assert fixed.add((T0, 'sample'), np.zeros(3)) is False and fixed.offset_ns == -8_000_000
 
 
 def test_the_gyro_buffer_stays_bounded_without_frames_and_after_the_tracker_stops():
