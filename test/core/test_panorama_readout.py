@@ -83,3 +83,24 @@ def test_no_reading_without_rotation_or_enough_inliers():
                                                                 fit.keypoints[:5]))
     est.add(0.0, np.array([np.nan, 0.9, 0.0]), np.eye(3), fit)
     assert est.frames == 0 and est.estimate() is None and est.readout(0.01) == 0.01
+
+
+def test_an_estimate_in_use_is_kept_while_scattered_readings_widen_its_sigma():
+    """Once used, the estimate is replaced only by a later one that passes the same test: readings
+    that scatter widely for a while (a sudden stop between two frames) do not send the readout
+    back to the configured 0, which would shear the frames again."""
+    rng = np.random.default_rng(7)
+    est, used = ReadoutEstimator(ReadoutConfig(memory_readings=10.0, apply_sigma_s=3e-4)), 0.0
+    for _ in range(15):
+        omega = rng.normal(size=3) * [0.2, 0.8, 0.1]
+        est.add(used, omega, np.eye(3), _frame(rng, 0.025, used, omega, None)[0])
+        used = est.readout(0.0)
+    assert used == pytest.approx(0.025, abs=0.002)
+    widened = False
+    for k in range(12):
+        omega = rng.normal(size=3) * [0.2, 0.8, 0.1]
+        est.add(used, omega, np.eye(3), _frame(rng, (0.0, 0.05)[k % 2], used, omega, None, noise=3e-3)[0])
+        widened |= est.estimate()[1] > est.config.apply_sigma_s  # type: ignore[index]
+        assert est.readout(0.0) != 0.0
+    assert widened
+    assert ReadoutEstimator().readout(0.01) == 0.01  # nothing used yet: the configured value

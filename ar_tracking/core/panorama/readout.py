@@ -52,6 +52,12 @@ class ReadoutConfig:
     #: inlier threshold cuts off the rows the wrong readout shears most. Each reading with the
     #: latest estimate is closer, so the estimate converges as the old readings fade.
     memory_readings: float = 50.0
+    #: Readings needed before the estimate is used ...
+    min_readings: int = 10
+    #: ... or this many once the tracker was lost with readout 0 in use: the shear of an
+    #: unmodelled readout during a fast turn may be what lost it (a session that starts with a
+    #: fast turn can lose tracking a few frames before the estimate has ``min_readings``).
+    min_readings_lost: int = 3
 
 
 @dataclass(frozen=True)
@@ -137,6 +143,7 @@ class ReadoutEstimator:
         self._sws2 = 0.0  # sum of weight x reading^2
         self._n = 0
         self._n_eff = 0.0  # readings, forgotten like the sums
+        self._applied: float | None = None  # the last estimate readout() gave
 
     def add(self, readout_used_s: float, omega_cam: Array, R_pano_cam: Array, fit: RowFit | None,
             painting: Painting | None = None) -> None:
@@ -187,12 +194,17 @@ class ReadoutEstimator:
         scale = max(1.0, self._sw * var / max(self._n_eff - 1.0, 1.0))  # sum w (s - mean)^2 / dof
         return mean, math.sqrt(scale / self._sw)
 
-    def readout(self, configured_s: float) -> float:
-        """The readout to use: ``configured_s`` until the estimate is known to ``apply_sigma_s``;
-        then the estimate, or 0 (a global shutter) when it is not clearly away from zero."""
+    def readout(self, configured_s: float, lost: bool = False) -> float:
+        """The readout to use: ``configured_s`` until the estimate is known to ``apply_sigma_s``
+        from ``min_readings`` frames (``min_readings_lost`` once the tracker has been ``lost``);
+        then the estimate, or 0 (a global shutter) when it is not clearly away from zero. Once
+        used, an estimate is replaced only by a later one that passes the same test (a few
+        scattered readings widen the sigma for a while; falling back to the configured value
+        then would shear the frames again)."""
         c = self.config
         est = self.estimate()
-        if est is None or self._n < 10 or est[1] > c.apply_sigma_s:
-            return configured_s
+        if est is None or self._n < (c.min_readings_lost if lost else c.min_readings) or est[1] > c.apply_sigma_s:
+            return configured_s if self._applied is None else self._applied
         value, sigma = est
-        return value if abs(value) >= max(c.min_readout_s, c.significance * sigma) else 0.0
+        self._applied = value if abs(value) >= max(c.min_readout_s, c.significance * sigma) else 0.0
+        return self._applied
