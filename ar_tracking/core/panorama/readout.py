@@ -14,7 +14,9 @@ there (:func:`frame_reading`). Per frame, the small correction of its rotation i
 readout with its information; the readings are combined with a Cauchy weight about the
 running estimate (a frame whose rate came from a frame pair across a sudden stop says little)
 and the result's sigma is scaled by the readings' scatter. The estimate replaces the configured
-readout once it is known well and is clearly not a global shutter.
+readout once it is known well and is clearly not a global shutter - from fewer frames once the
+tracker has been lost while the readout was still 0 (the shear may be what lost it) - and, once
+used, only a later estimate that passes the same test replaces it.
 """
 from __future__ import annotations
 
