@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,14 @@ def global_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_bag('rotation_sweep', tmp_path_factory.mktemp('gs') / 'gs.mcap', seed=402, duration_s=8.0, readout_s=0.0)
 
 
+def _frames(bag: Path) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
+    """(RGB image, K, stamp ns) of each camera frame of a simulated bag."""
+    with BagReader(bag) as b:
+        K = np.asarray(b.read_all('/camera/camera_info')[0][1].k, float).reshape(3, 3)
+        for _, m in b.read_all('/camera/image_raw'):
+            yield np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3), K, stamp_to_ns(m.header.stamp)
+
+
 def _track(bag: Path, readout_s: float, estimate: bool = False, after_s: float = 0.0) -> tuple[float, int, set[float]]:
     """(RMS error deg of the tracked frames against the truth at their stamps, after the one
     rotation panorama -> world that fits them best (the panorama frame is where the first frame
@@ -46,20 +55,15 @@ def _track(bag: Path, readout_s: float, estimate: bool = False, after_s: float =
     frames lost, the readouts the mapper used)."""
     mapper = PanoramaMapper(replace(MapperConfig(), readout_s=readout_s, estimate_readout=estimate))
     used = set()
-    with BagReader(bag) as b:
-        info = b.read_all('/camera/camera_info')[0][1]
-        K = np.asarray(info.k, float).reshape(3, 3)
-        traj = rs.make_trajectory(402, 'authoring', 8.0)  # the truth at any time (the camera's stamps)
-        rel = []  # R_world_pano of each tracked frame: truth times the estimate's inverse
-        for _, m in b.read_all('/camera/image_raw'):
-            t = stamp_to_ns(m.header.stamp)
-            rgb = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3)
-            res = mapper.process(rgb, K, t)
-            mapper.background()
-            used.add(mapper.readout_s)
-            R_true = traj.R_enu_cam(np.array([(t - START_NS) * 1e-9]))[0]
-            if res.R_pano_cam is not None and t - START_NS >= after_s * 1e9:
-                rel.append(R_true @ res.R_pano_cam.T)
+    traj = rs.make_trajectory(402, 'authoring', 8.0)  # the truth at any time (the camera's stamps)
+    rel = []  # R_world_pano of each tracked frame: truth times the estimate's inverse
+    for rgb, K, t in _frames(bag):
+        res = mapper.process(rgb, K, t)
+        mapper.background()
+        used.add(mapper.readout_s)
+        R_true = traj.R_enu_cam(np.array([(t - START_NS) * 1e-9]))[0]
+        if res.R_pano_cam is not None and t - START_NS >= after_s * 1e9:
+            rel.append(R_true @ res.R_pano_cam.T)
     U, _, Vt = np.linalg.svd(np.sum(rel, axis=0))  # their chordal mean
     M = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     errs = [np.degrees(np.linalg.norm(so3_log(M.T @ W))) for W in rel]
@@ -110,25 +114,22 @@ def test_the_map_is_painted_again_once_the_readout_is_known(rolling_bag: Path, g
     mappers = {k: PanoramaMapper(c) for k, c in configs.items()}
     rms: dict[str, list[float]] = {k: [] for k in mappers}
     at = None
-    with BagReader(rolling_bag) as b:
-        K = np.asarray(b.read_all('/camera/camera_info')[0][1].k, float).reshape(3, 3)
-        for i, (_, m) in enumerate(b.read_all('/camera/image_raw')):
-            rgb = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3)
-            for k, mapper in mappers.items():
-                res = mapper.process(rgb, K, stamp_to_ns(m.header.stamp))
-                mapper.background()
-                if at is not None and res.track is not None and res.R_pano_cam is not None:
-                    rms[k].append(res.track.rms_px)
-            if at is None and mappers['repaint'].map.generation:
-                at = i
-                pano = mappers['repaint'].map
-                assert mappers['repaint'].readout_s > 0.02 and at < 90, (at, mappers['repaint'].readout_s)
-                assert set(np.unique(pano.tiles_image())) == {0, 254}
-                assert np.all(pano.tile_state[pano.finished_tiles()] == 2) and not pano.queue
-                painted = mappers['repaint']._painted
-                assert all(painted[j][2] == mappers['repaint'].readout_s for j in painted if j <= at)
-            if at is not None and i >= at + 60:
-                break
+    for i, (rgb, K, t) in enumerate(_frames(rolling_bag)):
+        for k, mapper in mappers.items():
+            res = mapper.process(rgb, K, t)
+            mapper.background()
+            if at is not None and res.track is not None and res.R_pano_cam is not None:
+                rms[k].append(res.track.rms_px)
+        if at is None and mappers['repaint'].map.generation:
+            at = i
+            pano = mappers['repaint'].map
+            assert mappers['repaint'].readout_s > 0.02 and at < 90, (at, mappers['repaint'].readout_s)
+            assert set(np.unique(pano.tiles_image())) == {0, 254}
+            assert np.all(pano.tile_state[pano.finished_tiles()] == 2) and not pano.queue
+            painted = mappers['repaint']._painted
+            assert all(painted[j][2] == mappers['repaint'].readout_s for j in painted if j <= at)
+        if at is not None and i >= at + 60:
+            break
     assert at is not None, 'never repainted'
     mean = {k: float(np.mean(v)) for k, v in rms.items()}
     assert mean['repaint'] < 0.85 * mean['sheared'] and mean['repaint'] < 1.25 * mean['told'], mean
@@ -164,14 +165,11 @@ def test_the_frame_to_frame_rotation_keeps_time_with_the_camera(rolling_bag: Pat
     mapper = PanoramaMapper(replace(MapperConfig(), readout_s=0.03, estimate_readout=False))
     traj = rs.make_trajectory(402, 'authoring', 8.0)
     est = []
-    with BagReader(rolling_bag) as b:
-        K = np.asarray(b.read_all('/camera/camera_info')[0][1].k, float).reshape(3, 3)
-        for _, m in b.read_all('/camera/image_raw'):
-            t = stamp_to_ns(m.header.stamp)
-            res = mapper.process(np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3), K, t)
-            mapper.background()
-            if res.R_pano_cam is not None:
-                est.append(((t - START_NS) * 1e-9, res.R_pano_cam))
+    for rgb, K, t in _frames(rolling_bag):
+        res = mapper.process(rgb, K, t)
+        mapper.background()
+        if res.R_pano_cam is not None:
+            est.append(((t - START_NS) * 1e-9, res.R_pano_cam))
     tv = np.array([s for s, _ in est])
     k = np.flatnonzero((np.diff(tv) < 0.05) & (tv[:-1] > 0.5))
     dt = np.diff(tv)[k, None]
@@ -194,22 +192,19 @@ def test_a_wrong_rate_dies_out_instead_of_feeding_back(rolling_bag: Path):
     mapper = PanoramaMapper(replace(MapperConfig(), readout_s=0.03))
     traj = rs.make_trajectory(402, 'authoring', 8.0)
     rate_errors = []
-    with BagReader(rolling_bag) as b:
-        K = np.asarray(b.read_all('/camera/camera_info')[0][1].k, float).reshape(3, 3)
-        for i, (_, m) in enumerate(b.read_all('/camera/image_raw')):
-            if i == 60:  # kick the constant-motion rate by 0.67 rad/s (38 deg/s)
-                assert mapper._velocity is not None
-                mapper._velocity = mapper._recent_rate = mapper._velocity + np.array([0.3, 0.6, 0.0])
-            t = stamp_to_ns(m.header.stamp)
-            res = mapper.process(np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3), K, t)
-            mapper.background()
-            if i > 72:
-                break
-            if i >= 62:
-                assert res.status == 'tracked', (i, res.reason)
-                s = (t - START_NS) * 1e-9
-                Ra, Rb = traj.R_enu_cam(np.array([s - 0.005, s + 0.005]))
-                rate_errors.append(float(np.linalg.norm(mapper._velocity - so3_log(Ra.T @ Rb) / 0.01)))
+    for i, (rgb, K, t) in enumerate(_frames(rolling_bag)):
+        if i == 60:  # kick the constant-motion rate by 0.67 rad/s (38 deg/s)
+            assert mapper._velocity is not None
+            mapper._velocity = mapper._recent_rate = mapper._velocity + np.array([0.3, 0.6, 0.0])
+        res = mapper.process(rgb, K, t)
+        mapper.background()
+        if i > 72:
+            break
+        if i >= 62:
+            assert res.status == 'tracked', (i, res.reason)
+            s = (t - START_NS) * 1e-9
+            Ra, Rb = traj.R_enu_cam(np.array([s - 0.005, s + 0.005]))
+            rate_errors.append(float(np.linalg.norm(mapper._velocity - so3_log(Ra.T @ Rb) / 0.01)))
     assert max(rate_errors) < 0.06, np.round(rate_errors, 3)
 
 
@@ -228,27 +223,23 @@ def test_a_loss_before_the_readout_is_settled_applies_an_early_estimate(rolling_
     mappers = {'early': mapper(3), 'never': mapper(10_000)}
     rms: dict[str, list[float]] = {k: [] for k in mappers}
     lost_at = None
-    with BagReader(rolling_bag) as b:
-        K = np.asarray(b.read_all('/camera/camera_info')[0][1].k, float).reshape(3, 3)
-        for i, (_, m) in enumerate(b.read_all('/camera/image_raw')):
-            rgb = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3)
-            t = stamp_to_ns(m.header.stamp)
-            if lost_at is None and mappers['early'].readout_estimator.frames >= 3:
-                lost_at = i
-                for mp in mappers.values():
-                    assert mp.readout_s == 0.0 and mp.map.generation == 0
-                    assert mp.process(np.full_like(rgb, 128), K, t).status == 'lost'
-                assert mappers['early'].map.generation == 1, 'not repainted'
-                assert abs(mappers['early'].readout_s - 0.03) < 0.006, mappers['early'].readout_s
-                assert mappers['never'].readout_s == 0.0 and mappers['never'].map.generation == 0
-                continue
-            for k, mp in mappers.items():
-                res = mp.process(rgb, K, t)
-                mp.background()
-                if lost_at is not None and res.track is not None and res.R_pano_cam is not None:
-                    rms[k].append(res.track.rms_px)
-            if lost_at is not None and i >= lost_at + 45:
-                break
+    for i, (rgb, K, t) in enumerate(_frames(rolling_bag)):
+        if lost_at is None and mappers['early'].readout_estimator.frames >= 3:
+            lost_at = i
+            for mp in mappers.values():
+                assert mp.readout_s == 0.0 and mp.map.generation == 0
+                assert mp.process(np.full_like(rgb, 128), K, t).status == 'lost'
+            assert mappers['early'].map.generation == 1, 'not repainted'
+            assert abs(mappers['early'].readout_s - 0.03) < 0.006, mappers['early'].readout_s
+            assert mappers['never'].readout_s == 0.0 and mappers['never'].map.generation == 0
+            continue
+        for k, mp in mappers.items():
+            res = mp.process(rgb, K, t)
+            mp.background()
+            if lost_at is not None and res.track is not None and res.R_pano_cam is not None:
+                rms[k].append(res.track.rms_px)
+        if lost_at is not None and i >= lost_at + 45:
+            break
     assert lost_at is not None and lost_at < 60, lost_at
     assert mappers['early'].readout_s > 0.02 and mappers['early'].lost_frames <= mappers['never'].lost_frames
     mean = {k: float(np.mean(v)) for k, v in rms.items()}
