@@ -9,9 +9,10 @@ frame, ``panorama/orientation`` (TransformStamped, frame_id ``panorama``, child
 rgb16, linearly tone-mapped EDR map) and ``panorama/tiles`` (mono8, one pixel per tile, nonzero
 finished: 255, one less each time the map is painted again), latched. A camera with a rolling
 shutter whose readout is not given is mapped as a global shutter until the readout is estimated
-(``estimate_readout``; sooner when tracking is lost first), then the map is painted again from the
-frames so far (once, from up to ``repaint_max_mb`` of them). A frame that cannot be tracked (lost, textureless, translating
-camera) is not published; bad messages are dropped with a throttled warning. The algorithm is
+(``estimate_readout``; sooner when tracking is lost first), then the map is painted again from
+the frames so far (once, from up to ``repaint_max_mb`` of them). A frame that cannot be tracked
+(lost, textureless, translating camera) is not published; bad messages are dropped with a
+throttled warning. The algorithm is
 :mod:`ar_tracking.core.panorama`; this node converts and publishes.
 """
 from __future__ import annotations
