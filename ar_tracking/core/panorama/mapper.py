@@ -162,8 +162,6 @@ class PanoramaMapper:
         # (see _row_centre).
         self._last_centre: tuple[Array, int, float] | None = None
         self._last_row_centre = 0.5  # its inliers' mean row position, (row + 0.5) / height
-        #: Tracking was lost while the map was painted as a global shutter (see _lose).
-        self._lost_unsheared = False
         self._velocity: Array | None = None  # rotation vector per second, camera frame
         self._recent_rate: Array | None = None  # the last velocity known (kept while lost)
         self._tracking = False
@@ -295,10 +293,15 @@ class PanoramaMapper:
         self._accept(R, stamp_ns, centre, keep_velocity=was_tracking)
         self._last_row_centre = row_centre
         if self.config.estimate_readout:
-            self.readout_s = self.readout_estimator.readout(self.config.readout_s, self._lost_unsheared)
-            if self._early is not None and self.readout_s != 0.0:
-                self._repaint(row_centre)
+            self._update_readout(row_centre)
         return FrameResult(R, status, res, n, offset, intensity_gain=gain)
+
+    def _update_readout(self, row_centre: float) -> None:
+        """The readout in use from the estimator, and the map painted again when the estimate
+        first replaces 0 (``row_centre``: the last tracked frame's, :meth:`_repaint`)."""
+        self.readout_s = self.readout_estimator.readout(self.config.readout_s)
+        if self._early is not None and self.readout_s != 0.0:
+            self._repaint(row_centre)
 
     def _repaint(self, row_centre: float) -> None:
         """The readout estimate has just replaced 0: paint the map again from the frames kept
@@ -417,10 +420,8 @@ class PanoramaMapper:
             # Lost while mapping as a global shutter: from now on an early estimate of the
             # readout is used (ReadoutConfig.min_readings_lost) and the map painted again with
             # it, so that relocalisation and the frames after it meet an unsheared map.
-            self._lost_unsheared = True
-            self.readout_s = self.readout_estimator.readout(self.config.readout_s, lost=True)
-            if self._early is not None and self.readout_s != 0.0:
-                self._repaint(self._last_row_centre)
+            self.readout_estimator.tracker_lost()
+            self._update_readout(self._last_row_centre)
         self.lost_frames += 1
         self._tracking = False
         self._velocity = None

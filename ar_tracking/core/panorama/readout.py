@@ -146,6 +146,7 @@ class ReadoutEstimator:
         self._n = 0
         self._n_eff = 0.0  # readings, forgotten like the sums
         self._applied: float | None = None  # the last estimate readout() gave
+        self._lost = False  # tracker_lost() was called: min_readings_lost suffice
 
     def add(self, readout_used_s: float, omega_cam: Array, R_pano_cam: Array, fit: RowFit | None,
             painting: Painting | None = None) -> None:
@@ -196,16 +197,20 @@ class ReadoutEstimator:
         scale = max(1.0, self._sw * var / max(self._n_eff - 1.0, 1.0))  # sum w (s - mean)^2 / dof
         return mean, math.sqrt(scale / self._sw)
 
-    def readout(self, configured_s: float, lost: bool = False) -> float:
+    def tracker_lost(self) -> None:
+        """The tracker was lost while the readout was not yet in use: from now on
+        ``min_readings_lost`` readings suffice (the shear may be what lost it)."""
+        self._lost = True
+
+    def readout(self, configured_s: float) -> float:
         """The readout to use: ``configured_s`` until the estimate is known to ``apply_sigma_s``
-        from ``min_readings`` frames (``min_readings_lost`` once the tracker has been ``lost``);
-        then the estimate, or 0 (a global shutter) when it is not clearly away from zero. Once
+        from ``min_readings`` frames (``min_readings_lost`` after :meth:`tracker_lost`); then the estimate, or 0 (a global shutter) when it is not clearly away from zero. Once
         used, an estimate is replaced only by a later one that passes the same test (a few
         scattered readings widen the sigma for a while; falling back to the configured value
         then would shear the frames again)."""
         c = self.config
         est = self.estimate()
-        if est is None or self._n < (c.min_readings_lost if lost else c.min_readings) or est[1] > c.apply_sigma_s:
+        if est is None or self._n < (c.min_readings_lost if self._lost else c.min_readings) or est[1] > c.apply_sigma_s:
             return configured_s if self._applied is None else self._applied
         value, sigma = est
         self._applied = value if abs(value) >= max(c.min_readout_s, c.significance * sigma) else 0.0
