@@ -55,6 +55,7 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
             imu_time_offset_s=None if args.imu_time_offset_ms is None else args.imu_time_offset_ms * 1e-3,
             readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
             camera_latency_s=None if args.camera_latency_ms is None else args.camera_latency_ms * 1e-3,
+            world_photos=args.world_photos,
         )
     finally:
         close()
@@ -373,6 +374,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--camera-latency-ms', type=float, default=None, metavar='MS',
                    help='rotation_sweep: each camera frame is logged (arrives) this long after its stamp, behind '
                         'the IMU samples of its time (default: the profile\'s, 30-120 ms in hard, 0 in kind)'),
+    p.add_argument('--world-photos', default=None, metavar='DIR',
+                   help='rotation_sweep: cut the camera frames from a panorama of these photos of a full turn '
+                        '(pano.txt gives their focal lengths, e.g. ../shared/data/pano_grail) instead of the '
+                        'rendered street: real textures, same motion, sensors and truth, no annotations')
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')

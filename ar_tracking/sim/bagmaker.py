@@ -99,7 +99,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
              session: str = 'authoring', storage: str = 'mcap', image_format: str = 'raw',
              overwrite: bool = False, progress: Callable[[float], None] | None = None,
              lighting: str | None = None, profile: str = 'hard', imu_time_offset_s: float | None = None,
-             readout_s: float | None = None, camera_latency_s: float | None = None) -> Path:
+             readout_s: float | None = None, camera_latency_s: float | None = None,
+             world_photos: str | Path | None = None) -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
@@ -111,7 +112,11 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     (rotation_sweep only): the camera's rolling-shutter readout instead of the profile's (hard:
     8-30 ms per seed, not in the sidecar; kind: 0), written to the sidecar; 0 is a global shutter;
     ``camera_latency_s`` (rotation_sweep only): how long after its stamp each camera frame is
-    logged (hard: 30-120 ms per seed; kind: 0). ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
+    logged (hard: 30-120 ms per seed; kind: 0). ``world_photos`` (rotation_sweep only): a folder
+    of photos of a full turn (with ``pano.txt`` focal lengths, e.g. ../shared/data/pano_grail)
+    whose panorama the camera frames are cut from instead of the rendered street (another
+    renderer: real textures; the sensors and the truth are unchanged, the bag has no
+    annotations). ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
     phone or camera) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
     :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
@@ -126,6 +131,14 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
         _check_sweep_seconds(scenario, 'readout time', readout_s, 0.0, 0.1)
     if camera_latency_s is not None:
         _check_sweep_seconds(scenario, 'camera latency', camera_latency_s, 0.0, 1.0)
+    if world_photos is not None:
+        if scenario != 'rotation_sweep':
+            raise SimError(f'world photos are a rotation_sweep option, not one of {scenario}')
+        from .photo_world import PhotoWorldError, read_sequence
+        try:  # read here, so that a bad folder fails before the bag is opened
+            read_sequence(world_photos)
+        except PhotoWorldError as exc:
+            raise SimError(str(exc)) from exc
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:
@@ -135,7 +148,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     scn = REGISTRY[scenario]
     req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s,
                      None if readout_s is None else float(readout_s),
-                     None if camera_latency_s is None else float(camera_latency_s))
+                     None if camera_latency_s is None else float(camera_latency_s),
+                     None if world_photos is None else str(world_photos))
     try:
         with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
             scn.write_bag(bag, req, progress)

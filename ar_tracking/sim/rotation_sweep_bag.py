@@ -30,7 +30,8 @@ from .messages import (FRAME_CAMERA, FRAME_IMU, FRAME_WORLD, START_NS, TOPIC_CAM
                        TOPIC_GT_ANNOTATIONS, TOPIC_GT_MAG_DISTURBANCE, TOPIC_GT_ORIENTATION,
                        TOPIC_GT_POSE, TOPIC_IMAGE, TOPIC_IMAGE_COMPRESSED, TOPIC_IMU, TOPIC_MAG,
                        TOPIC_TF_STATIC, Msgs)
-from .model import Lighting, Panorama, World
+from .model import Anchor, Lighting, Panorama, World
+from .photo_world import photo_panorama
 from .render import render_panorama
 from .rng import rng_stream
 from .scenario import BagRequest, Progress
@@ -54,8 +55,15 @@ class RotationSweep:
         scn = rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
                               imu_time_offset_s=req.imu_time_offset_s, readout_s=req.readout_s,
                               camera_latency_s=req.camera_latency_s)
-        world, light, pano = session_view(req.seed, req.session, req.lighting)
-        _write_all(bag, scn, world, light, pano, Plan.make(scn, pano), req.image_format, progress)
+        if req.world_photos is None:
+            world, light, pano = session_view(req.seed, req.session, req.lighting)
+            anchors = world.anchors
+        else:  # another renderer: a real scene's photos; the street only lights it (no sun in view)
+            light = make_lighting(req.seed, req.lighting or req.session, _world(req.seed))
+            pano = photo_panorama(req.world_photos, photo_azimuth_deg(req.seed))
+            anchors = []
+        _write_all(bag, scn, anchors, light, pano, Plan.make(scn, pano), req.image_format, progress,
+                   req.world_photos)
 
     def write_sidecars(self, sidecar: Path, bag_path: Path, req: BagRequest) -> None:
         write_sidecar(sidecar, rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
@@ -69,7 +77,8 @@ class RotationSweep:
                 + ('' if req.imu_time_offset_s is None else f', IMU stamps {req.imu_time_offset_s * 1e3:+.1f} ms')
                 + ('' if req.readout_s is None else
                    f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ', global shutter')
-                + ('' if req.camera_latency_s is None else f', camera latency {req.camera_latency_s * 1e3:.0f} ms'))
+                + ('' if req.camera_latency_s is None else f', camera latency {req.camera_latency_s * 1e3:.0f} ms')
+                + ('' if req.world_photos is None else f', world from the photos in {req.world_photos}'))
 
 
 SCENARIO = RotationSweep()
@@ -90,6 +99,12 @@ def session_view(seed: int, session: str, lighting: str | None = None
 @functools.lru_cache(maxsize=2)
 def _world(seed: int) -> World:
     return build_world(seed)
+
+
+def photo_azimuth_deg(seed: int) -> float:
+    """Compass azimuth of the first photo of a photo world: drawn per seed (stream 'photo-world'),
+    so that north falls elsewhere in the scene on every seed."""
+    return float(rng_stream(seed, 'photo-world', 'authoring').uniform(0.0, 360.0))
 
 
 # --------------------------------------------------------------------------------------------
@@ -123,8 +138,9 @@ class Plan:
 # Writing
 
 
-def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, pano: Panorama,
-               plan: Plan, image_format: str, progress: Callable[[float], None] | None) -> None:
+def _write_all(bag: BagWriter, scn: rs.Scenario, anchors: list[Anchor], light: Lighting, pano: Panorama,
+               plan: Plan, image_format: str, progress: Callable[[float], None] | None,
+               world_photos: str | None = None) -> None:
     """All messages in stamp order; images are rendered when their turn comes."""
     m = Msgs()
     cam = PinholeCamera()
@@ -142,13 +158,15 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, world: World, light: Lighting, 
     if scn.profile != 'kind':  # kind bags stay byte for byte those of the earlier simulator
         bag.add_metadata(SIM_METADATA, {'scenario': 'rotation_sweep', 'profile': scn.profile,
                                         'seed': str(scn.seed), 'session': scn.session,
-                                        'revision': SIM_REVISION})
+                                        'revision': SIM_REVISION,
+                                        **({} if world_photos is None else
+                                           {'world': f'photos:{Path(world_photos).name}'})})
 
     bag.write(TOPIC_TF_STATIC, first_ns, msg_class('tf2_msgs/msg/TFMessage')(transforms=[
         m.transform_stamped(first_ns, FRAME_IMU, FRAME_CAMERA, np.zeros(3),
                             matrix_to_quat_xyzw(rs.R_IMU_CAM))]))
     bag.write(TOPIC_GT_ANNOTATIONS, first_ns, m.markers(
-        first_ns, [a.label for a in world.anchors], [a.position_enu for a in world.anchors]))
+        first_ns, [a.label for a in anchors], [a.position_enu for a in anchors]))
 
     # (log time, stream, part, k): IMU + magnetometer (0, 0), ground truth (0, 1), GPS, camera;
     # with no offset and no latency this is the order of the earlier simulator (IMU, truth,

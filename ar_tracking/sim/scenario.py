@@ -41,6 +41,9 @@ class BagRequest:
     readout_s: float | None = None
     #: rotation_sweep: how long after its stamp a camera frame is logged, s (None: the profile's)
     camera_latency_s: float | None = None
+    #: rotation_sweep: a folder of photos of a full turn to cut the frames from instead of the
+    #: rendered street (:mod:`.photo_world`); None: the street
+    world_photos: str | None = None
 
 
 class ScenarioBag(Protocol):
