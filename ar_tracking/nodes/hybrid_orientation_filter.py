@@ -19,6 +19,8 @@ The IMU -> camera rotation comes from ``/tf_static`` when the graph or the bag h
 parameter ``imu_to_camera_quat_xyzw`` is the fallback, with a warning when the two disagree).
 IMU and field samples are paired with the visual orientation at their own stamps, moved into
 the camera's clock by the camera-IMU time offset (``core/time_offset.py``, logged when known).
+A field sample that only repeats the previous value (a magnetometer slower than its topic) is
+skipped, with one log line.
 
 TF (``publish_tf``): every orientation/global is also broadcast on ``/tf`` as
 ``world_frame_id`` -> ``camera_frame_id``, and, while the mount comes from the parameter, the
@@ -172,6 +174,10 @@ class HybridOrientationFilterNode(TrackingNode):
         self._hard_iron_reported = False
         self._lag_reported = False
         self.stamp_guards = {k: StampGuard(reset_s) for k in ('visual', 'imu', 'mag', 'ahrs')}
+        #: The last raw field and how many samples repeated it exactly (a driver publishing a
+        #: slower magnetometer's last value at the IMU's rate): repeats are skipped in on_mag.
+        self._last_raw_field: np.ndarray | None = None
+        self.repeated_fields = 0
         self.last_visual_ns: int | None = None
         self.last_imu_ns: int | None = None
         self.last_backup_pub_ns: int | None = None
@@ -409,7 +415,10 @@ class HybridOrientationFilterNode(TrackingNode):
     def on_mag(self, msg: MagneticField) -> None:
         """A field sample: calibrated, to the alignment with the visual orientation at its own
         stamp (a magnetometer has its own rate and stamps; pairing it with the IMU sample next to
-        it mis-pairs it by up to a sample period)."""
+        it mis-pairs it by up to a sample period). A sample that repeats the previous raw value
+        exactly is a driver republishing a slower magnetometer's last reading at the IMU's rate
+        (sensor noise makes a genuine repeat of all three axes rare): it is skipped, since
+        counted it would multiply the field windows' sample count and lag the turn."""
         try:
             raw = finite_vector3(msg.magnetic_field, 'imu/mag field')
         except ConversionError as exc:
@@ -418,6 +427,14 @@ class HybridOrientationFilterNode(TrackingNode):
         t_m = stamp_ns(msg.header)
         if not self._stamp_ok('mag', t_m, 'imu/mag'):
             return
+        if self._last_raw_field is not None and np.array_equal(raw, self._last_raw_field):
+            self.repeated_fields += 1
+            if self.repeated_fields == 1:
+                self.get_logger().info(
+                    'imu/mag repeats its previous value (a magnetometer slower than its topic): '
+                    'a repeat is no new measurement and is skipped')
+            return
+        self._last_raw_field = raw
         field = self.calibration.mag(raw)
         if float(field @ field) <= 0.0:
             self.warn_throttled('imu/mag field has zero norm, message dropped')

@@ -107,13 +107,16 @@ class Harness:
 
     def play(self, t0_s, t1_s, rng, sensor=True, visual=True, field_turn=0.0, pose=False, ahrs=False,
              R_pano_enu=R_PANO_ENU, hard_iron=None, imu_offset_ns=0, mag_every=1, mag_shift_s=0.0,
-             visual_lag_s=0.0):
+             visual_lag_s=0.0, mag_hold=1):
         """IMU + field at 50 Hz (hand acceleration and noise), vision at 25 Hz, the motion of
         truth(); ``field_turn`` turns the horizontal field (|B| and dip kept); ``hard_iron`` (T,
         imu frame) is added to every field sample; ``imu_offset_ns`` is added to the stamps of
         imu/data_raw and imu/mag (a camera-IMU time offset); the field is sampled every
         ``mag_every`` IMU samples, ``mag_shift_s`` after them (a magnetometer of its own rate); a
-        frame arrives after the IMU samples of the next ``visual_lag_s`` (camera latency)."""
+        frame arrives after the IMU samples of the next ``visual_lag_s`` (camera latency); with
+        ``mag_hold`` > 1 the field is published with every IMU sample but measured only every
+        ``mag_hold``-th, the others repeating it (a driver that publishes a slower magnetometer's
+        last value at the IMU's rate)."""
         hard_iron = np.zeros(3) if hard_iron is None else hard_iron
         for k in range(int(round(t0_s * 50)), int(round(t1_s * 50))):
             t = k / 50.0
@@ -124,9 +127,10 @@ class Harness:
             w_cam = np.array([0.0, 0.4 * math.cos(t), 0.0])  # heading rate about camera y (down)
             hand = rng.normal(0.0, 0.1, 3)  # m/s^2, zero mean
             if sensor and k % mag_every == 0:
-                R_mag = (truth(t + mag_shift_s) @ R_IMU_CAM.T).T
-                self.mag(t_imu + int(mag_shift_s * 1e9),
-                         R_mag @ (rot_z(field_turn) @ FIELD_ENU) + hard_iron + rng.normal(0, 0.2e-6, 3))
+                if k % mag_hold == 0:
+                    R_mag = (truth(t + mag_shift_s) @ R_IMU_CAM.T).T
+                    held = R_mag @ (rot_z(field_turn) @ FIELD_ENU) + hard_iron + rng.normal(0, 0.2e-6, 3)
+                self.mag(t_imu + int(mag_shift_s * 1e9), held)
             self.raw(t_imu, R_IMU_CAM @ w_cam, R_imu_enu @ (np.array([0.0, 0.0, G]) + hand))
             if ahrs:
                 self.sensor(t_ns, rot_z(rng.normal(0, 0.02)) @ R @ R_IMU_CAM.T)
@@ -455,6 +459,27 @@ def test_a_magnetometer_of_its_own_rate_is_paired_by_its_own_stamps(ros_context)
     # every field sample once (not once per IMU sample next to it), the last few still waiting
     assert 95 <= used['own rate'] <= 100 and 390 <= used['with the imu'] <= 400, used
     assert worst['own rate'] < 1.5 * worst['with the imu'] + 0.05, worst
+
+
+def test_a_field_repeated_at_the_imu_rate_counts_once(ros_context, capfd):
+    """A driver that publishes the magnetometer's last value with every IMU sample (x-io's
+    example recording does: a new field every few samples) gives repeats that are no new
+    measurements: counted as such, the field windows would hold four times the samples they
+    have and the repeats, paired with later orientations, would lag the turn. Each value counts
+    once, at the stamp it first came with, so the heading is that of a field at its own rate."""
+    worst, used = {}, {}
+    for name, kwargs in (('held', {'mag_hold': 4}), ('own rate', {'mag_every': 4})):
+        h = Harness(ros_context, {'estimate_time_offset': False})
+        try:
+            h.play(0.0, 8.0, np.random.default_rng(7), **kwargs)
+            worst[name] = max(abs(heading_err(m)) for m in h.out
+                              if (m.header.stamp.sec * 10**9 + m.header.stamp.nanosec) - T0 > 5e9)
+            used[name] = h.node.align._field_samples
+        finally:
+            h.close()
+    assert 95 <= used['held'] <= 100, used
+    assert worst['held'] < 1.2 * worst['own rate'] + 0.02, worst
+    assert 'imu/mag repeats' in capfd.readouterr().err
 
 
 def test_a_camera_stream_that_arrives_late_is_not_taken_for_a_lost_tracker(ros_context, capfd):
