@@ -88,10 +88,9 @@ def read_sequence(folder: str | Path) -> tuple[list[NDArray[np.uint8]], list[flo
 class _Layer:
     """One photo's footprint on the map band: where it lands (u, v maps) and its weight."""
 
-    def __init__(self, photo: NDArray[np.uint8], focal: float, rows: NDArray[np.int64]) -> None:
+    def __init__(self, photo: NDArray[np.uint8], focal: float) -> None:
         self.photo = photo.astype(np.float32) / np.float32(255.0)
         self.focal = focal
-        self.rows = rows
         h, w = photo.shape[:2]
         self.cx, self.cy = (w - 1) / 2, (h - 1) / 2
         self.K = np.array([[focal, 0.0, self.cx], [0.0, focal, self.cy], [0.0, 0.0, 1.0]])
@@ -133,16 +132,39 @@ def _pair_rotation(a: _Layer, b: _Layer) -> Array | None:
     H, inliers = cv2.findHomography(pb, pa, cv2.RANSAC, 3.0)
     if H is None or int(inliers.sum()) < 12:
         return None
-    M = np.linalg.inv(a.K) @ H @ b.K
-    u, _s, vt = np.linalg.svd(M)
-    R = u @ vt
-    return R * np.sign(np.linalg.det(R))
+    keep = inliers.ravel().astype(bool)
+    ra, rb = (_rays(layer, pts[keep]) for layer, pts in ((a, pa), (b, pb)))
+    # The rotation of the inlier rays (orthogonal Procrustes / Kabsch), then once more without
+    # the rays it leaves more than 3 sigma off.
+    R = _kabsch(ra, rb)
+    res = np.linalg.norm(ra - rb @ R.T, axis=1)
+    ok = res < 3.0 * max(float(np.sqrt(np.mean(res ** 2))), 1e-9)
+    return _kabsch(ra[ok], rb[ok]) if ok.sum() >= 12 else R
+
+
+def _rays(layer: _Layer, pts: NDArray[np.float32]) -> Array:
+    """Unit camera-frame rays of pixel positions (n, 2)."""
+    xy1 = np.column_stack([(pts[:, 0] - layer.cx) / layer.focal, (pts[:, 1] - layer.cy) / layer.focal,
+                           np.ones(len(pts))])
+    return xy1 / np.linalg.norm(xy1, axis=1, keepdims=True)
+
+
+def _kabsch(ra: Array, rb: Array) -> Array:
+    """The rotation R minimising sum |ra - R rb|^2 (rays as rows)."""
+    u, _s, vt = np.linalg.svd(ra.T @ rb)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def photo_rotations(photos: list[NDArray[np.uint8]], focals: list[float]) -> list[Array]:
+    """camera_optical -> ENU of every photo of a turn (RGB, focal length in px): neighbours'
+    rotations chained around the turn, the loop's residual shared over it, and the turn's axis
+    made vertical (the photos were taken turning about the vertical); the first photo looks
+    north. A pair that does not match takes the nominal step of one n-th of a turn."""
+    return _camera_rotations([_Layer(p, f) for p, f in zip(photos, focals, strict=True)])
 
 
 def _camera_rotations(layers: list[_Layer]) -> list[Array]:
-    """camera_optical -> ENU of every photo: neighbours' rotations chained around the turn, the
-    loop's residual shared over it, and the turn's axis made vertical (the photos were taken
-    turning about the vertical). A pair that does not match takes the nominal step."""
     n = len(layers)
     steps = [_pair_rotation(layers[i], layers[(i + 1) % n]) for i in range(n)]
     found = [R for R in steps if R is not None]
@@ -212,7 +234,7 @@ def _laid_out(folder: str) -> Panorama:
     r0 = int(math.floor((math.pi / 2 - max_el) * PANO_HEIGHT / math.pi))
     rows = np.arange(r0, PANO_HEIGHT - r0)
     dirs = pano_directions(rows, np.arange(PANO_WIDTH))
-    layers = [_Layer(p, f, rows) for p, f in zip(photos, focals, strict=True)]
+    layers = [_Layer(p, f) for p, f in zip(photos, focals, strict=True)]
     rotations = _camera_rotations(layers)
     acc = np.zeros((len(rows), PANO_WIDTH, 3), np.float32)
     wsum = np.zeros((len(rows), PANO_WIDTH), np.float32)
