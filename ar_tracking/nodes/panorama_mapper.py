@@ -112,7 +112,16 @@ PARAMS = (
     ParamSpec('min_inliers', 10,
               'A frame is tracked with at least this many inlier matches', min_value=3, max_value=1000, read_only=True),
     ParamSpec('min_inlier_ratio', 0.7,
-              'and at least this fraction of the searched keypoints being inliers',
+              'and at least this fraction of the searched keypoints agreeing with the rotation: inliers, or '
+              'keypoints whose correlation peak reached weak_ncc where the rotation puts them (a translating '
+              'camera falls below it)',
+              min_value=0.0, max_value=1.0, read_only=True),
+    ParamSpec('min_matched_inlier_ratio', 0.7,
+              'and at least this fraction of the matched keypoints (correlation >= min_ncc) being inliers',
+              min_value=0.0, max_value=1.0, read_only=True),
+    ParamSpec('weak_ncc', 0.5,
+              'A keypoint below min_ncc whose correlation peak reaches this within 2 px of where the rotation '
+              'puts it still agrees (fine detail weakened by blur: branches, grass, blinds)',
               min_value=0.0, max_value=1.0, read_only=True),
     ParamSpec('inlier_px', 1.5, 'RANSAC inlier threshold, pixels', min_value=0.1, max_value=20.0, read_only=True),
     ParamSpec('min_ncc', 0.75,
@@ -170,7 +179,8 @@ class PanoramaMapperNode(TrackingNode):
                           keypoints_per_tile=v['keypoints_per_tile']),
             tracker=TrackerConfig(search_radius_px=v['search_radius_px'], max_features=v['max_features'],
                                   min_inliers=v['min_inliers'], min_inlier_ratio=v['min_inlier_ratio'],
-                                  inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
+                                  min_matched_inlier_ratio=v['min_matched_inlier_ratio'],
+                                  weak_ncc=v['weak_ncc'], inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
             wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'], readout_s=v['readout_s'],
             estimate_readout=v['estimate_readout'], repaint_max_mb=v['repaint_max_mb'],
             offset_exposure=replace(OFFSET_EXPOSURE, smooth=v['edr_smooth']), edr_correction=v['edr_correction'],

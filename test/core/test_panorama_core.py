@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
 from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMap, PanoramaMapper
 from ar_tracking.core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
+from ar_tracking.core.panorama.tracker import TrackerConfig
 from ar_tracking.core.panorama.tracker import kabsch
 from panorama_synth import DT, H, K, W, CylinderWorld, angle_deg, rot, run, sweep, two_plane_frame
 
@@ -168,6 +170,40 @@ def test_translating_camera_is_reported_lost():
         mapper.background()
     assert statuses[0] == 'initialised'
     assert statuses[-5:] == ['lost'] * 5  # parallax: no rotation explains the matches
+
+
+def _weaken(img: np.ndarray, k: int, share: float = 0.45, sigma: float = 3.5) -> np.ndarray:
+    """The frame with its detail blurred in a random ``share`` of 32 px cells (motion blur over
+    fine branches or grass: the content is there, weaker)."""
+    rng = np.random.default_rng(100 + k)
+    out = img.copy()
+    blurred = cv2.GaussianBlur(img, (0, 0), sigma)
+    for y in range(0, H, 32):
+        for x in range(0, W, 32):
+            if rng.random() < share:
+                out[y:y + 32, x:x + 32] = blurred[y:y + 32, x:x + 32]
+    return out
+
+
+def test_detail_weakened_by_blur_keeps_tracking(world):
+    """After 30 sharp frames, 45 % of every frame is blurred (sigma 3.5 px): many keypoints there
+    fail min_ncc, but their weaker correlation still peaks where the rotation puts them, so they
+    agree with it. None is lost, each within 0.2 deg; counting only the inliers (a weak_ncc no
+    peak reaches) loses frames. The translating camera above is still lost."""
+    Rs = sweep(90, 1.0, seed=2)
+    statuses = {}
+    for name, cfg in (('weak agreements', TrackerConfig()), ('inliers only', TrackerConfig(weak_ncc=1.01))):
+        mapper = PanoramaMapper(MapperConfig(tracker=cfg))
+        statuses[name] = []
+        for k, R in enumerate(Rs):
+            img = world.render(R, rng=np.random.default_rng(k))
+            res = mapper.process(img if k < 30 else _weaken(img, k), K, (k + 1) * DT)
+            mapper.background()
+            statuses[name].append(res.status)
+            if name == 'weak agreements' and k >= 30:
+                assert res.R_pano_cam is not None and angle_deg(res.R_pano_cam, Rs[0].T @ R) < 0.2, k
+    assert 'lost' not in statuses['weak agreements'] and statuses['weak agreements'][30:].count('tracked') >= 58, statuses
+    assert statuses['inliers only'][30:].count('lost') >= 5, statuses
 
 
 @pytest.mark.parametrize('correction', ['overlap', 'offset'])
