@@ -442,12 +442,11 @@ def test_a_camera_imu_time_offset_is_estimated_and_the_samples_paired_with_it(ro
     assert worst[True] < 0.5 * worst[False], worst
 
 
-def test_a_magnetometer_of_its_own_rate_is_paired_by_its_own_stamps(ros_context):
-    """Field samples at 12.5 Hz, stamped 30 ms after the IMU samples they follow (the phone turns
-    at up to 23 deg/s): each is paired with the visual orientation at its own stamp, so the
-    heading is as good as with the field at every IMU sample."""
+def _field_runs(ros_context, runs: dict[str, dict]) -> tuple[dict[str, float], dict[str, int]]:
+    """Per named run of ``play`` (8 s, its keyword arguments): the worst heading error after 5 s
+    and how many field samples the alignment used."""
     worst, used = {}, {}
-    for name, kwargs in (('own rate', {'mag_every': 4, 'mag_shift_s': 0.03}), ('with the imu', {})):
+    for name, kwargs in runs.items():
         h = Harness(ros_context, {'estimate_time_offset': False})
         try:
             h.play(0.0, 8.0, np.random.default_rng(7), **kwargs)
@@ -456,6 +455,14 @@ def test_a_magnetometer_of_its_own_rate_is_paired_by_its_own_stamps(ros_context)
             used[name] = h.node.align._field_samples
         finally:
             h.close()
+    return worst, used
+
+
+def test_a_magnetometer_of_its_own_rate_is_paired_by_its_own_stamps(ros_context):
+    """Field samples at 12.5 Hz, stamped 30 ms after the IMU samples they follow (the phone turns
+    at up to 23 deg/s): each is paired with the visual orientation at its own stamp, so the
+    heading is as good as with the field at every IMU sample."""
+    worst, used = _field_runs(ros_context, {'own rate': {'mag_every': 4, 'mag_shift_s': 0.03}, 'with the imu': {}})
     # every field sample once (not once per IMU sample next to it), the last few still waiting
     assert 95 <= used['own rate'] <= 100 and 390 <= used['with the imu'] <= 400, used
     assert worst['own rate'] < 1.5 * worst['with the imu'] + 0.05, worst
@@ -467,16 +474,7 @@ def test_a_field_repeated_at_the_imu_rate_counts_once(ros_context, capfd):
     measurements: counted as such, the field windows would hold four times the samples they
     have and the repeats, paired with later orientations, would lag the turn. Each value counts
     once, at the stamp it first came with, so the heading is that of a field at its own rate."""
-    worst, used = {}, {}
-    for name, kwargs in (('held', {'mag_hold': 4}), ('own rate', {'mag_every': 4})):
-        h = Harness(ros_context, {'estimate_time_offset': False})
-        try:
-            h.play(0.0, 8.0, np.random.default_rng(7), **kwargs)
-            worst[name] = max(abs(heading_err(m)) for m in h.out
-                              if (m.header.stamp.sec * 10**9 + m.header.stamp.nanosec) - T0 > 5e9)
-            used[name] = h.node.align._field_samples
-        finally:
-            h.close()
+    worst, used = _field_runs(ros_context, {'held': {'mag_hold': 4}, 'own rate': {'mag_every': 4}})
     assert 95 <= used['held'] <= 100, used
     assert worst['held'] < 1.2 * worst['own rate'] + 0.02, worst
     assert 'imu/mag repeats' in capfd.readouterr().err
