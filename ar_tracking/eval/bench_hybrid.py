@@ -543,8 +543,7 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
                 kwargs['imu_time_offset_s'] = imu_time_offset_ms * 1e-3
             if readout_ms is not None:
                 kwargs['readout_s'] = readout_ms * 1e-3
-            if world_photos is not None:
-                kwargs['world_photos'] = world_photos
+            kwargs['world_photos'] = world_photos
             make_bag('rotation_sweep', bag, seed=seed, duration_s=duration_s, overwrite=True, **kwargs)
         sidecar = bag.with_name(bag.stem + '.params.yaml')
         if readout_ms and not declare_readout and sidecar.exists():

@@ -134,11 +134,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     if world_photos is not None:
         if scenario != 'rotation_sweep':
             raise SimError(f'world photos are a rotation_sweep option, not one of {scenario}')
-        from .photo_world import PhotoWorldError, read_sequence
-        try:  # read here, so that a bad folder fails before the bag is opened
-            read_sequence(world_photos)
-        except PhotoWorldError as exc:
-            raise SimError(str(exc)) from exc
+        from .photo_world import read_sequence
+        read_sequence(world_photos)  # here, so that a bad folder fails before the bag is opened
     bag_path = _bag_path(Path(out), storage)
     sidecar = sidecar_path(bag_path)
     if not overwrite:

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from .model import GAMMA, PANO_HEIGHT, PANO_MAX_ABS_EL, PANO_WIDTH, Panorama, pano_directions
+from .scenario import SimError
 
 Array = NDArray[np.float64]
 
@@ -46,7 +47,7 @@ FADE_RAD = math.radians(10.0)
 EDGE_SMOOTH_PX = 61
 
 
-class PhotoWorldError(ValueError):
+class PhotoWorldError(SimError):
     """The photo folder cannot be made into a world (missing photos, no focal length)."""
 
 
