@@ -474,7 +474,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--workdir', default='out/bench', help='where benchmark bags are made and kept (default out/bench)')
     p.add_argument('--duration', type=float, default=60.0, help='length of the benchmark bag, s')
     p.add_argument('--areas', nargs='+', metavar='AREA',
-                   help='only these areas: graph, orientation, orientation_seeds, panorama, markers_vi, '
+                   help='only these areas: graph, orientation, orientation_seeds, orientation_photo_worlds (the '
+                        'same with the frames cut from the real photo turns in ../shared/data), panorama, markers_vi, '
                         'annotations, slam, store (annotation store: radius query on 100,000 records, SQLite '
                         'and PostGIS; 8 writers + 8 readers), foxglove (wall time the live view adds) (default: all)')
     p.add_argument('--json', action='store_true', help='(the output is always JSON)')

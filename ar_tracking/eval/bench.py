@@ -19,8 +19,10 @@ from .bench_bag import benchmark_bag
 
 logger = logging.getLogger(__name__)
 
-AREAS = ('graph', 'orientation', 'orientation_seeds', 'panorama', 'markers_vi', 'annotations', 'slam', 'store',
-         'foxglove')
+AREAS = ('graph', 'orientation', 'orientation_seeds', 'orientation_photo_worlds', 'panorama', 'markers_vi',
+         'annotations', 'slam', 'store', 'foxglove')
+#: The real photo turns of ../shared/data that ``orientation_photo_worlds`` cuts camera frames from.
+PHOTO_WORLDS = ('pano_grail', 'pano_parrington')
 
 
 def percentiles_ms(values: list[float]) -> dict[str, float]:
@@ -70,6 +72,20 @@ def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0) -> dic
     }
 
 
+def bench_photo_worlds(workdir: Path, seeds: range = range(301, 306)) -> dict[str, Any]:
+    """The fresh-seed figures of :func:`.bench_hybrid.bench_seeds` with the camera frames cut
+    from each real photo turn of ../shared/data that is present (make-bag ``--world-photos``: an
+    office, a lawn with trees) instead of the simulator's drawn street: {world: bench_seeds
+    result}, or {'skipped': why} when none is here."""
+    from . import SHARED_DATA
+    from .bench_hybrid import bench_seeds
+
+    present = [name for name in PHOTO_WORLDS if (SHARED_DATA / name).is_dir()]
+    if not present:
+        return {'skipped': f'no photo turn ({", ".join(PHOTO_WORLDS)}) in {SHARED_DATA}'}
+    return {name: bench_seeds(workdir / name, seeds=seeds, world_photos=SHARED_DATA / name) for name in present}
+
+
 def _live_pass(bag: Path, params: list[Path], workdir: Path, rate: float) -> dict[str, Any]:
     """The graph at ``rate`` x bag speed, every node on its own thread, as a device runs it."""
     from ..ros.runner import GraphRunner
@@ -106,6 +122,9 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
 
         # 10 fresh 40 s rotation_sweep seeds through the graph, evaluated (~15 min).
         results['orientation_seeds'] = bench_seeds(workdir / 'seeds')
+    if 'orientation_photo_worlds' in chosen:
+        # the first 5 of those seeds in each real photo world (~8 min per world)
+        results['orientation_photo_worlds'] = bench_photo_worlds(workdir / 'photo_worlds')
     if 'graph' in chosen:
         results['graph'] = bench_graph(workdir, duration_s)
     if 'panorama' in chosen:

@@ -38,3 +38,18 @@ def test_bench_unknown_area_is_a_usage_error(tmp_path):
     proc = subprocess.run([sys.executable, '-m', 'ar_tracking.cli', 'bench', '--areas', 'teleportation',
                            '--workdir', str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and 'teleportation' in proc.stderr and 'Traceback' not in proc.stderr
+
+
+def test_the_photo_worlds_bench_runs_each_world_present_and_says_when_none_is(tmp_path, monkeypatch):
+    import ar_tracking.eval as evaluation
+    import ar_tracking.eval.bench_hybrid as bench_hybrid
+    from ar_tracking.eval.bench import bench_photo_worlds
+
+    monkeypatch.setattr(evaluation, 'SHARED_DATA', tmp_path / 'data')
+    assert 'pano_grail' in bench_photo_worlds(tmp_path)['skipped']
+    (tmp_path / 'data' / 'pano_parrington').mkdir(parents=True)
+    calls = []
+    monkeypatch.setattr(bench_hybrid, 'bench_seeds',
+                        lambda workdir, seeds, world_photos: calls.append((workdir, list(seeds), world_photos)) or {})
+    assert list(bench_photo_worlds(tmp_path / 'w', seeds=range(7, 9))) == ['pano_parrington']
+    assert calls == [(tmp_path / 'w' / 'pano_parrington', [7, 8], tmp_path / 'data' / 'pano_parrington')]
