@@ -2,7 +2,9 @@
 against it, with an extended-dynamic-range map (Langlotz 2011 sec. 3.1, 4.1).
 
 Subscribes ``camera/image_raw`` (sensor_msgs/Image) and ``camera/image_raw/compressed``
-(CompressedImage), paired by stamp with ``camera/camera_info``. Publishes, for every tracked
+(CompressedImage), paired by stamp with ``camera/camera_info``; a lens distortion that
+camera_info gives (``plumb_bob``, ``rational_polynomial``, ``equidistant``) is undone before
+tracking (:mod:`ar_tracking.core.rectification`). Publishes, for every tracked
 frame, ``panorama/orientation`` (TransformStamped, frame_id ``panorama``, child
 ``camera_optical``, rotation R_panorama_cam, the image's stamp), and at ``publish_rate_hz``
 (by image stamps, so lockstep runs are reproducible) the map ``panorama/image`` (mono16 or
@@ -28,6 +30,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from ..core.panorama import EDR_CORRECTIONS, MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
 from ..core.panorama.exposure import OFFSET_EXPOSURE
+from ..core.rectification import Rectification, RectificationError, check_distortion
 from ..core.stamp_pairing import NearestStampPairer
 from ..ros.cdr_views import image_view, rotation_transform_cdr
 from ..ros.conversions import (
@@ -192,6 +195,9 @@ class PanoramaMapperNode(TrackingNode):
         self.guard = StampGuard(reset_s)
         self.pairer: NearestStampPairer[Frame, tuple[np.ndarray, tuple[int, int]]] = NearestStampPairer(self.max_info_gap_ns)
         self.info_seen = False
+        #: The rectification of the calibration in use, and the calibration it was built for.
+        self.rectification: Rectification | None = None
+        self.rectified_for: tuple[bytes, bytes, str, tuple[int, int]] | None = None
         self.last_map_pub_ns: int | None = None
         self.published = 0
         self.lost = 0
@@ -229,8 +235,15 @@ class PanoramaMapperNode(TrackingNode):
         if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or msg.width <= 0 or msg.height <= 0:
             self.warn_throttled('camera/camera_info: invalid K or size, ignored')
             return
+        model = str(msg.distortion_model)
+        try:
+            D = check_distortion(msg.d, model)
+        except RectificationError as exc:
+            self.warn_throttled(f'camera/camera_info: {exc}, ignored')
+            return
         self.info_seen = True
-        for t, frame, info in self.pairer.add_secondary(stamp_ns(msg.header), (K, (int(msg.height), int(msg.width)))):
+        size = (int(msg.height), int(msg.width))
+        for t, frame, info in self.pairer.add_secondary(stamp_ns(msg.header), (K, D, model, size)):
             self._handle(t, frame, info)
 
     def _on_frame(self, t: int, frame: Frame) -> None:
@@ -251,7 +264,20 @@ class PanoramaMapperNode(TrackingNode):
 
     # -- processing ------------------------------------------------------------------------
 
-    def _handle(self, t: int, frame: Frame, info: tuple[np.ndarray, tuple[int, int]] | None) -> None:
+    def _rectify(self, K: np.ndarray, D: np.ndarray, model: str, size: tuple[int, int]) -> Rectification:
+        """The rectification of this calibration (built again only when camera_info changes)."""
+        key = (K.tobytes(), D.tobytes(), model, size)
+        if self.rectification is None or key != self.rectified_for:
+            self.rectification = Rectification.from_calibration(K, D, size[1], size[0], model)
+            self.rectified_for = key
+            if not self.rectification.identity:
+                Kn = self.rectification.K
+                self.get_logger().info(
+                    f'camera_info has a lens distortion ({model or "plumb_bob"}, {D.size} coefficients): frames are '
+                    f'rectified to a pinhole camera fx {Kn[0, 0]:.1f} fy {Kn[1, 1]:.1f} cx {Kn[0, 2]:.1f} cy {Kn[1, 2]:.1f}')
+        return self.rectification
+
+    def _handle(self, t: int, frame: Frame, info: tuple[Any, ...] | None) -> None:
         gray, rgb = frame
         h, w = gray.shape
         if info is None:
@@ -261,10 +287,14 @@ class PanoramaMapperNode(TrackingNode):
             f = w / 2 / math.tan(self.fallback_hfov_rad / 2)
             K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
         else:
-            K, size = info
+            K, D, model, size = info
             if size != (h, w):
                 self.warn_throttled(f'camera: frame is {w}x{h} but camera_info says {size[1]}x{size[0]}, frame skipped')
                 return
+            rectify = self._rectify(K, D, model, size)
+            if not rectify.identity:
+                K = rectify.K
+                gray, rgb = rectify(gray), None if rgb is None else rectify(rgb)
         if self.core.frame_size is not None and self.core.frame_size != (h, w) and info is None:
             self.warn_throttled('camera: frame size changed, frame skipped')
             return

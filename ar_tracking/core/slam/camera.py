@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..rectification import Rectification
+
 Array = NDArray[np.float64]
 
 PYRAMID_LEVELS = 5
@@ -82,24 +84,13 @@ class Rectifier:
 
     @staticmethod
     def from_calibration(K: Array, D: Array, width: int, height: int, readout_s: float = 0.0) -> 'Rectifier':
-        import cv2
-
-        K = np.asarray(K, dtype=float)
-        D = np.asarray(D, dtype=float)
-        Kn, maps = K, None
-        if np.any(D != 0):
-            # float64 K in, float64 out (np.asarray only narrows OpenCV's MatLike, no copy).
-            Kn = np.asarray(cv2.getOptimalNewCameraMatrix(K, D, (width, height), 0.0)[0], dtype=float)
-            maps = cv2.initUndistortRectifyMap(K, D, None, Kn, (width, height), cv2.CV_16SC2)
+        rect = Rectification.from_calibration(K, D, width, height)  # see core/rectification.py
+        Kn = rect.K
         camera = Camera(float(Kn[0, 0]), float(Kn[1, 1]), float(Kn[0, 2]), float(Kn[1, 2]), width, height, readout_s)
-        return Rectifier(camera, maps)
+        return Rectifier(camera, rect.maps)
 
     def __call__(self, gray: NDArray[np.uint8]) -> NDArray[np.uint8]:
-        if self.maps is None:
-            return gray
-        import cv2
-
-        return np.asarray(cv2.remap(gray, self.maps[0], self.maps[1], cv2.INTER_LINEAR), dtype=np.uint8)
+        return Rectification(np.eye(3), self.maps)(gray)
 
 
 def level_to_level0(uv: Array, level: int) -> Array:
