@@ -55,6 +55,7 @@ from .core.annotations.world_orientation import DEFAULT_R_IMU_CAM, PanoramaWorld
 from .core.imu_orientation import ImuCalibration
 from .core.panorama import MapConfig, MapperConfig, PanoramaMapper
 from .core.panorama.cylinder import CylinderGeometry
+from .core.rectification import Rectification, RectificationError
 from .core.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from .core.world_alignment import WorldAlignmentConfig
 from .io.bags import BagError, BagReader
@@ -308,9 +309,9 @@ def _map_bag(bag: Path, mapper: PanoramaMapper, world_est: PanoramaWorldEstimato
              progress: Callable[[float], None] | None) -> tuple[list[tuple[float, float, float]], int | None]:
     """Read the bag once: camera frames into the panorama mapper (from the first camera_info on),
     the mapper's orientations, ``/imu/data_raw`` and ``/imu/mag`` into the world estimator, the
-    valid GPS fixes collected. Returns (fixes, stamp of the frame that started the panorama or
-    None)."""
-    K = None
+    valid GPS fixes collected. A lens distortion in camera_info is undone before mapping, as
+    panorama_mapper does. Returns (fixes, stamp of the frame that started the panorama or None)."""
+    rectify: Rectification | None = None
     fixes: list[tuple[float, float, float]] = []
     init_ns: int | None = None
     with BagReader(bag) as reader:
@@ -325,8 +326,12 @@ def _map_bag(bag: Path, mapper: PanoramaMapper, world_est: PanoramaWorldEstimato
             if m.topic == TOPIC_INFO:
                 info = reader.deserialize(m)
                 k = np.asarray(info.k, float).reshape(3, 3)
-                if np.all(np.isfinite(k)) and k[0, 0] > 0:
-                    K = k
+                if np.all(np.isfinite(k)) and k[0, 0] > 0 and info.width > 0 and info.height > 0:
+                    try:
+                        rectify = Rectification.from_calibration(k, info.d, info.width, info.height,
+                                                                 str(info.distortion_model))
+                    except RectificationError:
+                        pass  # coefficients OpenCV cannot use: the camera_info before stays
             elif m.topic == TOPIC_IMU:
                 s = reader.deserialize(m)
                 w, a = s.angular_velocity, s.linear_acceleration
@@ -341,13 +346,13 @@ def _map_bag(bag: Path, mapper: PanoramaMapper, world_est: PanoramaWorldEstimato
                     fixes.append((f.latitude, f.longitude, f.altitude))
             else:
                 done += 1
-                if K is None:
+                if rectify is None:
                     continue
                 frame = _gray_frame(bag, m.topic, reader.deserialize(m))
                 if frame is None:
                     continue
                 gray, stamp = frame
-                res = mapper.process(gray, K, stamp)
+                res = mapper.process(rectify(gray), rectify.K, stamp)
                 if res.status == 'initialised':
                     init_ns = stamp
                 if res.R_pano_cam is not None and init_ns is not None:
