@@ -80,3 +80,25 @@ class Rectification:
         if self.maps is None:
             return image
         return np.asarray(cv2.remap(image, self.maps[0], self.maps[1], cv2.INTER_LINEAR), dtype=image.dtype)
+
+
+def project_through_lens(K: Array, D: Array, p_cam: Array, model: str = '') -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Pixel coordinates (x, y) of camera-frame points (n, 3) in the *distorted* image of the
+    lens (K, D), and whether each is in front: where a label belongs on the raw frame of a
+    camera whose orientation the trackers estimated on rectified frames (the rectification
+    keeps the camera's axes). Points behind the camera get NaN."""
+    p = np.asarray(p_cam, dtype=float).reshape(-1, 3)
+    D = check_distortion(D, model)
+    front = p[:, 2] > 1e-9
+    x = np.full(len(p), np.nan)
+    y = np.full(len(p), np.nan)
+    if front.any():
+        pts = p[front].reshape(-1, 1, 3)
+        zero = np.zeros(3)
+        if model == EQUIDISTANT:
+            uv = cv2.fisheye.projectPoints(pts, zero, zero, np.asarray(K, float), D)[0]
+        else:
+            uv = cv2.projectPoints(pts, zero, zero, np.asarray(K, float), D)[0]
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        x[front], y[front] = uv[:, 0], uv[:, 1]
+    return x, y, front

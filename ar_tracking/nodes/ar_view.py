@@ -19,6 +19,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.annotations.overlay import Label, draw_labels, project_labels
+from ..core.rectification import RectificationError, check_distortion
 from ..ros.conversions import (ConversionError, array_to_image, compressed_to_array, image_to_array,
                                rotation_from_quaternion, stamp_ns, to_stamp)
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
@@ -54,6 +55,9 @@ class ArViewNode(TrackingNode):
         self.text_scale = v['text_scale']
         self.labels: list[Label] = []
         self.K: np.ndarray | None = None
+        #: camera_info's lens distortion (coefficients, model): labels are drawn through it.
+        self.D: np.ndarray | None = None
+        self.model = ''
         self.pano_cam: dict[int, np.ndarray] = {}
         self.enu_cam: tuple[int, np.ndarray] | None = None
         self.enu_pano: np.ndarray | None = None
@@ -70,10 +74,15 @@ class ArViewNode(TrackingNode):
 
     def on_info(self, msg: CameraInfo) -> None:
         K = np.asarray(msg.k, float).reshape(3, 3)
-        if np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0:
-            self.K = K
-        else:
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
             self.warn_throttled('camera/camera_info: invalid K, ignored')
+            return
+        try:  # the labels go where the raw (distorted) frame shows them
+            self.D = check_distortion(msg.d, str(msg.distortion_model))
+        except RectificationError as exc:
+            self.warn_throttled(f'camera/camera_info: {exc}, ignored')
+            return
+        self.K, self.model = K, str(msg.distortion_model)
 
     def on_markers(self, msg: MarkerArray) -> None:
         labels: list[Label] = []
@@ -161,7 +170,7 @@ class ArViewNode(TrackingNode):
         if self.K is None:
             self.warn_throttled('ar_view: no camera_info yet, frame not drawn')
             return
-        placed = project_labels(self.labels, R_pano_cam, self.K, rgb.shape[:2])
+        placed = project_labels(self.labels, R_pano_cam, self.K, rgb.shape[:2], self.D, self.model)
         out = array_to_image(draw_labels(rgb, placed, self.text_scale), 'rgb8')
         out.header.stamp = to_stamp(t)
         out.header.frame_id = header.frame_id if header is not None else 'camera_optical'

@@ -43,3 +43,21 @@ def test_approximate_labels_are_drawn_grey_and_hollow():
     drawn = placed.sum(axis=2) > 0
     assert drawn.sum() > 50  # '~Door' and the ring
     assert np.all(placed[drawn][:, 0] == placed[drawn][:, 1])  # all of it grey
+
+
+def test_with_a_lens_distortion_a_label_lands_where_the_raw_frame_shows_it():
+    """Barrel distortion pulls a label near the corner toward the centre: the label goes where
+    the distorted frame shows that direction - the pixel that rectification maps back onto the
+    pinhole position - and a label straight ahead stays at the principal point."""
+    import cv2
+
+    D = np.array([-0.25, 0.07, 0.0, 0.0, 0.0])
+    corner = Label('corner', np.array([0.45, 0.32, 1.0]) / np.linalg.norm([0.45, 0.32, 1.0]))
+    ahead = Label('ahead', np.array([0.0, 0.0, 1.0]))
+    pinhole = dict((lab.text, (x, y)) for lab, x, y in project_labels([corner, ahead], np.eye(3), K, (240, 320)))
+    raw = dict((lab.text, (x, y)) for lab, x, y in project_labels([corner, ahead], np.eye(3), K, (240, 320), D))
+    assert np.allclose(raw['ahead'], (159.5, 119.5))
+    shift = np.subtract(pinhole['corner'], raw['corner'])
+    assert shift[0] > 5 and shift[1] > 3, shift  # pulled toward the centre by pixels
+    back = cv2.undistortPoints(np.array([[raw['corner']]]), K, D, P=K).reshape(2)
+    assert np.allclose(back, pinhole['corner'], atol=0.05)

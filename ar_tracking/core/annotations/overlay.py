@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..panorama.cylinder import project_to_image
+from ..rectification import project_through_lens
 
 Array = NDArray[np.float64]
 
@@ -28,13 +29,19 @@ class Label:
     status: str = 'matched'
 
 
-def project_labels(labels: list[Label], R_pano_cam: Array, K: Array, size: tuple[int, int]
-                   ) -> list[tuple[Label, float, float]]:
-    """(label, x, y) of the labels in front of the camera and inside the image (h, w)."""
+def project_labels(labels: list[Label], R_pano_cam: Array, K: Array, size: tuple[int, int],
+                   D: Array | None = None, model: str = '') -> list[tuple[Label, float, float]]:
+    """(label, x, y) of the labels in front of the camera and inside the image (h, w); with a
+    lens distortion ``D`` (camera_info's coefficients and ``model``) where the raw, distorted
+    frame shows them."""
     if not labels:
         return []
     d = np.array([lab.direction for lab in labels], float)
-    x, y, front = project_to_image(np.asarray(K, float), d @ np.asarray(R_pano_cam, float))
+    p_cam = d @ np.asarray(R_pano_cam, float)
+    if D is not None and np.any(np.asarray(D, float) != 0):
+        x, y, front = project_through_lens(np.asarray(K, float), np.asarray(D, float), p_cam, model)
+    else:
+        x, y, front = project_to_image(np.asarray(K, float), p_cam)
     h, w = size
     out = []
     for lab, xi, yi, f in zip(labels, x, y, front):
