@@ -29,6 +29,7 @@ from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 
+from ..core.rectification import RectificationError, check_distortion
 from ..core.slam.camera import Rectifier, camera_in_world
 from ..core.slam.system import SlamConfig, SlamSystem
 from ..core.stamp_pairing import NearestStampPairer
@@ -128,6 +129,7 @@ class KeyframeSlamMapperNode(TrackingNode):
         self.system: SlamSystem | None = None
         self.info: Info | None = None
         self.rectify: Rectifier | None = None
+        self.distortion_model = ''
         self.last_map_pub_ns: int | None = None
         self.path = Path()
         self.path.header.frame_id = self.frame_id
@@ -175,11 +177,15 @@ class KeyframeSlamMapperNode(TrackingNode):
 
     def on_camera_info(self, msg: CameraInfo) -> None:
         K = np.asarray(msg.k, float).reshape(3, 3)
-        D = np.asarray(msg.d, float)
-        if (not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)) or K[0, 0] <= 0 or K[1, 1] <= 0
-                or K[2, 2] != 1.0 or msg.width <= 0 or msg.height <= 0 or len(D) not in (0, 4, 5, 8, 12, 14)):
+        try:
+            D = check_distortion(msg.d, str(msg.distortion_model))
+        except RectificationError:
+            D = None
+        if (D is None or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0
+                or K[2, 2] != 1.0 or msg.width <= 0 or msg.height <= 0):
             self.warn_throttled('camera/camera_info: invalid K, distortion or size; ignored')
             return
+        self.distortion_model = str(msg.distortion_model)  # 'equidistant': OpenCV's fisheye model
         for t, gray, info in self.pairer.add_secondary(stamp_ns(msg.header), (K, D, (int(msg.height), int(msg.width)))):
             self._handle(t, gray, info)
 
@@ -212,7 +218,7 @@ class KeyframeSlamMapperNode(TrackingNode):
         map keeps the intrinsics it was built with)."""
         K, D, (h, w) = info
         if self.info is None:
-            self.rectify = Rectifier.from_calibration(K, D, w, h, self.readout_s)
+            self.rectify = Rectifier.from_calibration(K, D, w, h, self.readout_s, self.distortion_model)
             self.system = SlamSystem(self.rectify.camera, self.config)
             self.info = info
             return

@@ -59,14 +59,14 @@ class Harness:
         self.n_info = 0
         self.n_img = 0
 
-    def info(self, t_ns: int, K=None, width=W, height=H):
+    def info(self, t_ns: int, K=None, width=W, height=H, d=(0.0,) * 5, model='plumb_bob'):
         m = CameraInfo()
         m.header.stamp = to_stamp(t_ns)
         m.header.frame_id = 'camera_optical'
         m.width, m.height = width, height
         m.k = [float(x) for x in (self.K if K is None else K).ravel()]
-        m.d = [0.0] * 5
-        m.distortion_model = 'plumb_bob'
+        m.d = [float(x) for x in d]
+        m.distortion_model = model
         self.pub_info.publish(m)
         spin_until(self.ex, lambda: len(self.node.callback_stats['camera/camera_info'].durations_ms) > self.n_info, 2.0)
         self.n_info += 1
@@ -152,6 +152,9 @@ def test_bad_input_is_dropped_and_the_map_survives(ros_context, desk_frames):
         h.info(_stamp(f0) + 2000)
         h.image(f0.image, _stamp(f0) + 2000, encoding='yuv_unknown')  # unsupported encoding
         assert h.node.frames == 2  # the two frames that had a camera_info; the last was dropped before
+        h.info(_stamp(f0) + 3000, d=[0.1] * 5, model='equidistant')  # the fisheye model takes 4: ignored
+        h.image(f0.image, _stamp(f0) + 3000)
+        assert h.node.frames == 2  # no usable camera_info with its stamp: dropped
         assert h.node.system is None or len(h.node.system.map.keyframes) == 0
         for f in desk_frames:
             h.frame(f.image, _stamp(f))

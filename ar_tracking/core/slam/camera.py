@@ -83,8 +83,9 @@ class Rectifier:
     maps: tuple[Any, Any] | None = None
 
     @staticmethod
-    def from_calibration(K: Array, D: Array, width: int, height: int, readout_s: float = 0.0) -> 'Rectifier':
-        rect = Rectification.from_calibration(K, D, width, height)  # see core/rectification.py
+    def from_calibration(K: Array, D: Array, width: int, height: int, readout_s: float = 0.0,
+                         model: str = '') -> 'Rectifier':
+        rect = Rectification.from_calibration(K, D, width, height, model)  # see core/rectification.py
         Kn = rect.K
         camera = Camera(float(Kn[0, 0]), float(Kn[1, 1]), float(Kn[0, 2]), float(Kn[1, 2]), width, height, readout_s)
         return Rectifier(camera, rect.maps)
