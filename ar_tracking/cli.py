@@ -521,7 +521,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 
 #: Commands that start rclpy nodes in this process (their logs go through rcutils, not logging).
-_ROS_COMMANDS = ('run', 'demo', 'replay')
+_ROS_COMMANDS = ('run', 'demo', 'replay', 'bench')
 
 
 def _quiet_everything(command: str) -> Callable[[], None]:

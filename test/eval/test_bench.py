@@ -40,6 +40,15 @@ def test_bench_unknown_area_is_a_usage_error(tmp_path):
     assert proc.returncode == 2 and 'teleportation' in proc.stderr and 'Traceback' not in proc.stderr
 
 
+def test_quiet_bench_prints_its_json_and_no_node_logs(tmp_path):
+    """-q: the nodes the bench runs in this process log nothing (their info lines were printed)."""
+    proc = subprocess.run([sys.executable, '-m', 'ar_tracking.cli', 'bench', '--areas', 'graph', '--duration', '2',
+                           '--workdir', str(tmp_path), '-q'], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert 'graph' in json.loads(proc.stdout)
+    assert '[INFO]' not in proc.stderr and '[WARN]' not in proc.stderr, proc.stderr[-2000:]
+
+
 def test_the_photo_worlds_bench_runs_each_world_present_and_says_when_none_is(tmp_path, monkeypatch):
     import ar_tracking.eval as evaluation
     import ar_tracking.eval.bench_hybrid as bench_hybrid
