@@ -52,8 +52,8 @@ class TrackerConfig:
     ransac_iterations: int = 32
     #: Patches darker than this (8-bit units) do not vote for the exposure gain (log noise).
     min_photometric_level: float = 12.0
-    #: Quality gate (:meth:`ActiveSearchTracker._agreeing`): the frame is tracked only with this
-    #: many inliers, ...
+    #: Quality gate (end of :meth:`ActiveSearchTracker.track`, with ``_weak_agreements``): the
+    #: frame is tracked only with this many inliers, ...
     min_inliers: int = 10
     #: ... this fraction of the searched keypoints agreeing with the rotation (inliers, or weak
     #: agreements: see ``weak_ncc``), ...
@@ -314,8 +314,8 @@ class ActiveSearchTracker:
         weak = 0
         ok = n_in >= cfg.min_inliers and n_in >= cfg.min_matched_inlier_ratio * nk
         if ok and n_in < cfg.min_inlier_ratio * n:
-            weak = self._weak_agreements(np.flatnonzero(~good & (peak >= cfg.weak_ncc) & (t_norm > 2.0 * P)), dirs[idx], R, K,
-                                         xr + bx - r, yr + by - r, row_motion, h)
+            weakly = np.flatnonzero(~good & (peak >= cfg.weak_ncc) & (t_norm > 2.0 * P))  # textured, unmatched
+            weak = self._weak_agreements(weakly, dirs[idx], R, K, xr + bx - r, yr + by - r, row_motion, h)
             ok = n_in + weak >= cfg.min_inlier_ratio * n
         reason = '' if ok else (f'{n_in} inliers of {nk} matched keypoints and {n_in + weak} of {n} searched '
                                 'agreeing')
