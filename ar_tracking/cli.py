@@ -55,7 +55,7 @@ def cmd_make_bag(args: argparse.Namespace) -> int:
             imu_time_offset_s=None if args.imu_time_offset_ms is None else args.imu_time_offset_ms * 1e-3,
             readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
             camera_latency_s=None if args.camera_latency_ms is None else args.camera_latency_ms * 1e-3,
-            world_photos=args.world_photos,
+            world_photos=args.world_photos, parallax=args.parallax,
         )
     finally:
         close()
@@ -378,6 +378,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='rotation_sweep: cut the camera frames from a panorama of these photos of a full turn '
                         '(pano.txt gives their focal lengths, e.g. ../shared/data/pano_grail) instead of the '
                         'rendered street: real textures, same motion, sensors and truth, no annotations')
+    p.add_argument('--parallax', action='store_true',
+                   help='rotation_sweep: render each frame from where the camera is (in front of the body\'s turning '
+                        'axis, with the hand\'s sway), so that near objects move against far ones (default: from the spot)')
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')

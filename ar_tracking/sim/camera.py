@@ -50,6 +50,17 @@ class PinholeCamera:
         return (r / np.linalg.norm(r, axis=-1, keepdims=True)).reshape(-1, 3)
 
 
+def _pano_uv(dx: Image, dy: Image, dz: Image, unit: bool = True) -> tuple[Image, Image]:
+    """Equirectangular map coordinates (u, v) of ENU directions (unit, or of any length with
+    ``unit`` false), float32."""
+    az = np.arctan2(dx, dy)
+    az += np.float32(2 * math.pi) * (az < 0)
+    u = az * np.float32(PANO_WIDTH / (2 * math.pi)) - np.float32(0.5)
+    el = np.arcsin(np.clip(dz if unit else dz / np.sqrt(dx * dx + dy * dy + dz * dz), -1.0, 1.0))
+    v = (np.float32(math.pi / 2) - el) * np.float32(PANO_HEIGHT / math.pi) - np.float32(0.5)
+    return u, v
+
+
 class FrameRenderer:
     """Camera frames from a panorama: exposure, white balance, glare, blur, noise, clipping.
 
@@ -77,21 +88,27 @@ class FrameRenderer:
         yy, xx = np.mgrid[0:camera.height, 0:camera.width]
         self._xx, self._yy = xx.astype(np.float32), yy.astype(np.float32)
 
-    def _sample(self, R_enu_cam: Array) -> Image:
+    def _sample(self, R_enu_cam: Array, offset_enu: Array | None = None) -> Image:
         """The panorama seen through the camera at one orientation (3, 3), or at one per image
-        row (rows, 3, 3: a rolling shutter), gamma-encoded, float."""
+        row (rows, 3, 3: a rolling shutter), gamma-encoded, float. With ``offset_enu`` (m) the
+        camera stands that far from the panorama's viewpoint: each ray takes the colour of the
+        surface it meets from there (the panorama's depth, two fixed-point steps; sky stays
+        where it is) - the parallax a phone held in front of the body's turning axis sees."""
         R = np.asarray(R_enu_cam, dtype=np.float32)
         if R.ndim == 3:  # per row: each coefficient repeated over the row's pixels
             R = np.repeat(R, self.camera.width, axis=0).transpose(1, 2, 0)
         dx = self._rx * R[0, 0] + self._ry * R[0, 1] + self._rz * R[0, 2]
         dy = self._rx * R[1, 0] + self._ry * R[1, 1] + self._rz * R[1, 2]
         dz = self._rx * R[2, 0] + self._ry * R[2, 1] + self._rz * R[2, 2]
-        az = np.arctan2(dx, dy)
-        az += np.float32(2 * math.pi) * (az < 0)
-        u = az * np.float32(PANO_WIDTH / (2 * math.pi)) - np.float32(0.5)
-        el = np.arcsin(np.clip(dz, -1.0, 1.0))
-        v = (np.float32(math.pi / 2) - el) * np.float32(PANO_HEIGHT / math.pi) - np.float32(0.5)
         shape = (self.camera.height, self.camera.width)
+        u, v = _pano_uv(dx, dy, dz)
+        if offset_enu is not None and np.any(offset_enu):
+            ox, oy, oz = (np.float32(c) for c in offset_enu)
+            for _ in range(2):  # the surface point along the ray, seen from the viewpoint
+                depth = cv2.remap(self.pano.depth_m, u.reshape(shape), v.reshape(shape), cv2.INTER_NEAREST,
+                                  borderMode=cv2.BORDER_WRAP).reshape(-1)
+                depth = np.where(np.isfinite(depth), depth, np.float32(1e7))
+                u, v = _pano_uv(ox + depth * dx, oy + depth * dy, oz + depth * dz, unit=False)
         return cv2.remap(self.pano.encoded, u.reshape(shape), v.reshape(shape), cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_WRAP)
 
@@ -120,15 +137,17 @@ class FrameRenderer:
                 out += blob[..., None] * np.array(tints[k], np.float32)
         return out
 
-    def render(self, R_enu_cam_samples: Array, gain: float, wb_rgb: Array) -> NDArray[np.uint8]:
+    def render(self, R_enu_cam_samples: Array, gain: float, wb_rgb: Array,
+               offset_enu: Array | None = None) -> NDArray[np.uint8]:
         """An RGB8 frame; ``R_enu_cam_samples`` (n, 3, 3) spans the exposure (motion blur), or
-        (n, rows, 3, 3) with one orientation per image row (a rolling shutter).
+        (n, rows, 3, 3) with one orientation per image row (a rolling shutter); ``offset_enu``:
+        the camera's place relative to the panorama's viewpoint, m (parallax; None: none).
 
         ``gain`` multiplies linear radiance (so encoded values by ``gain ** (1/GAMMA)``).
         """
-        acc = self._sample(R_enu_cam_samples[0])
+        acc = self._sample(R_enu_cam_samples[0], offset_enu)
         for R in R_enu_cam_samples[1:]:
-            acc += self._sample(R)
+            acc += self._sample(R, offset_enu)
         if len(R_enu_cam_samples) > 1:
             acc *= np.float32(1.0 / len(R_enu_cam_samples))
         middle = np.asarray(R_enu_cam_samples[len(R_enu_cam_samples) // 2])

@@ -63,7 +63,7 @@ class RotationSweep:
             pano = photo_panorama(req.world_photos, photo_azimuth_deg(req.seed))
             anchors = []
         _write_all(bag, scn, anchors, light, pano, Plan.make(scn, pano), req.image_format, progress,
-                   req.world_photos)
+                   req.world_photos, req.parallax)
 
     def write_sidecars(self, sidecar: Path, bag_path: Path, req: BagRequest) -> None:
         write_sidecar(sidecar, rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
@@ -78,7 +78,8 @@ class RotationSweep:
                 + ('' if req.readout_s is None else
                    f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ', global shutter')
                 + ('' if req.camera_latency_s is None else f', camera latency {req.camera_latency_s * 1e3:.0f} ms')
-                + ('' if req.world_photos is None else f', world from the photos in {req.world_photos}'))
+                + ('' if req.world_photos is None else f', world from the photos in {req.world_photos}')
+                + (', with parallax' if req.parallax else ''))
 
 
 SCENARIO = RotationSweep()
@@ -140,7 +141,7 @@ class Plan:
 
 def _write_all(bag: BagWriter, scn: rs.Scenario, anchors: list[Anchor], light: Lighting, pano: Panorama,
                plan: Plan, image_format: str, progress: Callable[[float], None] | None,
-               world_photos: str | None = None) -> None:
+               world_photos: str | None = None, parallax: bool = False) -> None:
     """All messages in stamp order; images are rendered when their turn comes."""
     m = Msgs()
     cam = PinholeCamera()
@@ -160,7 +161,8 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, anchors: list[Anchor], light: L
                                         'seed': str(scn.seed), 'session': scn.session,
                                         'revision': SIM_REVISION,
                                         **({} if world_photos is None else
-                                           {'world': f'photos:{Path(world_photos).name}'})})
+                                           {'world': f'photos:{Path(world_photos).name}'}),
+                                        **({'parallax': 'true'} if parallax else {})})
 
     bag.write(TOPIC_TF_STATIC, first_ns, msg_class('tf2_msgs/msg/TFMessage')(transforms=[
         m.transform_stamped(first_ns, FRAME_IMU, FRAME_CAMERA, np.zeros(3),
@@ -199,7 +201,8 @@ def _write_all(bag: BagWriter, scn: rs.Scenario, anchors: list[Anchor], light: L
         else:
             t_ns = int(plan.cam_ns[k])  # the frame's stamp; ns is when it arrives
             R = rs.frame_orientations(scn.trajectory, t_ns * 1e-9, cam.fx, scn.readout_s, cam.height)
-            rgb = renderer.render(R, float(plan.gain[k]), plan.wb[k])
+            offset = scn.trajectory.position(np.array([t_ns * 1e-9]))[0] - pano.viewpoint_enu if parallax else None
+            rgb = renderer.render(R, float(plan.gain[k]), plan.wb[k], offset)
             stamp_ns = START_NS + t_ns
             bag.write(TOPIC_CAMERA_INFO, ns, m.camera_info(stamp_ns, cam))
             bag.write(image_topic, ns, m.image(stamp_ns, rgb) if image_format == 'raw'

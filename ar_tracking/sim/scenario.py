@@ -44,6 +44,9 @@ class BagRequest:
     #: rotation_sweep: a folder of photos of a full turn to cut the frames from instead of the
     #: rendered street (:mod:`.photo_world`); None: the street
     world_photos: str | None = None
+    #: rotation_sweep: the frames show the parallax of the camera's offset from the spot (the
+    #: phone in front of the body's turning axis, the hand's sway), from the street's depth
+    parallax: bool = False
 
 
 class ScenarioBag(Protocol):
