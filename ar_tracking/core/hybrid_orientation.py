@@ -202,24 +202,35 @@ class GyroBackup:
         self.omega = np.asarray(omega_imu, dtype=float)
         self.chain.add(t_ns, self._chain_R)
 
+    def _turn_since(self, t_ns: int) -> Array:
+        """The camera's rotation (camera axes) from ``t_ns`` to the last gyro sample: the gyro's
+        own rotation since then (the bias removed to first order), or, when the chain does not
+        reach back that far, the last rate held; identity when ``t_ns`` is not behind the gyro."""
+        if self.t_ns is None or self.omega is None or self.t_ns <= t_ns:
+            return np.eye(3)
+        dt = (self.t_ns - int(t_ns)) * 1e-9
+        C_then = self.chain.at(int(t_ns))
+        if C_then is not None:
+            dR_imu = (C_then.T @ self._chain_R) @ so3_exp(-self.bias * dt)
+            return self.R_imu_cam.T @ dR_imu @ self.R_imu_cam
+        return so3_exp(self.R_imu_cam.T @ (self.omega - self.bias) * dt)
+
     def anchor(self, t_ns: int, R_enu_cam: Array, cov_enu: Array) -> None:
-        """Set the backup to the fused orientation at a visual frame's stamp."""
-        R = np.asarray(R_enu_cam, dtype=float)
-        if self.t_ns is not None and self.omega is not None and self.t_ns > t_ns:
-            # The gyro is already ahead of the frame (a camera pipeline's latency): bring the
-            # anchor to the gyro's time through the gyro's own rotation since the frame (the bias
-            # removed to first order), or, when the chain does not reach back that far, the last
-            # rate held.
-            dt = (self.t_ns - int(t_ns)) * 1e-9
-            C_then = self.chain.at(int(t_ns))
-            if C_then is not None:
-                dR_imu = (C_then.T @ self._chain_R) @ so3_exp(-self.bias * dt)
-                R = R @ (self.R_imu_cam.T @ dR_imu @ self.R_imu_cam)
-            else:
-                R = R @ so3_exp(self.R_imu_cam.T @ (self.omega - self.bias) * dt)
-        self.R_enu_cam = R
+        """Set the backup to the fused orientation at a visual frame's stamp (brought to the
+        gyro's time when the gyro is already ahead of the frame: a camera pipeline's latency)."""
+        self.R_enu_cam = np.asarray(R_enu_cam, dtype=float) @ self._turn_since(t_ns)
         self.cov = np.array(cov_enu, dtype=float)
         self.anchor_ns = int(t_ns)
+
+    def at(self, t_ns: int) -> Array | None:
+        """The backup's orientation R_enu_cam at ``t_ns``, a frame's stamp that the gyro may
+        already be ahead of (camera latency): the one at the last gyro sample turned back
+        through the gyro's rotation since; None before the first anchor. A frame that returns
+        after a loss is compared with this, not with the newest state: 110 ms of latency at
+        50 deg/s is 5.5 deg, which looked like a restarted panorama."""
+        if self.R_enu_cam is None:
+            return None
+        return self.R_enu_cam @ self._turn_since(t_ns).T
 
     def add_visual(self, t_ns: int, R_pano_cam: Array) -> None:
         """Learn the gyro bias from the visual rotation over the last ``bias_window_s``."""

@@ -353,16 +353,17 @@ class HybridOrientationFilterNode(TrackingNode):
         # (the estimate below, after _resolve, is the one published; estimate() computes only
         # when samples were added since its last call, so each state is solved once).
         estimate = self.align.estimate() if returning and self.backup.R_enu_cam is not None else None
-        if estimate is not None and self.backup.R_enu_cam is not None:
+        R_backup = self.backup.at(t_v)  # at the frame's stamp: the gyro runs ahead by the latency
+        if estimate is not None and R_backup is not None:
             R_vis = estimate.R_pano_enu.T @ R_pano_cam
-            jump = float(np.linalg.norm(so3_log(self.backup.R_enu_cam.T @ R_vis)))
+            jump = float(np.linalg.norm(so3_log(R_backup.T @ R_vis)))
             if jump > self.reseed_rad:
                 # A new visual reference frame (tracker restarted): carry the orientation over
                 # from the gyro backup as a prior of a new panorama-in-world estimate.
                 self.get_logger().warning(
                     f'vision returned {np.degrees(jump):.1f} deg away from the gyro backup: '
                     'a new panorama frame, placed in the world from the backup')
-                R_pe = R_pano_cam @ self.backup.R_enu_cam.T
+                R_pe = R_pano_cam @ R_backup.T
                 self.align.reset(prior=(R_pe, float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))))
                 self.pending.clear()
             self.visual.clear()
