@@ -55,7 +55,7 @@ from .core.annotations.world_orientation import DEFAULT_R_IMU_CAM, PanoramaWorld
 from .core.imu_orientation import ImuCalibration
 from .core.panorama import MapConfig, MapperConfig, PanoramaMapper
 from .core.panorama.cylinder import CylinderGeometry
-from .core.rectification import Rectification, RectificationError
+from .core.rectification import Rectification, RectificationCache, RectificationError
 from .core.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from .core.world_alignment import WorldAlignmentConfig
 from .io.bags import BagError, BagReader
@@ -312,6 +312,7 @@ def _map_bag(bag: Path, mapper: PanoramaMapper, world_est: PanoramaWorldEstimato
     valid GPS fixes collected. A lens distortion in camera_info is undone before mapping, as
     panorama_mapper does. Returns (fixes, stamp of the frame that started the panorama or None)."""
     rectify: Rectification | None = None
+    rectifications = RectificationCache()  # camera_info comes with every frame: built once
     fixes: list[tuple[float, float, float]] = []
     init_ns: int | None = None
     with BagReader(bag) as reader:
@@ -328,8 +329,8 @@ def _map_bag(bag: Path, mapper: PanoramaMapper, world_est: PanoramaWorldEstimato
                 k = np.asarray(info.k, float).reshape(3, 3)
                 if np.all(np.isfinite(k)) and k[0, 0] > 0 and info.width > 0 and info.height > 0:
                     try:
-                        rectify = Rectification.from_calibration(k, info.d, info.width, info.height,
-                                                                 str(info.distortion_model))
+                        rectify = rectifications.get(k, info.d, info.width, info.height,
+                                                     str(info.distortion_model))[0]
                     except RectificationError:
                         pass  # coefficients OpenCV cannot use: the camera_info before stays
             elif m.topic == TOPIC_IMU:

@@ -82,6 +82,27 @@ class Rectification:
         return np.asarray(cv2.remap(image, self.maps[0], self.maps[1], cv2.INTER_LINEAR), dtype=image.dtype)
 
 
+class RectificationCache:
+    """The :class:`Rectification` of the calibration in use, built again only when the
+    calibration changes (camera_info arrives with every frame; ``initUndistortRectifyMap`` per
+    frame would cost more than the tracking)."""
+
+    def __init__(self) -> None:
+        self._key: tuple[bytes, bytes, str, int, int] | None = None
+        self._rect: Rectification | None = None
+
+    def get(self, K: Array, D: Array, width: int, height: int, model: str = '') -> tuple[Rectification, bool]:
+        """(the rectification, whether it was built by this call). Raises RectificationError
+        for coefficients :func:`check_distortion` rejects."""
+        K = np.asarray(K, dtype=float)
+        D = np.asarray(D, dtype=float)
+        key = (K.tobytes(), D.tobytes(), model, int(width), int(height))
+        if self._rect is None or key != self._key:
+            self._rect, self._key = Rectification.from_calibration(K, D, width, height, model), key
+            return self._rect, True
+        return self._rect, False
+
+
 def project_through_lens(K: Array, D: Array, p_cam: Array, model: str = '') -> tuple[Array, Array, NDArray[np.bool_]]:
     """Pixel coordinates (x, y) of camera-frame points (n, 3) in the *distorted* image of the
     lens (K, D), and whether each is in front: where a label belongs on the raw frame of a

@@ -352,8 +352,9 @@ class HybridOrientationFilterNode(TrackingNode):
         # The placement before this frame's IMU samples join it: read only when vision returns
         # (the estimate below, after _resolve, is the one published; estimate() computes only
         # when samples were added since its last call, so each state is solved once).
-        estimate = self.align.estimate() if returning and self.backup.R_enu_cam is not None else None
-        R_backup = self.backup.at(t_v)  # at the frame's stamp: the gyro runs ahead by the latency
+        # The backup at the frame's stamp: the gyro runs ahead of it by the camera's latency.
+        R_backup = self.backup.at(t_v) if returning else None
+        estimate = self.align.estimate() if R_backup is not None else None
         if estimate is not None and R_backup is not None:
             R_vis = estimate.R_pano_enu.T @ R_pano_cam
             jump = float(np.linalg.norm(so3_log(R_backup.T @ R_vis)))

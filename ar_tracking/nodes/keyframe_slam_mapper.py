@@ -39,7 +39,7 @@ from ..ros.param_table import ParamSpec, declare_params, frame_name
 from ..ros.stamp_guard import StampGuard, StampVerdict
 from ..ros.tf import TfBroadcaster, transform_stamped
 
-Info = tuple[np.ndarray, np.ndarray, tuple[int, int]]  # K, D, (height, width)
+Info = tuple[np.ndarray, np.ndarray, str, tuple[int, int]]  # K, D, distortion model, (height, width)
 
 
 def point_cloud(points_xyz: np.ndarray, frame_id: str, stamp: Any) -> PointCloud2:
@@ -129,7 +129,6 @@ class KeyframeSlamMapperNode(TrackingNode):
         self.system: SlamSystem | None = None
         self.info: Info | None = None
         self.rectify: Rectifier | None = None
-        self.distortion_model = ''
         self.last_map_pub_ns: int | None = None
         self.path = Path()
         self.path.header.frame_id = self.frame_id
@@ -185,8 +184,8 @@ class KeyframeSlamMapperNode(TrackingNode):
                 or K[2, 2] != 1.0 or msg.width <= 0 or msg.height <= 0):
             self.warn_throttled('camera/camera_info: invalid K, distortion or size; ignored')
             return
-        self.distortion_model = str(msg.distortion_model)  # 'equidistant': OpenCV's fisheye model
-        for t, gray, info in self.pairer.add_secondary(stamp_ns(msg.header), (K, D, (int(msg.height), int(msg.width)))):
+        calibration = (K, D, str(msg.distortion_model), (int(msg.height), int(msg.width)))  # 'equidistant': fisheye
+        for t, gray, info in self.pairer.add_secondary(stamp_ns(msg.header), calibration):
             self._handle(t, gray, info)
 
     def _on_frame(self, t: int, gray: np.ndarray) -> None:
@@ -216,13 +215,13 @@ class KeyframeSlamMapperNode(TrackingNode):
     def _start_or_check(self, info: Info) -> None:
         """Builds the SLAM system on the first camera_info; afterwards warns if it changed (the
         map keeps the intrinsics it was built with)."""
-        K, D, (h, w) = info
+        K, D, model, (h, w) = info
         if self.info is None:
-            self.rectify = Rectifier.from_calibration(K, D, w, h, self.readout_s, self.distortion_model)
+            self.rectify = Rectifier.from_calibration(K, D, w, h, self.readout_s, model)
             self.system = SlamSystem(self.rectify.camera, self.config)
             self.info = info
             return
-        K0, D0, size0 = self.info
+        K0, D0, _model0, size0 = self.info
         if size0 != (h, w) or not np.allclose(K0, K, rtol=1e-6, atol=1e-6) \
                 or not np.array_equal(np.trim_zeros(D0, 'b'), np.trim_zeros(D, 'b')):
             self.warn_throttled('camera/camera_info changed while the map exists; the new intrinsics are ignored')
@@ -232,7 +231,7 @@ class KeyframeSlamMapperNode(TrackingNode):
         if info is None:
             self.warn_throttled('camera: no camera_info with the image stamp; frame skipped (tracking reports lost)')
             return
-        K, D, (h, w) = info
+        K, D, _model, (h, w) = info
         if gray.shape != (h, w):
             self.warn_throttled(f'camera: frame is {gray.shape[1]}x{gray.shape[0]} but camera_info says {w}x{h}; frame skipped')
             return

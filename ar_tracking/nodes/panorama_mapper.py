@@ -30,7 +30,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from ..core.panorama import EDR_CORRECTIONS, MapConfig, MapperConfig, PanoramaError, PanoramaMapper, TrackerConfig
 from ..core.panorama.exposure import OFFSET_EXPOSURE
-from ..core.rectification import Rectification, RectificationError, check_distortion
+from ..core.rectification import Rectification, RectificationCache, RectificationError, check_distortion
 from ..core.stamp_pairing import NearestStampPairer
 from ..ros.cdr_views import image_view, rotation_transform_cdr
 from ..ros.conversions import (
@@ -193,11 +193,11 @@ class PanoramaMapperNode(TrackingNode):
         self.generation_logged = 0  # the map generation last logged (core/panorama/repaint.py)
         self.color = color
         self.guard = StampGuard(reset_s)
-        self.pairer: NearestStampPairer[Frame, tuple[np.ndarray, tuple[int, int]]] = NearestStampPairer(self.max_info_gap_ns)
+        #: image <-> camera_info (K, D, distortion model, (height, width)) by stamp
+        self.pairer: NearestStampPairer[Frame, tuple[Any, ...]] = NearestStampPairer(self.max_info_gap_ns)
         self.info_seen = False
-        #: The rectification of the calibration in use, and the calibration it was built for.
-        self.rectification: Rectification | None = None
-        self.rectified_for: tuple[bytes, bytes, str, tuple[int, int]] | None = None
+        #: The rectification of the calibration in use (camera_info's lens distortion undone).
+        self.rectifications = RectificationCache()
         self.last_map_pub_ns: int | None = None
         self.published = 0
         self.lost = 0
@@ -265,17 +265,14 @@ class PanoramaMapperNode(TrackingNode):
     # -- processing ------------------------------------------------------------------------
 
     def _rectify(self, K: np.ndarray, D: np.ndarray, model: str, size: tuple[int, int]) -> Rectification:
-        """The rectification of this calibration (built again only when camera_info changes)."""
-        key = (K.tobytes(), D.tobytes(), model, size)
-        if self.rectification is None or key != self.rectified_for:
-            self.rectification = Rectification.from_calibration(K, D, size[1], size[0], model)
-            self.rectified_for = key
-            if not self.rectification.identity:
-                Kn = self.rectification.K
-                self.get_logger().info(
-                    f'camera_info has a lens distortion ({model or "plumb_bob"}, {D.size} coefficients): frames are '
-                    f'rectified to a pinhole camera fx {Kn[0, 0]:.1f} fy {Kn[1, 1]:.1f} cx {Kn[0, 2]:.1f} cy {Kn[1, 2]:.1f}')
-        return self.rectification
+        """The rectification of this calibration (logged when a new distorting one is built)."""
+        rect, built = self.rectifications.get(K, D, size[1], size[0], model)
+        if built and not rect.identity:
+            Kn = rect.K
+            self.get_logger().info(
+                f'camera_info has a lens distortion ({model or "plumb_bob"}, {D.size} coefficients): frames are '
+                f'rectified to a pinhole camera fx {Kn[0, 0]:.1f} fy {Kn[1, 1]:.1f} cx {Kn[0, 2]:.1f} cy {Kn[1, 2]:.1f}')
+        return rect
 
     def _handle(self, t: int, frame: Frame, info: tuple[Any, ...] | None) -> None:
         gray, rgb = frame

@@ -62,3 +62,15 @@ def test_no_distortion_passes_frames_through():
 def test_coefficients_it_cannot_use_are_one_clear_error(D, model, message):
     with pytest.raises(RectificationError, match=message):
         check_distortion(D, model)
+
+
+def test_the_cache_builds_a_rectification_once_per_calibration():
+    from ar_tracking.core.rectification import RectificationCache
+
+    cache = RectificationCache()
+    D = np.array([-0.2, 0.05, 0.0, 0.0, 0.0])
+    first, built = cache.get(K, D, *SIZE)
+    again, built_again = cache.get(K.copy(), list(D), *SIZE)  # equal values: the same one
+    assert built and not built_again and again is first
+    other, built_other = cache.get(K, D * 0.5, *SIZE)
+    assert built_other and other is not first

@@ -11,7 +11,6 @@ row ``v`` (level-0 pixels) is captured ``(v - (height - 1) / 2) / height * reado
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -80,7 +79,7 @@ class Rectifier:
     """
 
     camera: Camera
-    maps: tuple[Any, Any] | None = None
+    rectification: Rectification  # the remap (core/rectification.py); camera.K is its K
 
     @staticmethod
     def from_calibration(K: Array, D: Array, width: int, height: int, readout_s: float = 0.0,
@@ -88,10 +87,10 @@ class Rectifier:
         rect = Rectification.from_calibration(K, D, width, height, model)  # see core/rectification.py
         Kn = rect.K
         camera = Camera(float(Kn[0, 0]), float(Kn[1, 1]), float(Kn[0, 2]), float(Kn[1, 2]), width, height, readout_s)
-        return Rectifier(camera, rect.maps)
+        return Rectifier(camera, rect)
 
     def __call__(self, gray: NDArray[np.uint8]) -> NDArray[np.uint8]:
-        return Rectification(np.eye(3), self.maps)(gray)
+        return self.rectification(gray)
 
 
 def level_to_level0(uv: Array, level: int) -> Array:
