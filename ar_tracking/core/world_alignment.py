@@ -213,6 +213,10 @@ class WorldAlignment:
         self.config = replace(self.config, declination_rad=float(declination_rad))
         self._dirty = True
 
+    def up_in_panorama(self) -> Array | None:
+        """The gravity solve's up direction in the panorama frame (None before any sample)."""
+        return self._up_estimate() if self._n > 0 else None
+
     @property
     def ready(self) -> bool:
         return self._n > 0 and self._field is not None

@@ -38,6 +38,7 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import Imu, MagneticField
 
 from ..core.hybrid_orientation import GyroBackup, GyroBackupConfig, RotationBuffer, StreamLag
+from ..core.panorama_azimuth import AzimuthDistortion, AzimuthDistortionConfig
 from ..core.rotations import quat_xyzw_to_matrix, so3_log
 from ..core.time_offset import ImuClock, TimeOffsetConfig, TimeOffsetEstimator
 from ..core.world_alignment import WorldAlignment, WorldAlignmentConfig, WorldAlignmentEstimate
@@ -159,6 +160,11 @@ class HybridOrientationFilterNode(TrackingNode):
         self.extrinsic_source = 'parameter'
         self.align = WorldAlignment(config)
         self.backup = GyroBackup(self.R_imu_cam, backup)
+        #: The panorama's azimuth distortion (a camera turned about the user), learnt from the gyro.
+        self.distortion = AzimuthDistortion(self.R_imu_cam, AzimuthDistortionConfig(
+            knots=v['distortion_knots'], pair_s=v['distortion_pair_s'],
+            smoothness_rad=v['distortion_smoothness_rad'], scale_sigma=v['gyro_scale_sigma'],
+        )) if v['learn_panorama_distortion'] else None
         # IMU stamps are shifted into the camera's clock: t_camera = t_imu - clock.offset_ns.
         estimator = TimeOffsetEstimator(self.R_imu_cam, TimeOffsetConfig(max_offset_s=v['max_time_offset_s'])) \
             if v['estimate_time_offset'] else None
@@ -230,6 +236,8 @@ class HybridOrientationFilterNode(TrackingNode):
                     f'{np.degrees(diff):.1f} deg: using /tf_static')
             self.R_imu_cam = R_imu_cam
             self.backup.R_imu_cam = R_imu_cam
+            if self.distortion is not None:
+                self.distortion.R_imu_cam = R_imu_cam
             if self.clock.estimator is not None:
                 self.clock.estimator.R_imu_cam = R_imu_cam
             self.extrinsic_source = f'/tf_static {parent} -> {child}'
@@ -262,6 +270,8 @@ class HybridOrientationFilterNode(TrackingNode):
         self.get_logger().warning(f'{why}: starting over')
         self.align.reset()
         self.backup.reset()
+        if self.distortion is not None:
+            self.distortion.reset()
         self.clock.restart()  # its stamps start over; the offset applied so far is kept
         self.visual.clear()
         self.pending.clear()
@@ -348,6 +358,11 @@ class HybridOrientationFilterNode(TrackingNode):
             return
         if msg.header.frame_id:
             self.panorama_frame = msg.header.frame_id.lstrip('/')
+        if self.distortion is not None:
+            # Learnt from the raw orientation; everything below uses the corrected one.
+            up = self.align.up_in_panorama()
+            self.distortion.add_visual(t_v, R_pano_cam, up)
+            R_pano_cam = self.distortion.correct(R_pano_cam, up)
         returning = self.last_visual_ns is not None and t_v - self.last_visual_ns > self.visual_timeout_ns
         # The placement before this frame's IMU samples join it: read only when vision returns
         # (the estimate below, after _resolve, is the one published; estimate() computes only
@@ -367,6 +382,8 @@ class HybridOrientationFilterNode(TrackingNode):
                 R_pe = R_pano_cam @ R_backup.T
                 self.align.reset(prior=(R_pe, float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))))
                 self.pending.clear()
+                if self.distortion is not None:  # a new panorama has its own distortion
+                    self.distortion.reset()
             self.visual.clear()
             self.backup.visual.clear()
             self.clock.forget_kept()
@@ -465,6 +482,8 @@ class HybridOrientationFilterNode(TrackingNode):
         t_g = t_imu - self.clock.offset_ns  # in the camera's clock from here on
         self.last_imu_ns = t_g
         self.backup.add_gyro(t_g, sample[2])
+        if self.distortion is not None:
+            self.distortion.add_gyro(t_g, sample[2])
         self.pending.append((t_g, *sample[1:]))
         self._resolve()
         if self.last_visual_ns is None or self.backup.R_enu_cam is None or not self.align.ready:

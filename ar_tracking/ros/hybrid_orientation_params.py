@@ -7,12 +7,14 @@ Kept apart from the node so that the node module stays about what it does with t
 from __future__ import annotations
 
 from ..core.hybrid_orientation import GyroBackupConfig
+from ..core.panorama_azimuth import AzimuthDistortionConfig
 from ..core.time_offset import TimeOffsetConfig
 from ..core.world_alignment_config import WorldAlignmentConfig
 from .param_table import IMU_CALIBRATION_PARAMS, ParamSpec, frame_name, unit_quaternion
 
 _ALIGN = WorldAlignmentConfig()
 _GYRO = GyroBackupConfig()
+_AZIMUTH = AzimuthDistortionConfig()
 
 #: The node's parameters (with the shared IMU calibration, param_table.IMU_CALIBRATION_PARAMS).
 PARAMS = (
@@ -120,6 +122,22 @@ PARAMS = (
     ParamSpec('max_time_offset_s', TimeOffsetConfig().max_offset_s,
               'The estimated offset is searched within +- this of imu_time_offset_s, s', read_only=True,
               min_value=0.005, max_value=1.0),
+    ParamSpec('learn_panorama_distortion', True,
+              'Learn the panorama\'s azimuth distortion from the gyro and remove it (core/panorama_azimuth.py: a '
+              'camera turned about the user rather than about itself stretches the panorama by the near scene\'s '
+              'parallax)', read_only=True),
+    ParamSpec('distortion_knots', _AZIMUTH.knots,
+              'Azimuths of the piecewise-linear panorama distortion over a full turn', read_only=True,
+              min_value=4, max_value=720),
+    ParamSpec('distortion_pair_s', _AZIMUTH.pair_s,
+              'Time between the two frames whose panorama and gyro turns are compared, s', read_only=True,
+              min_value=0.05, max_value=0.8),
+    ParamSpec('distortion_smoothness_rad', _AZIMUTH.smoothness_rad,
+              '1-sigma of the distortion\'s second difference between neighbouring knots, rad', read_only=True,
+              min_value=1e-5, max_value=10.0),
+    ParamSpec('gyro_scale_sigma', _AZIMUTH.scale_sigma,
+              'Prior 1-sigma of the gyro\'s scale error (told from the panorama\'s stretch once a turn closes); '
+              '0: taken as exact', read_only=True, min_value=0.0, max_value=0.1),
     ParamSpec('reset_after_s', 1.0,
               'A stamp this much older than the previous one means the clock jumped back (bag loop): reset',
               min_value=0.0, max_value=3600.0),
