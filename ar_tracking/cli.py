@@ -378,9 +378,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='rotation_sweep: cut the camera frames from a panorama of these photos of a full turn '
                         '(pano.txt gives their focal lengths, e.g. ../shared/data/pano_grail) instead of the '
                         'rendered street: real textures, same motion, sensors and truth, no annotations')
-    p.add_argument('--parallax', action='store_true',
+    p.add_argument('--parallax', action=argparse.BooleanOptionalAction, default=None,
                    help='rotation_sweep: render each frame from where the camera is (in front of the body\'s turning '
-                        'axis, with the hand\'s sway), so that near objects move against far ones (default: from the spot)')
+                        'axis, with the hand\'s sway), so that near objects move against far ones; --no-parallax: from '
+                        'the spot (default: the profile\'s, on in hard, off in kind; a photo world has none)')
     p.set_defaults(func=cmd_make_bag)
 
     p = sub.add_parser('annotate', help='store annotations from an authoring bag (patches of its panorama at given positions)')

@@ -509,7 +509,7 @@ def _first_seconds_over_floor(rows: dict[str, Any]) -> float | None:
 def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), duration_s: float = 40.0,
                 profile: str | None = None, imu_time_offset_ms: float | None = None,
                 readout_ms: float | None = None, declare_readout: bool = True,
-                world_photos: str | Path | None = None, parallax: bool = False) -> dict[str, Any]:
+                world_photos: str | Path | None = None, parallax: bool | None = None) -> dict[str, Any]:
     """The hybrid filter on fresh rotation_sweep seeds (the simulator's default, harder profile
     unless ``profile`` says otherwise): per seed the heading / tilt RMSE of orientation/global
     (hybrid), imu/data (sensor only) and reference/vqf (VQF on the same IMU samples), the
@@ -519,7 +519,7 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
     profile's rolling-shutter readout (``--readout-ms``; 0 a global shutter), which the mapper
     is then told (the bag's sidecar) unless ``declare_readout`` is false; the hard profile's
     own readout (8-30 ms) it always has to estimate. ``world_photos``, ``parallax``: make-bag's
-    ``--world-photos``, ``--parallax``. Per seed: make-bag, run (imu_magnetometer, panorama_mapper,
+    ``--world-photos``, ``--parallax`` (None: the profile's). Per seed: make-bag, run (imu_magnetometer, panorama_mapper,
     hybrid_orientation_filter), evaluate."""
     from ..ros.runner import GraphRunner
     from ..sim.bagmaker import make_bag
@@ -534,8 +534,8 @@ def bench_seeds(workdir: Path, seeds: list[int] | range = range(301, 311), durat
     for seed in seeds:
         tag = f'seed{seed}_{duration_s:g}s' + (f'_{profile}' if profile else '') \
             + ('' if imu_time_offset_ms is None else f'_imu{imu_time_offset_ms:+g}ms') \
-            + ('' if readout_ms is None else f'_rs{readout_ms:g}ms') \
-            + ('' if world_photos is None else f'_photos-{Path(world_photos).name}') + ('_parallax' if parallax else '')
+            + ('' if readout_ms is None else f'_rs{readout_ms:g}ms') + ('' if world_photos is None else
+               f'_photos-{Path(world_photos).name}') + {None: '', True: '_parallax', False: '_noparallax'}[parallax]
         bag = workdir / f'rotation_sweep_{tag}.mcap'
         if not reusable_sweep_bag(bag):
             kwargs: dict[str, Any] = {'profile': profile} if profile else {}

@@ -100,7 +100,7 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
              overwrite: bool = False, progress: Callable[[float], None] | None = None,
              lighting: str | None = None, profile: str = 'hard', imu_time_offset_s: float | None = None,
              readout_s: float | None = None, camera_latency_s: float | None = None,
-             world_photos: str | Path | None = None, parallax: bool = False) -> Path:
+             world_photos: str | Path | None = None, parallax: bool | None = None) -> Path:
     """Writes the bag and a sidecar '<out stem>.params.yaml' next to it; returns the bag path.
 
     ``storage`` 'mcap' gives one ``.mcap`` file (the suffix is added when missing), 'sqlite3' a
@@ -118,7 +118,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     renderer: real textures; the sensors and the truth are unchanged, the bag has no
     annotations). ``parallax`` (rotation_sweep only): the frames are rendered from where the
     camera is (0.2-0.4 m in front of the body's turning axis in the hard profile, plus the hand's
-    sway), not from the spot: near objects move against far ones. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
+    sway), not from the spot: near objects move against far ones; None (default): the profile's,
+    on in 'hard' (a photo world has no depth: no parallax there), off in 'kind'. ``profile`` (rotation_sweep, robot_arcs): 'hard' (default, a realistic
     phone or camera) or 'kind' (the earlier, easier simulator; byte for byte its bags). Raises
     :class:`SimError` for bad arguments (including an existing output without ``overwrite``).
     """
@@ -148,7 +149,8 @@ def make_bag(scenario: str, out: str | Path, *, seed: int = 0, duration_s: float
     req = BagRequest(seed, duration_s, session, image_format, lighting, profile, imu_time_offset_s,
                      None if readout_s is None else float(readout_s),
                      None if camera_latency_s is None else float(camera_latency_s),
-                     None if world_photos is None else str(world_photos), bool(parallax))
+                     None if world_photos is None else str(world_photos),
+                     None if parallax is None else bool(parallax))
     try:
         with BagWriter(bag_path, storage=storage, overwrite=overwrite) as bag:  # type: ignore
             scn.write_bag(bag, req, progress)

@@ -2,7 +2,7 @@
 
 A strapdown IMU rigidly mounted on the camera (rotation ``R_imu_cam``, no lever arm) measures
 
-* gyro  = R_imu_cam omega_cam + b_g (+ drift(t)) + n_g (rad/s),
+* gyro  = s_g * (R_imu_cam omega_cam) + b_g (+ drift(t)) + n_g (rad/s),
 * accel = s * (R_imu_cam R_world_cam^T (a_world + g e_z)) + b_a + n_a (m/s^2, specific force:
   a device at rest reads +g upwards),
 
@@ -11,7 +11,7 @@ accelerometer (a scenario that draws more from the same stream, e.g. the magneto
 rotation_sweep, draws after). This is the measurement model the filters invert (Langlotz et al.
 2011, section 5; Caarls et al. 2009, section 2.5). Scenarios supply the true kinematics (closed
 form or finite differences of their closed-form motion) and their error model: constant biases,
-a bias drift, an accelerometer scale error. robot_arcs and robot_arcs_real keep their own
+a bias drift, accelerometer and gyro scale errors. robot_arcs and robot_arcs_real keep their own
 ``simulate_imu`` for now (world-frame angular rate, bias random walks, a lever arm).
 """
 from __future__ import annotations
@@ -26,16 +26,20 @@ def imu_samples(omega_cam: Array, specific_force_cam: Array, *, rng: np.random.G
                 R_imu_cam: Array, gyro_bias_rad_s: Array, accel_bias_m_s2: Array,
                 gyro_noise_rad_s: float, accel_noise_m_s2: float,
                 gyro_drift_rad_s: Array | None = None,
-                accel_scale: Array | None = None) -> tuple[Array, Array]:
+                accel_scale: Array | None = None,
+                gyro_scale: Array | None = None) -> tuple[Array, Array]:
     """(gyro (N, 3) rad/s, accel (N, 3) m/s^2) in the IMU frame.
 
     ``omega_cam`` (N, 3): true angular rates in the camera frame; ``specific_force_cam`` (N, 3):
     the true ``R_world_cam^T (a_world + g e_z)`` (see :func:`specific_force_cam`).
     ``gyro_drift_rad_s`` (N, 3) is added to the constant gyro bias; ``accel_scale`` (3,)
-    multiplies the specific force per IMU axis before the bias.
+    multiplies the specific force per IMU axis before the bias, ``gyro_scale`` (3,) the rate.
     """
     n = len(omega_cam)
-    gyro = omega_cam @ R_imu_cam.T + gyro_bias_rad_s
+    gyro = omega_cam @ R_imu_cam.T
+    if gyro_scale is not None:
+        gyro = gyro * gyro_scale
+    gyro = gyro + gyro_bias_rad_s
     if gyro_drift_rad_s is not None:
         gyro += gyro_drift_rad_s
     gyro += rng.normal(0.0, gyro_noise_rad_s, (n, 3))

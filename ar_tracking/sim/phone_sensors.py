@@ -23,6 +23,9 @@ Array = NDArray[np.float64]
 
 HARD_GYRO_DRIFT_PER_MINUTE_RAD_S = (0.002, 0.005)  # typical |change| of the bias over 60 s
 HARD_ACCEL_SCALE_ERROR = (0.005, 0.01)  # per axis, random sign
+#: Gyro sensitivity error per axis, random sign: what a factory trim leaves (MEMS datasheets give
+#: +-0.4 to +-1 % tolerances; the bias is calibrated by users, the scale seldom).
+HARD_GYRO_SCALE_ERROR = (0.001, 0.005)
 
 
 @dataclass(frozen=True)
@@ -135,9 +138,10 @@ class BiasDrift:
 class SensorErrors:
     """The device's true sensor errors (the sidecar holds a slightly wrong estimate of them).
 
-    ``gyro_bias_drift`` and ``accel_scale`` exist in the 'hard' profile only (None otherwise):
-    the gyro bias at time t is ``gyro_bias_rad_s + gyro_bias_drift.at(t)``, the accelerometer
-    measures ``accel_scale * specific_force + accel_bias_m_s2``."""
+    ``gyro_bias_drift``, ``accel_scale`` and ``gyro_scale`` exist in the 'hard' profile only (None
+    otherwise): the gyro bias at time t is ``gyro_bias_rad_s + gyro_bias_drift.at(t)``, the
+    accelerometer measures ``accel_scale * specific_force + accel_bias_m_s2``, the gyro
+    ``gyro_scale * rate + bias``."""
 
     gyro_bias_rad_s: Array
     accel_bias_m_s2: Array
@@ -148,6 +152,7 @@ class SensorErrors:
     mag_noise_t: float = 0.3e-6
     gyro_bias_drift: BiasDrift | None = None
     accel_scale: Array | None = None  # (3,) per-axis scale factor (1 + error)
+    gyro_scale: Array | None = None  # (3,) per-axis scale factor (1 + error)
 
     def gyro_bias_at(self, t: Array) -> Array:
         """(N, 3) true gyro bias at times ``t`` (rad/s)."""
@@ -189,9 +194,12 @@ def make_gyro_bias_drift(rng: np.random.Generator, duration_s: float) -> BiasDri
 
 def make_hard_sensor_errors(seed: int, session: str, duration_s: float, kind: SensorErrors
                             ) -> SensorErrors:
-    """The 'kind' device plus a drifting gyro bias (stream 'gyro-drift') and accelerometer
-    scale errors of 0.5-1 % per axis (stream 'accel-scale')."""
+    """The 'kind' device plus a drifting gyro bias (stream 'gyro-drift'), accelerometer
+    scale errors of 0.5-1 % per axis (stream 'accel-scale') and gyro scale errors of 0.1-0.5 %
+    per axis (stream 'gyro-scale')."""
     drift = make_gyro_bias_drift(rng_stream(seed, 'gyro-drift', session), duration_s)
     rng = rng_stream(seed, 'accel-scale', session)
     scale = 1.0 + rng.uniform(*HARD_ACCEL_SCALE_ERROR, 3) * rng.choice([-1.0, 1.0], 3)
-    return replace(kind, gyro_bias_drift=drift, accel_scale=scale)
+    rng = rng_stream(seed, 'gyro-scale', session)
+    gyro_scale = 1.0 + rng.uniform(*HARD_GYRO_SCALE_ERROR, 3) * rng.choice([-1.0, 1.0], 3)
+    return replace(kind, gyro_bias_drift=drift, accel_scale=scale, gyro_scale=gyro_scale)

@@ -457,7 +457,7 @@ def simulate_imu(scn: Scenario, t_s: Array) -> ImuSamples:
         accel_bias_m_s2=err.accel_bias_m_s2, gyro_noise_rad_s=err.gyro_noise_rad_s,
         accel_noise_m_s2=err.accel_noise_m_s2,
         gyro_drift_rad_s=None if err.gyro_bias_drift is None else err.gyro_bias_drift.at(t_s),
-        accel_scale=err.accel_scale)
+        accel_scale=err.accel_scale, gyro_scale=err.gyro_scale)
     R_imu_enu = R_IMU_CAM @ np.swapaxes(R, 1, 2)
     b = scn.earth.vector_enu
     b_meas = b + scn.disturbances.field(t_s)

@@ -39,8 +39,9 @@ from .scenario import BagRequest, Progress
 #: MCAP metadata record naming the simulator profile of a hard rotation_sweep bag (evaluation only).
 SIM_METADATA = 'ar_tracking.simulator'
 #: The hard profile's revision, in that record: raised whenever the same seed gives another bag
-#: (18: camera frames logged after their stamps), so that a bench does not reuse a stale bag.
-SIM_REVISION = '18'
+#: (18: camera frames logged after their stamps; 19: parallax on, gyro scale errors), so that a
+#: bench does not reuse a stale bag.
+SIM_REVISION = '19'
 #: Auto-exposure only half compensates the scene brightness (a sunnier day stays brighter).
 EXPOSURE_TARGET = 0.2
 EXPOSURE_COMPENSATION = 0.4
@@ -63,7 +64,7 @@ class RotationSweep:
             pano = photo_panorama(req.world_photos, photo_azimuth_deg(req.seed))
             anchors = []
         _write_all(bag, scn, anchors, light, pano, Plan.make(scn, pano), req.image_format, progress,
-                   req.world_photos, req.parallax)
+                   req.world_photos, with_parallax(req))
 
     def write_sidecars(self, sidecar: Path, bag_path: Path, req: BagRequest) -> None:
         write_sidecar(sidecar, rs.make_scenario(req.seed, req.session, req.duration_s, profile=req.profile,
@@ -79,10 +80,19 @@ class RotationSweep:
                    f', rolling shutter {req.readout_s * 1e3:.0f} ms' if req.readout_s else ', global shutter')
                 + ('' if req.camera_latency_s is None else f', camera latency {req.camera_latency_s * 1e3:.0f} ms')
                 + ('' if req.world_photos is None else f', world from the photos in {req.world_photos}')
-                + (', with parallax' if req.parallax else ''))
+                + (', with parallax' if with_parallax(req) else ', without parallax'))
 
 
 SCENARIO = RotationSweep()
+
+
+def with_parallax(req: BagRequest) -> bool:
+    """Whether the frames show the camera's offset from the spot: as asked, else the profile's
+    (the hard profile's phone turns about the user's body, 0.2-0.4 m in front of it; the kind
+    profile's about its own centre). A photo world has no depth: no parallax there."""
+    if req.world_photos is not None:
+        return False
+    return req.profile == 'hard' if req.parallax is None else bool(req.parallax)
 
 
 @functools.lru_cache(maxsize=2)

@@ -45,8 +45,9 @@ class BagRequest:
     #: rendered street (:mod:`.photo_world`); None: the street
     world_photos: str | None = None
     #: rotation_sweep: the frames show the parallax of the camera's offset from the spot (the
-    #: phone in front of the body's turning axis, the hand's sway), from the street's depth
-    parallax: bool = False
+    #: phone in front of the body's turning axis, the hand's sway), from the street's depth;
+    #: None: the profile's (on in 'hard', off in 'kind'; a photo world has no depth)
+    parallax: bool | None = None
 
 
 class ScenarioBag(Protocol):
