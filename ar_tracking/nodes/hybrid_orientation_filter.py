@@ -358,11 +358,14 @@ class HybridOrientationFilterNode(TrackingNode):
             return
         if msg.header.frame_id:
             self.panorama_frame = msg.header.frame_id.lstrip('/')
+        R_raw = R_pano_cam
         if self.distortion is not None:
-            # Learnt from the raw orientation; everything below uses the corrected one.
+            # Learnt from the raw orientation; everything below but the time offset's estimate
+            # (the gyro against the raw tracker: corrected, the two would chase each other) uses
+            # the corrected one.
             up = self.align.up_in_panorama()
-            self.distortion.add_visual(t_v, R_pano_cam, up)
-            R_pano_cam = self.distortion.correct(R_pano_cam, up)
+            self.distortion.add_visual(t_v, R_raw, up)
+            R_pano_cam = self.distortion.correct(R_raw, up)
         returning = self.last_visual_ns is not None and t_v - self.last_visual_ns > self.visual_timeout_ns
         # The placement before this frame's IMU samples join it: read only when vision returns
         # (the estimate below, after _resolve, is the one published; estimate() computes only
@@ -397,7 +400,7 @@ class HybridOrientationFilterNode(TrackingNode):
                     'time (camera and tracker latency): the tracker counts as lost only visual_timeout_s beyond that')
         self.visual.add(t_v, R_pano_cam)
         self.backup.add_visual(t_v, R_pano_cam)
-        self.clock.add_visual(t_v, R_pano_cam)
+        self.clock.add_visual(t_v, R_raw)
         self._resolve()
         estimate = self.align.estimate()
         if estimate is None:
