@@ -29,6 +29,7 @@ by c about up. No ROS here.
 """
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -36,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .rotations import so3_exp, so3_log
+from .rotations import quat_xyzw_to_matrix, so3_exp, so3_log
 
 Array = NDArray[np.float64]
 
@@ -106,11 +107,13 @@ class AzimuthDistortion:
         self.x = np.zeros(n)
         self.e1: Array | None = None  # azimuth 0 in the panorama frame (the first frame's view)
         self.t_filter_ns: int | None = None
-        # Gyro chain R_0_imu(t): (stamp, rotation) of recent samples.
-        self._gyro_t: deque[int] = deque()
-        self._gyro_R: deque[Array] = deque()
-        self._chain = np.eye(3)
-        self._omega: Array | None = None
+        # Gyro chain R_0_imu(t) of recent samples: stamps and unit quaternions (w, x, y, z) as
+        # Python floats (per IMU sample, numpy's per-call overhead was most of the cost).
+        self._gyro_t: list[int] = []
+        self._gyro_q: list[tuple[float, float, float, float]] = []
+        self._omega: tuple[float, float, float] | None = None
+        self._axes_key: tuple[float, float, float] | None = None
+        self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
         self._frames: deque[tuple[int, Array]] = deque()  # (stamp, R_pano_cam) of recent frames
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
@@ -124,23 +127,33 @@ class AzimuthDistortion:
         """One gyro sample (rad/s, imu frame, any configured bias removed), in the frames' clock.
         A stamp that does not increase, or a gap over ``max_pair_s``, starts the chain over."""
         t_ns = int(t_ns)
-        w = np.asarray(omega_imu, dtype=float)
-        if self._gyro_t:
-            dt = (t_ns - self._gyro_t[-1]) * 1e-9
+        w = (float(omega_imu[0]), float(omega_imu[1]), float(omega_imu[2]))
+        ts, qs = self._gyro_t, self._gyro_q
+        q = (1.0, 0.0, 0.0, 0.0)
+        if ts:
+            dt = (t_ns - ts[-1]) * 1e-9
             if dt <= 0.0 or dt > self.config.max_pair_s:
-                self._gyro_t.clear()
-                self._gyro_R.clear()
-                self._chain = np.eye(3)
-            else:
-                w_prev = self._omega if self._omega is not None else w
-                self._chain = self._chain @ so3_exp(0.5 * (w_prev + w) * dt)
+                ts.clear()
+                qs.clear()
+            else:  # the trapezoid rate over the step, as one rotation
+                p = self._omega if self._omega is not None else w
+                vx, vy, vz = 0.5 * (p[0] + w[0]) * dt, 0.5 * (p[1] + w[1]) * dt, 0.5 * (p[2] + w[2]) * dt
+                angle = math.sqrt(vx * vx + vy * vy + vz * vz)
+                c = math.cos(0.5 * angle)
+                k = math.sin(0.5 * angle) / angle if angle > 1e-12 else 0.5
+                dx, dy, dz = k * vx, k * vy, k * vz
+                a, b, e, f = qs[-1]
+                q = (a * c - b * dx - e * dy - f * dz, a * dx + b * c + e * dz - f * dy,
+                     a * dy - b * dz + e * c + f * dx, a * dz + b * dy - e * dx + f * c)
         self._omega = w
-        self._gyro_t.append(t_ns)
-        self._gyro_R.append(self._chain)
-        keep_ns = int(2e9 * self.config.max_pair_s)
-        while len(self._gyro_t) > 2 and self._gyro_t[-1] - self._gyro_t[1] > keep_ns:
-            self._gyro_t.popleft()
-            self._gyro_R.popleft()
+        ts.append(t_ns)
+        qs.append(q)
+        if len(ts) > 400:  # keep about 2 x max_pair_s
+            keep_ns = int(2e9 * self.config.max_pair_s)
+            cut = bisect.bisect_left(ts, t_ns - keep_ns) - 1
+            if cut > 0:
+                del ts[:cut]
+                del qs[:cut]
         while self._waiting and self._waiting[0][0] <= t_ns:
             self._frame(*self._waiting.popleft())
 
@@ -149,12 +162,13 @@ class AzimuthDistortion:
         ts = self._gyro_t
         if not ts or t_ns < ts[0] or t_ns > ts[-1]:
             return None
-        k = int(np.searchsorted(np.fromiter(ts, np.int64, len(ts)), t_ns))
-        if ts[k] == t_ns:
-            return self._gyro_R[k]
-        R0, R1 = self._gyro_R[k - 1], self._gyro_R[k]
-        s = (t_ns - ts[k - 1]) / (ts[k] - ts[k - 1])
-        return R0 @ so3_exp(s * so3_log(R0.T @ R1))
+        k = bisect.bisect_left(ts, t_ns)
+        a = self._gyro_q[k]
+        if ts[k] != t_ns:  # normalised linear interpolation: one sample's turn apart
+            b, s = self._gyro_q[k - 1], (ts[k] - t_ns) / (ts[k] - ts[k - 1])
+            sign = 1.0 if sum(x * y for x, y in zip(a, b)) >= 0.0 else -1.0
+            a = tuple((1.0 - s) * x + s * sign * y for x, y in zip(a, b))  # type: ignore[assignment]
+        return quat_xyzw_to_matrix((a[1], a[2], a[3], a[0]))
 
     def add_visual(self, t_ns: int, R_pano_cam: Array, up_pano: Array | None) -> None:
         """A tracked frame (its raw panorama orientation) and the panorama's up axis (None while
@@ -219,18 +233,34 @@ class AzimuthDistortion:
             return None
         return h / norm
 
+    def _axes_of(self, up_pano: Array) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None:
+        """(up, azimuth 0, azimuth 90 deg) unit vectors for this up axis (kept while it stays)."""
+        key = (float(up_pano[0]), float(up_pano[1]), float(up_pano[2]))
+        if key != self._axes_key:
+            assert self.e1 is not None
+            up = np.array(key) / np.linalg.norm(key)
+            e1 = self.e1 - (self.e1 @ up) * up
+            norm = float(np.linalg.norm(e1))
+            if norm < 0.5:
+                self._axes_key, self._axes = key, None
+            else:
+                e1 /= norm
+                e2 = np.cross(up, e1)
+                self._axes_key = key
+                self._axes = (tuple(up.tolist()), tuple(e1.tolist()), tuple(e2.tolist()))
+        return self._axes
+
     def _azimuth(self, forward: Array, up_pano: Array | None) -> float | None:
         if self.e1 is None or up_pano is None:
             return None
-        up = np.asarray(up_pano, dtype=float)
-        up = up / np.linalg.norm(up)
-        h = self._horizontal(forward, up)
-        e1 = self.e1 - (self.e1 @ up) * up
-        if h is None or float(np.linalg.norm(e1)) < 0.5:
+        axes = self._axes_of(up_pano)
+        if axes is None:
             return None
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(up, e1)
-        return math.atan2(float(h @ e2), float(h @ e1))
+        u, e1, e2 = axes
+        fx, fy, fz = float(forward[0]), float(forward[1]), float(forward[2])
+        if abs(fx * u[0] + fy * u[1] + fz * u[2]) > math.sin(self.config.max_elevation_rad):
+            return None
+        return math.atan2(fx * e2[0] + fy * e2[1] + fz * e2[2], fx * e1[0] + fy * e1[1] + fz * e1[2])
 
     def _basis(self, psi: float) -> Array:
         K = self.config.knots

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -34,6 +33,7 @@ from numpy.typing import NDArray
 from ..core.rotations import heading_tilt_error_deg, interpolate_rotations, quat_wxyz_to_xyzw, quat_xyzw_to_matrix
 from . import SHARED_DATA
 from .bench_bag import reusable_sweep_bag
+from .bench_core_rates import bench_core_rates
 
 if TYPE_CHECKING:
     from .metrics import BagOrientations
@@ -353,44 +353,6 @@ def bench_real() -> dict[str, Any]:
         for k in ('heading_rmse_deg', 'tilt_rmse_deg'):
             ratio[f'{k}_max_ratio'] = round(max(a[k] / max(v[k], 1e-9) for a, v in pairs), 4)
     return {'real': real, 'real_mean': means, 'real_vs_vqf': ratio}
-
-
-def bench_core_rates(samples: int = 20000, seed: int = 0) -> dict[str, float]:
-    """Samples per second of the orientation cores on one core: the AHRS (imu_magnetometer),
-    the eq. 3-4 compass, and the hybrid's world alignment (one IMU sample with its field, and
-    an estimate every third sample as at 100 Hz IMU / 30 Hz camera)."""
-    from ..core.ahrs import Ahrs, AhrsConfig
-    from ..core.imu_orientation import FieldModel, GravityFieldOrientation
-    from ..core.rotations import so3_exp
-    from ..core.world_alignment import WorldAlignment
-
-    rng = np.random.default_rng(seed)
-    gyro = rng.normal(0.0, 0.3, (samples, 3))
-    accel = rng.normal([0.0, 0.0, 9.81], 0.3, size=(samples, 3))
-    mag = rng.normal([0.0, 2.1e-5, -4.3e-5], 3e-7, size=(samples, 3))
-    R = [so3_exp(v) for v in rng.normal(0.0, 1.0, (samples, 3))]
-
-    ahrs = Ahrs(AhrsConfig(sample_period_s=0.01))
-    start = time.perf_counter()
-    for k in range(samples):
-        ahrs.update(k * 10_000_000 + 1, gyro[k], accel[k], mag[k], k * 10_000_000 + 1)
-    ahrs_rate = samples / (time.perf_counter() - start)
-
-    compass = GravityFieldOrientation(model=FieldModel(field_t=48e-6, dip_rad=1.117))
-    start = time.perf_counter()
-    for k in range(samples):
-        compass.estimate(accel[k], mag[k])
-    compass_rate = samples / (time.perf_counter() - start)
-
-    align = WorldAlignment()
-    start = time.perf_counter()
-    for k in range(samples):
-        align.add(k * 10_000_000 + 1, R[k], accel[k], mag[k], gyro[k])
-        if k % 3 == 0:
-            align.estimate()
-    hybrid_rate = samples / (time.perf_counter() - start)
-    return {'ahrs_updates_per_s': round(ahrs_rate, 1), 'imu_magnetometer_compass_updates_per_s': round(compass_rate, 1),
-            'hybrid_updates_per_s': round(hybrid_rate, 1), 'samples': samples}
 
 
 def bench_hybrid(workdir: Path, duration_s: float = 60.0, seed: int = 1, real: bool = True) -> dict[str, Any]:
