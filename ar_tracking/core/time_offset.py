@@ -287,11 +287,6 @@ class ImuClock:
         kept, self._kept = self._kept, None
         return None if kept is None else list(kept)
 
-    @property
-    def settled(self) -> bool:
-        """The offset in use is final: known from the start (no estimator) or estimated."""
-        return self.estimator is None or self._settled
-
     def add_visual(self, t_ns: int, R_ref_cam: Array) -> None:
         if self.estimator is not None:
             self.estimator.add_visual(t_ns, R_ref_cam)
