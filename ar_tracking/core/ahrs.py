@@ -120,8 +120,12 @@ class AhrsEstimate:
 
 
 def _finite3(v: Any) -> Array | None:
+    """The sample as a float (3,) array, or None when it is not three finite numbers."""
     a = np.asarray(v, dtype=float)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
+    if a.shape != (3,):
+        return None
+    x, y, z = a.tolist()
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
         return None
     return a
 
@@ -240,8 +244,7 @@ class Ahrs:
             # single compass reading at once, not an unknown one converging with tau_mag.
             self._mag_ever_used = True
             self._heading_var_extra = c.heading_sigma_floor_rad ** 2
-        q = vqf.getQuat9D() if (c.use_mag and self._mag_ever_used) else vqf.getQuat6D()
-        R = quat_wxyz_to_matrix(q)
+        R = quat_wxyz_to_matrix(vqf.getQuat9D() if (c.use_mag and self._mag_ever_used) else vqf.getQuat6D())
         if c.use_mag and self._mag_ever_used and c.declination_rad:
             R = self._R_decl @ R
         return AhrsEstimate(t_ns, R, self._covariance(dt, a, used), bool(used))
@@ -269,7 +272,8 @@ class Ahrs:
         if c.constant_sigma_rad > 0:
             return np.eye(3) * c.constant_sigma_rad ** 2
         dt = max(dt, 0.0)
-        dev = abs(math.sqrt(float(a @ a)) - c.gravity_m_s2) / c.gravity_m_s2
+        x, y, z = a.tolist()
+        dev = abs(math.sqrt(x * x + y * y + z * z) - c.gravity_m_s2) / c.gravity_m_s2
         self._acc_dev_lp += min(1.0, dt / c.tau_acc_s) * (dev - self._acc_dev_lp)
         tilt_var = c.tilt_sigma_floor_rad ** 2 + self._acc_dev_lp ** 2
         if mag_ok:
@@ -281,4 +285,4 @@ class Ahrs:
             self._unaided_s += dt
             self._heading_var_extra += c.gyro_noise_rad_s ** 2 * dt + 2.0 * bias_sigma ** 2 * self._unaided_s * dt
         heading_var = min(c.heading_sigma_floor_rad ** 2 + self._heading_var_extra, math.pi ** 2)
-        return np.diag([tilt_var, tilt_var, heading_var])
+        return np.array([[tilt_var, 0.0, 0.0], [0.0, tilt_var, 0.0], [0.0, 0.0, heading_var]])

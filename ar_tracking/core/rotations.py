@@ -53,7 +53,7 @@ def quat_xyzw_to_matrix(quat_xyzw: ArrayLike) -> Array:
 def quat_wxyz_to_matrix(q_wxyz: Any) -> Array:
     """Rotation matrix of one quaternion in (w, x, y, z) order (normalised), without scipy's
     per-call overhead: for per-sample loops such as the AHRS (~20 us -> ~2 us)."""
-    w, x, y, z = (float(v) for v in q_wxyz)
+    w, x, y, z = q_wxyz.tolist() if isinstance(q_wxyz, np.ndarray) else (float(v) for v in q_wxyz)
     n = w * w + x * x + y * y + z * z
     s = 2.0 / n if n > 0 else 0.0
     return np.array([
