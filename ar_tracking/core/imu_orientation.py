@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from .rotations import cross3, rot_z
+from .rotations import rot_z
 
 logger = logging.getLogger(__name__)
 
@@ -95,20 +95,27 @@ def orientation_from_gravity_and_field(
     """
     a = np.asarray(accel, dtype=float)
     m = np.asarray(mag, dtype=float)
-    if a.shape != (3,) or m.shape != (3,) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(m))):
+    if a.shape != (3,) or m.shape != (3,):
         return None
-    a_norm = math.sqrt(float(a @ a))
-    m_norm = math.sqrt(float(m @ m))
+    # On Python floats: numpy's per-call cost was most of a per-sample estimate.
+    ax, ay, az = a.tolist()
+    mx, my, mz = m.tolist()
+    if not all(math.isfinite(v) for v in (ax, ay, az, mx, my, mz)):
+        return None
+    a_norm = math.sqrt(ax * ax + ay * ay + az * az)
+    m_norm = math.sqrt(mx * mx + my * my + mz * mz)
     if a_norm < 1e-6 or m_norm < 1e-12:
         return None
-    up = a / a_norm
-    east = cross3(m / m_norm, up)
-    east_norm = math.sqrt(float(east @ east))
+    ux, uy, uz = ax / a_norm, ay / a_norm, az / a_norm
+    mx, my, mz = mx / m_norm, my / m_norm, mz / m_norm
+    ex, ey, ez = my * uz - mz * uy, mz * ux - mx * uz, mx * uy - my * ux  # east = m x up
+    east_norm = math.sqrt(ex * ex + ey * ey + ez * ez)
     if east_norm < 1e-3:  # field (nearly) vertical: heading undefined
         return None
-    east /= east_norm
-    north = cross3(up, east)
-    R_magenu_body = np.vstack([east, north, up])
+    ex, ey, ez = ex / east_norm, ey / east_norm, ez / east_norm
+    R_magenu_body = np.array([[ex, ey, ez],
+                              [uy * ez - uz * ey, uz * ex - ux * ez, ux * ey - uy * ex],  # north = up x east
+                              [ux, uy, uz]])
     if declination_rad:
         return rot_z(-declination_rad) @ R_magenu_body
     return R_magenu_body
@@ -168,17 +175,17 @@ class GravityFieldOrientation:
 
     def estimate(self, accel_raw: Array, mag_raw: Array) -> OrientationEstimate | None:
         """Orientation from raw (uncalibrated) samples; None when they define none."""
-        if not (math.isfinite(float(np.sum(accel_raw))) and math.isfinite(float(np.sum(mag_raw)))):
-            return None
         a = self.calibration.accel(accel_raw)
         m = self.calibration.mag(mag_raw)
-        R = orientation_from_gravity_and_field(a, m, self.model.declination_rad)
+        R = orientation_from_gravity_and_field(a, m, self.model.declination_rad)  # None if not finite
         if R is None:
             return None
         g = self.model.gravity_m_s2
-        a_norm = math.sqrt(float(a @ a))
-        m_norm = math.sqrt(float(m @ m))
-        dip = field_dip_rad(a, m)
+        ax, ay, az = a.tolist()
+        mx, my, mz = m.tolist()
+        aa, mm = ax * ax + ay * ay + az * az, mx * mx + my * my + mz * mz
+        a_norm, m_norm = math.sqrt(aa), math.sqrt(mm)
+        dip = math.asin(min(1.0, max(-1.0, -(mx * ax + my * ay + mz * az) / math.sqrt(mm * aa))))  # field_dip_rad
         if self._field_ref is None or self._dip_ref is None:
             self._field_ref, self._dip_ref = m_norm, dip
         field_ref, dip_ref = self._field_ref, self._dip_ref
@@ -189,14 +196,14 @@ class GravityFieldOrientation:
             w = self.LEARN_RATE if field_dev < 0.1 else self.LEARN_RATE * 0.1
             self._field_ref = (1 - w) * field_ref + w * m_norm
             self._dip_ref = (1 - w) * dip_ref + w * dip
-        cos_dip = max(np.cos(dip_ref), 0.1)
+        cos_dip = max(math.cos(dip_ref), 0.1)
         tilt_sigma = self.model.accel_noise_m_s2 / g + accel_dev
         heading_sigma = (
             self.model.mag_noise_t / max(field_ref * cos_dip, 1e-9)
             + (field_dev + dip_dev) / cos_dip
-            + tilt_sigma * abs(np.tan(dip_ref))
+            + tilt_sigma * abs(math.tan(dip_ref))
         )
-        heading_sigma = min(heading_sigma, np.pi)
-        tilt_sigma = min(tilt_sigma, np.pi)
-        cov = np.diag([tilt_sigma**2, tilt_sigma**2, heading_sigma**2])
+        heading_sigma = min(heading_sigma, math.pi)
+        tilt_sigma = min(tilt_sigma, math.pi)
+        cov = np.array([[tilt_sigma ** 2, 0.0, 0.0], [0.0, tilt_sigma ** 2, 0.0], [0.0, 0.0, heading_sigma ** 2]])
         return OrientationEstimate(R, cov, accel_dev, field_dev, dip_dev)

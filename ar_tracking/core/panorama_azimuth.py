@@ -37,9 +37,33 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .rotations import quat_xyzw_to_matrix, so3_exp, so3_log
+from .rotations import matrix_to_quat_wxyz_tuple
 
 Array = NDArray[np.float64]
+Quat = tuple[float, float, float, float]  # unit quaternion (w, x, y, z) as Python floats
+
+
+def _qmul(a: Quat, b: Quat) -> Quat:
+    """Hamilton product: the rotation of a then b in a's axes (R(a b) = R(a) R(b))."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def _qconj(q: Quat) -> Quat:
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def _qlog_along(q: Quat, u: tuple[float, ...]) -> float:
+    """The component along the unit vector u of the rotation vector of q (rad, |angle| <= pi)."""
+    w, x, y, z = q
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
+    return k * (x * u[0] + y * u[1] + z * u[2])
+
 
 
 @dataclass(frozen=True)
@@ -114,7 +138,8 @@ class AzimuthDistortion:
         self._omega: tuple[float, float, float] | None = None
         self._axes_key: tuple[float, float, float] | None = None
         self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
-        self._frames: deque[tuple[int, Array]] = deque()  # (stamp, R_pano_cam) of recent frames
+        #: Recent frames: (stamp, R_pano_cam, R_pano_imu as a quaternion).
+        self._frames: deque[tuple[int, Array, Quat]] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -157,8 +182,8 @@ class AzimuthDistortion:
         while self._waiting and self._waiting[0][0] <= t_ns:
             self._frame(*self._waiting.popleft())
 
-    def _gyro_at(self, t_ns: int) -> Array | None:
-        """The gyro chain at t_ns (interpolated between samples), None outside it."""
+    def _gyro_at(self, t_ns: int) -> Quat | None:
+        """The gyro chain's R_0_imu at t_ns (interpolated between samples), None outside it."""
         ts = self._gyro_t
         if not ts or t_ns < ts[0] or t_ns > ts[-1]:
             return None
@@ -167,8 +192,10 @@ class AzimuthDistortion:
         if ts[k] != t_ns:  # normalised linear interpolation: one sample's turn apart
             b, s = self._gyro_q[k - 1], (ts[k] - t_ns) / (ts[k] - ts[k - 1])
             sign = 1.0 if sum(x * y for x, y in zip(a, b)) >= 0.0 else -1.0
-            a = tuple((1.0 - s) * x + s * sign * y for x, y in zip(a, b))  # type: ignore[assignment]
-        return quat_xyzw_to_matrix((a[1], a[2], a[3], a[0]))
+            w, x, y, z = ((1.0 - s) * p + s * sign * q for p, q in zip(a, b))
+            norm = math.sqrt(w * w + x * x + y * y + z * z)
+            a = (w / norm, x / norm, y / norm, z / norm)
+        return a
 
     def add_visual(self, t_ns: int, R_pano_cam: Array, up_pano: Array | None) -> None:
         """A tracked frame (its raw panorama orientation) and the panorama's up axis (None while
@@ -187,6 +214,8 @@ class AzimuthDistortion:
         C = self._gyro_at(t_ns)
         if C is None:  # before the gyro's chain (it restarted after a gap)
             return
+        # The IMU's orientation in the panorama frame by the tracker, R_pano_cam R_cam_imu.
+        q_pano_imu = matrix_to_quat_wxyz_tuple(R @ self.R_imu_cam.T)
         if self.e1 is None and up_pano is not None:
             self.e1 = self._horizontal(R[:, 2], up_pano)
             if self.e1 is not None:  # c = 0 where the panorama starts (a firm pseudo-observation)
@@ -194,8 +223,8 @@ class AzimuthDistortion:
                 h[:self.config.knots] = self._basis(0.0)
                 self._update(h, 0.0, 1e-5)
         if up_pano is not None and self.e1 is not None:
-            self._compare(t_ns, R, C, up_pano)
-        self._frames.append((t_ns, R))
+            self._compare(t_ns, R, q_pano_imu, C, up_pano)
+        self._frames.append((t_ns, R, q_pano_imu))
         while self._frames and t_ns - self._frames[0][0] > int(1e9 * self.config.max_pair_s):
             self._frames.popleft()
 
@@ -207,16 +236,23 @@ class AzimuthDistortion:
         psi = self._azimuth(np.asarray(R_pano_cam, dtype=float)[:, 2], up_pano)
         if psi is None:
             return 0.0
-        return float(self._basis(psi) @ self.x[:self.config.knots])
+        k0, k1, f = self._knots_of(psi)
+        return (1.0 - f) * float(self.x[k0]) + f * float(self.x[k1])
 
     def correct(self, R_pano_cam: Array, up_pano: Array | None) -> Array:
         """R_pano_cam turned back by the distortion about up: the orientation in the panorama's
         frame as an undistorted panorama would have given it."""
         c = self.distortion(R_pano_cam, up_pano)
-        if c == 0.0 or up_pano is None:
+        if c == 0.0 or self._axes is None:
             return np.asarray(R_pano_cam, dtype=float)
-        up = np.asarray(up_pano, dtype=float)
-        return so3_exp(-c * up / np.linalg.norm(up)) @ R_pano_cam
+        # The rotation by -c about the unit up axis (Rodrigues), as floats.
+        ux, uy, uz = self._axes[0]
+        sn, cs = math.sin(-c), math.cos(-c)
+        v = 1.0 - cs
+        turn = np.array([[cs + v * ux * ux, v * ux * uy - sn * uz, v * ux * uz + sn * uy],
+                         [v * uy * ux + sn * uz, cs + v * uy * uy, v * uy * uz - sn * ux],
+                         [v * uz * ux - sn * uy, v * uz * uy + sn * ux, cs + v * uz * uz]])
+        return turn @ R_pano_cam
 
     @property
     def scale_error(self) -> float:
@@ -257,44 +293,55 @@ class AzimuthDistortion:
         if axes is None:
             return None
         u, e1, e2 = axes
-        fx, fy, fz = float(forward[0]), float(forward[1]), float(forward[2])
+        fx, fy, fz = forward.tolist()
         if abs(fx * u[0] + fy * u[1] + fz * u[2]) > math.sin(self.config.max_elevation_rad):
             return None
         return math.atan2(fx * e2[0] + fy * e2[1] + fz * e2[2], fx * e1[0] + fy * e1[1] + fz * e1[2])
 
-    def _basis(self, psi: float) -> Array:
+    def _knots_of(self, psi: float) -> tuple[int, int, float]:
+        """The two knots about azimuth psi and the weight of the second (c is linear between)."""
         K = self.config.knots
         x = (psi % (2.0 * math.pi)) / (2.0 * math.pi) * K
         k0 = int(math.floor(x)) % K
-        f = x - math.floor(x)
-        b = np.zeros(K)
+        return k0, (k0 + 1) % K, x - math.floor(x)
+
+    def _basis(self, psi: float) -> Array:
+        k0, k1, f = self._knots_of(psi)
+        b = np.zeros(self.config.knots)
         b[k0] += 1.0 - f
-        b[(k0 + 1) % K] += f
+        b[k1] += f
         return b
 
-    def _compare(self, t_ns: int, R_j: Array, C_j: Array, up: Array) -> None:
-        """The comparison of this frame with the last frame at least pair_s before it."""
+    def _compare(self, t_ns: int, R_j: Array, qa_j: Quat, c_j: Quat, up: Array) -> None:
+        """The comparison of this frame with the last frame at least pair_s before it.
+        With A = R_pano_imu by the tracker and G = C_i^T C_j the gyro's turn from i to j (imu
+        axes), the tracker's turn beyond the gyro's is A_j G^T A_i^T, and the gyro's turn in
+        panorama axes A_i G A_i^T; their components about up are d and dpsi_gyro."""
         cfg = self.config
         t_old = t_ns - int(cfg.pair_s * 1e9)
-        earlier = [f for f in self._frames if f[0] <= t_old]
-        if not earlier:
+        older = [f for f in reversed(self._frames) if f[0] <= t_old]
+        if not older:
             return
-        t_i, R_i = earlier[-1]
+        t_i, R_i, qa_i = older[0]
         if (t_ns - t_i) * 1e-9 > cfg.max_pair_s:
             return
-        C_i = self._gyro_at(t_i)
+        c_i = self._gyro_at(t_i)
         psi_i, psi_j = self._azimuth(R_i[:, 2], up), self._azimuth(R_j[:, 2], up)
-        if C_i is None or psi_i is None or psi_j is None:
+        if c_i is None or psi_i is None or psi_j is None or self._axes is None:
             return
-        up = up / np.linalg.norm(up)
-        turn_cam = self.R_imu_cam.T @ (C_i.T @ C_j) @ self.R_imu_cam
-        turn_pano = R_i @ turn_cam @ R_i.T  # the gyro's turn from i to j, panorama axes
-        d = float(up @ so3_log(R_j @ R_i.T @ turn_pano.T))
-        dpsi_gyro = float(up @ so3_log(turn_pano))
+        u = self._axes[0]
+        g = _qmul(_qconj(c_i), c_j)
+        d = _qlog_along(_qmul(_qmul(qa_j, _qconj(g)), _qconj(qa_i)), u)
+        dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), _qconj(qa_i)), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
         h = np.zeros(K + 2)
-        h[:K] = self._basis(psi_j) - self._basis(psi_i)
+        j0, j1, fj = self._knots_of(psi_j)
+        i0, i1, fi = self._knots_of(psi_i)
+        h[j0] += 1.0 - fj
+        h[j1] += fj
+        h[i0] -= 1.0 - fi
+        h[i1] -= fi
         h[K] = -dt
         h[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
         self._predict(t_ns)
@@ -320,7 +367,5 @@ class AzimuthDistortion:
     def _update(self, h: Array, z: float, sigma: float) -> None:
         Ph = self.P @ h
         s = float(h @ Ph) + sigma ** 2
-        gain = Ph / s
-        self.x = self.x + gain * (z - float(h @ self.x))
-        self.P = self.P - np.outer(gain, Ph)
-        self.P = 0.5 * (self.P + self.P.T)
+        self.x = self.x + Ph * ((z - float(h @ self.x)) / s)
+        self.P -= np.outer(Ph, Ph) / s  # symmetric as computed

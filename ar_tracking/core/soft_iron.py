@@ -48,8 +48,11 @@ def soft_iron_normal_equations(w_win: Array, n_w: Array, S_w: Array, m_w: Array,
     v = np.einsum('nij,j->ni', S_w, f_lin) / n_w[:, None]
     J = soft_iron_jacobian(v)
     wn = w_win * n_w
-    A_fe = np.einsum('n,nji,njk->ik', w_win, S_w, J)
-    A_he = np.einsum('n,nik->ik', wn, J)
-    A_ee = np.einsum('n,nji,njk->ik', wn, J, J) + np.eye(6) * ridge
-    rhs = np.einsum('n,nji,nj->i', w_win, J, m_w)
+    # Sums over windows and rows as (3n, k) products (three-operand einsums are 10x slower).
+    SJ_rows = (S_w * w_win[:, None, None]).reshape(-1, 3)
+    J_rows = J.reshape(-1, 6)
+    A_fe = SJ_rows.T @ J_rows
+    A_he = (wn @ J.reshape(len(wn), 18)).reshape(3, 6)
+    A_ee = (J * wn[:, None, None]).reshape(-1, 6).T @ J_rows + np.eye(6) * ridge
+    rhs = J_rows.T @ (m_w * w_win[:, None]).reshape(-1)
     return A_fe, A_he, A_ee, rhs

@@ -101,8 +101,15 @@ class WorldAlignment:
         self._gw = WindowSums(win_ns, self.config.max_windows, {
             'S': (3, 3), 'Rta': (3,), 'a': (3,),
             'RtK': (3, 3), 'K': (3, 3), 'KtK': (3, 3), 'Kta': (3,)})
-        self._prev_omega: Array | None = None
-        self._prev_accel: Array | None = None
+        # Samples not yet in their window's sums (rows of floats, see add) and those windows.
+        self._g_rows: list[list[float]] = []
+        self._lever_rows: list[list[float]] = []
+        self._f_rows: list[list[float]] = []
+        self._g_window = 0
+        self._f_window = 0
+        self._solve_period_ns = int(self.config.solve_period_s * 1e9)
+        # Low-passed rate and specific force of the lever-arm model (wx, wy, wz, ax, ay, az).
+        self._lever_lp: list[float] | None = None
         self._prev_omega_t_ns = 0
         self._lever_arm = np.zeros(3)
         self._lever_count = 0
@@ -125,6 +132,8 @@ class WorldAlignment:
         self._heading_mode: float | None = None
         self._field_enu_ref: Array | None = None if prior is None else getattr(self, '_field_enu_ref', None)
         self._estimate: WorldAlignmentEstimate | None = None
+        # (solves it was built from, R_pano_enu, |g|, tan dip, field heading variance).
+        self._geometry: tuple[tuple[object, ...], Array, float, float, float] | None = None
         self._dirty = True
 
     # -- samples ---------------------------------------------------------------------------
@@ -132,23 +141,29 @@ class WorldAlignment:
     def add(self, t_ns: int, R_pano_imu: Array, accel: Array, mag: Array | None = None,
             omega: Array | None = None) -> None:
         """One calibrated IMU sample (specific force, m/s^2; field, any unit; rate, rad/s, for
-        the lever-arm model) with the IMU's orientation in the panorama frame at its stamp."""
+        the lever-arm model) with the IMU's orientation in the panorama frame at its stamp.
+
+        The sample is kept as Python floats until its window's sums are needed (a window
+        closes or a solve reads them): numpy's per-call cost, not arithmetic, is what a
+        per-sample update pays; the sums of a window's samples are then a few array products."""
         t_ns = int(t_ns)
-        R_imu_P = R_pano_imu.T
         self._n += 1
         if self._t_first_ns is None:
             self._t_first_ns = t_ns
         self._t_last_ns = t_ns
         gw = self._gw
-        k = gw.open(t_ns)
-        gw.n[k] += 1
-        sums = gw.sums
-        sums['S'][k] += R_imu_P
-        sums['Rta'][k] += R_pano_imu @ accel
-        sums['a'][k] += accel
+        if gw.end_ns is not None and t_ns >= gw.end_ns:
+            self._flush_gravity()
+        self._g_window = gw.open(t_ns)
+        r = R_pano_imu.ravel().tolist()
+        ax, ay, az = np.asarray(accel, dtype=float).tolist()
+        r.append(ax)
+        r.append(ay)
+        r.append(az)
+        self._g_rows.append(r)
         if omega is not None and self._lever:
-            self._add_lever_arm(t_ns, R_pano_imu, omega, accel, k)
-        aa = float(accel @ accel)
+            self._add_lever_arm(t_ns, r, np.asarray(omega, dtype=float).tolist(), ax, ay, az)
+        aa = ax * ax + ay * ay + az * az
         self._sum_aa += aa
         self._sum_a_norm += math.sqrt(aa)
         self._dirty = True
@@ -158,54 +173,98 @@ class WorldAlignment:
     def add_field(self, t_ns: int, R_pano_imu: Array, mag: Array) -> None:
         """One calibrated field sample (any unit) with the IMU's orientation in the panorama
         frame at its own stamp (a magnetometer has its own rate and stamps)."""
-        t_ns, R_imu_P, fw = int(t_ns), R_pano_imu.T, self._fw
+        t_ns, fw = int(t_ns), self._fw
         self._dirty = True
-        k = fw.open(t_ns)
-        fw.n[k] += 1
-        fw.sums['S'][k] += R_imu_P
-        fw.sums['Rtm'][k] += R_pano_imu @ mag
-        fw.sums['m'][k] += mag
-        fw.sums['norm'][k] += math.sqrt(float(mag @ mag))
+        if fw.end_ns is not None and t_ns >= fw.end_ns:
+            self._flush_field()
+        self._f_window = fw.open(t_ns)
+        r = R_pano_imu.ravel().tolist()
+        r.extend(np.asarray(mag, dtype=float).tolist())
+        self._f_rows.append(r)
         self._field_samples += 1
         span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
-        period_ns = min(int(self.config.solve_period_s * 1e9), max(100_000_000, int(self.config.solve_period_share * span_ns)))
+        period_ns = min(self._solve_period_ns, max(100_000_000, int(self.config.solve_period_share * span_ns)))
         if self._solve_t_ns is None or t_ns - self._solve_t_ns >= period_ns \
                 or self._field_samples < 8:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()
 
-    def _add_lever_arm(self, t_ns: int, R_pano_imu: Array, omega: Array, accel: Array, k: int) -> None:
-        """Sums of the lever-arm terms: a phone turning about a centre at r (IMU frame) feels
+    def _add_lever_arm(self, t_ns: int, row: list[float], omega: list[float], ax: float, ay: float,
+                       az: float) -> None:
+        """The lever-arm terms' inputs: a phone turning about a centre at r (IMU frame) feels
         alpha x r + omega x (omega x r) = K r. The person's turn, not the wrist's tremor, carries
         the phone around that centre, so rate and specific force are low-passed alike
-        (``lever_arm_tau_s``) and alpha is the difference of the low-passed rate."""
-        c = self.config
+        (``lever_arm_tau_s``) and alpha is the difference of the low-passed rate. ``row`` is the
+        sample's R_pano_imu (row-major) and specific force; K and its sums are formed when the
+        window's sums are (:meth:`_flush_gravity`)."""
         prev_t = self._prev_omega_t_ns
-        if self._prev_omega is None or not 0 < t_ns - prev_t < 100_000_000:
-            self._prev_omega, self._prev_accel, self._prev_omega_t_ns = omega, accel, t_ns
+        lp = self._lever_lp
+        if lp is None or not 0 < t_ns - prev_t < 100_000_000:
+            self._lever_lp = [*omega, ax, ay, az]
+            self._prev_omega_t_ns = t_ns
             return
         dt = (t_ns - prev_t) * 1e-9
-        gain = min(1.0, dt / c.lever_arm_tau_s)
-        w_prev, a_prev = self._prev_omega, self._prev_accel
-        assert a_prev is not None  # set together with the rate
-        w_lp = w_prev + gain * (omega - w_prev)
-        a_lp = a_prev + gain * (accel - a_prev)
-        self._prev_omega, self._prev_accel, self._prev_omega_t_ns = w_lp, a_lp, t_ns
+        gain = min(1.0, dt / self.config.lever_arm_tau_s)
+        wx0, wy0, wz0, ax0, ay0, az0 = lp
+        wx, wy, wz = wx0 + gain * (omega[0] - wx0), wy0 + gain * (omega[1] - wy0), wz0 + gain * (omega[2] - wz0)
+        self._lever_lp = [wx, wy, wz, ax0 + gain * (ax - ax0), ay0 + gain * (ay - ay0), az0 + gain * (az - az0)]
+        self._prev_omega_t_ns = t_ns
         self._lever_count += 1
         if self._lever_count % 2:
             return  # every other sample, counted twice: the orbit is slow next to the rate
-        ax, ay, az = (w_lp - w_prev) / dt
-        wx, wy, wz = w_lp
-        ww = wx * wx + wy * wy + wz * wz
-        # K = [alpha]x + [omega]x^2 = [alpha]x + omega omega^T - |omega|^2 I, times 2.
-        K = 2.0 * np.array([[wx * wx - ww, wx * wy - az, wx * wz + ay],
-                            [wy * wx + az, wy * wy - ww, wy * wz - ax],
-                            [wz * wx - ay, wz * wy + ax, wz * wz - ww]])
-        sums = self._gw.sums
-        sums['RtK'][k] += R_pano_imu @ K
-        sums['K'][k] += K
-        sums['KtK'][k] += 0.5 * (K.T @ K)
-        sums['Kta'][k] += K.T @ a_lp
+        # R_pano_imu (9), low-passed specific force (3), rate (3), angular acceleration (3).
+        self._lever_rows.append(row[:9] + self._lever_lp[3:] + [wx, wy, wz, (wx - wx0) / dt,
+                                                               (wy - wy0) / dt, (wz - wz0) / dt])
+
+    def _flush_gravity(self) -> None:
+        """Add the kept samples to the open gravity window's sums (S = sum R_imu_P, Rta = sum
+        R_P_imu a, a = sum a; with the lever arm K = [alpha]x + [omega]x^2 times 2 per counted
+        sample, and RtK = sum R_P_imu K, K, KtK = sum K^T K / 2, Kta = sum K^T a_lp)."""
+        if not self._g_rows:
+            return
+        k, sums = self._g_window, self._gw.sums
+        rows = np.array(self._g_rows)
+        self._g_rows = []
+        R = rows[:, :9].reshape(-1, 3, 3)
+        a = rows[:, 9:12]
+        self._gw.n[k] += len(rows)
+        sums['S'][k] += R.sum(axis=0).T
+        sums['Rta'][k] += np.einsum('nij,nj->i', R, a)
+        sums['a'][k] += a.sum(axis=0)
+        if self._lever_rows:
+            lever = np.array(self._lever_rows)
+            self._lever_rows = []
+            R = lever[:, :9].reshape(-1, 3, 3)
+            a_lp, w, alpha = lever[:, 9:12], lever[:, 12:15], lever[:, 15:18]
+            K = w[:, :, None] * w[:, None, :]
+            K -= np.einsum('ni,jk->njk', (w * w).sum(axis=1, keepdims=True), np.eye(3))
+            K[:, 0, 1] -= alpha[:, 2]
+            K[:, 0, 2] += alpha[:, 1]
+            K[:, 1, 0] += alpha[:, 2]
+            K[:, 1, 2] -= alpha[:, 0]
+            K[:, 2, 0] -= alpha[:, 1]
+            K[:, 2, 1] += alpha[:, 0]
+            K *= 2.0
+            sums['RtK'][k] += np.einsum('nij,njk->ik', R, K)
+            sums['K'][k] += K.sum(axis=0)
+            sums['KtK'][k] += 0.5 * np.einsum('nji,njk->ik', K, K)
+            sums['Kta'][k] += np.einsum('nji,nj->i', K, a_lp)
+
+    def _flush_field(self) -> None:
+        """Add the kept field samples to the open field window's sums (S = sum R_imu_P, Rtm =
+        sum R_P_imu m, m = sum m, norm = sum |m|)."""
+        if not self._f_rows:
+            return
+        k, sums = self._f_window, self._fw.sums
+        rows = np.array(self._f_rows)
+        self._f_rows = []
+        R = rows[:, :9].reshape(-1, 3, 3)
+        m = rows[:, 9:12]
+        self._fw.n[k] += len(rows)
+        sums['S'][k] += R.sum(axis=0).T
+        sums['Rtm'][k] += np.einsum('nij,nj->i', R, m)
+        sums['m'][k] += m.sum(axis=0)
+        sums['norm'][k] += np.sqrt((m * m).sum(axis=1)).sum()
 
     def set_declination(self, declination_rad: float) -> None:
         """Change the magnetic declination (true north = magnetic north turned by it); the
@@ -237,6 +296,7 @@ class WorldAlignment:
         closed = self._gw.count - 1  # the open window changes with every sample
         if self._gravity is not None and self._gravity_windows == closed and closed >= 4:
             return self._gravity
+        self._flush_gravity()
         c = self.config
         n_w, sums = self._gw.arrays()
         S_w, Rta_w, a_w = sums['S'], sums['Rta'], sums['a']
@@ -306,6 +366,7 @@ class WorldAlignment:
         windows' sums are kept. Returns f_P, h (relative to |B|), the residual sigma of the
         window headings (rad) and the share of windows weighted below one half."""
         c = self.config
+        self._flush_field()
         n_w, sums = self._fw.arrays()
         S_w, Rtm_w, m_w, norm_w = sums['S'], sums['Rtm'], sums['m'], sums['norm']
         scale = float(np.median(norm_w / n_w))
@@ -340,7 +401,7 @@ class WorldAlignment:
         for _ in range(max(1, c.irls_iterations)):
             wn = w_win * n_w
             sw = float(wn.sum())
-            WS = np.einsum('n,nij->ij', w_win, S_w)  # sum w R_imu_P
+            WS = (w_win @ S_w.reshape(-1, 9)).reshape(3, 3)  # sum w R_imu_P
             dim = 6 if f_lin is None or not soft else 12
             A = np.zeros((dim, dim))
             A[:3, :3] = np.eye(3) * sw
@@ -394,7 +455,9 @@ class WorldAlignment:
         mean_f = (Rtm_w - np.einsum('nji,j->ni', S_w, h)) / n_w[:, None]  # mean R_P_imu (m - h)
         if E is not None:
             S_mean = S_w / n_w[:, None, None]
-            mean_f -= np.einsum('nji,jk,nkl,l->ni', S_mean, E, S_mean, f)
+            # sum_jkl S_ji E_jk S_kl f_l per window, as two products (a four-operand einsum
+            # takes ten times longer).
+            mean_f -= np.einsum('nji,nj->ni', S_mean, (S_mean @ f) @ E.T)
         # Headings about up in a basis fixed in the panorama frame, relative to f's.
         e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
         if float(e1 @ e1) < 1e-6:
@@ -485,6 +548,33 @@ class WorldAlignment:
 
     # -- result ----------------------------------------------------------------------------
 
+    def _solve_geometry(self, gravity: tuple[Array, Array], field: tuple[Array, Array, float, float]
+                        ) -> tuple[Array, float, float, float] | None:
+        """R_pano_enu by the gravity-first construction of eq. 3-4 from one gravity and one field
+        solve, with |g|, tan(dip) and the field's part of the heading variance (None when the
+        field is vertical)."""
+        c = self.config
+        g_P = gravity[0]
+        f_P, _, f_sigma, _ = field
+        up = g_P / np.linalg.norm(g_P)
+        east = cross3(f_P, up)
+        f_h = float(np.linalg.norm(east))
+        if f_h < 1e-6:
+            return None
+        east /= f_h
+        north = cross3(up, east)
+        R_pano_magenu = np.column_stack([east, north, up])
+        R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
+        self._field_enu_ref = R_pano_enu.T @ f_P
+        # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
+        tan_dip = abs(float(f_P @ up)) / f_h
+        assert self._field_error is not None  # set by every field solve
+        prior_sigma = self._prior[1] if self._prior is not None else 0.0
+        field_var = field_heading_mse(self._field_error, f_sigma, east, f_h, c.hard_iron_prior_sigma,
+                                      c.soft_iron_prior_sigma, prior_sigma)
+        return R_pano_enu, float(np.linalg.norm(g_P)), tan_dip, field_var
+
+
     def estimate(self) -> WorldAlignmentEstimate | None:
         """The current R_pano_enu with its covariance (None before any field sample)."""
         if not self.ready:
@@ -492,35 +582,29 @@ class WorldAlignment:
         if not self._dirty and self._estimate is not None:
             return self._estimate
         c = self.config
-        g_P, b_a = self._solve_gravity()
-        f_P, h, f_sigma, outliers = self._field  # type: ignore[misc]
-        up = g_P / np.linalg.norm(g_P)
-        east = cross3(f_P, up)
-        f_h = float(np.linalg.norm(east))
-        if f_h < 1e-6:
-            return self._estimate
-        east /= f_h
-        north = cross3(up, east)
-        R_pano_magenu = np.column_stack([east, north, up])
-        R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
-        self._field_enu_ref = R_pano_enu.T @ f_P
+        gravity = self._solve_gravity()
+        field = self._field
+        assert field is not None  # ready
+        key = (gravity, field, c.declination_rad)
+        if self._geometry is None or not all(a is b for a, b in zip(self._geometry[0], key)):
+            # Between solves only the session's span changes (the tilt variance): the rotation
+            # and the field's part of the heading variance are computed once per solve pair.
+            geometry = self._solve_geometry(gravity, field)
+            if geometry is None:
+                return self._estimate
+            self._geometry = (key, *geometry)
+        _, R_pano_enu, g, tan_dip, field_var = self._geometry
         # Covariance (alignment_covariance): the hand's motion in the tilt; the windows' scatter
         # and the hard iron's bias through the field solve in the heading; plus floors.
         span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
-        g = float(np.linalg.norm(g_P))
         tilt_var = hand_tilt_variance(c.hand_velocity_m_s, c.hand_period_s, self._ramp_s, span_s, g) \
             + c.tilt_floor_rad ** 2
-        # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
-        tan_dip = abs(float(f_P @ up)) / f_h
-        assert self._field_error is not None  # set by every field solve
-        prior_sigma = self._prior[1] if self._prior is not None else 0.0
-        field_var = field_heading_mse(self._field_error, f_sigma, east, f_h, c.hard_iron_prior_sigma,
-                                      c.soft_iron_prior_sigma, prior_sigma)
         heading_var = (field_var + c.heading_floor_rad ** 2
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
         self._estimate = WorldAlignmentEstimate(
-            R_pano_enu=R_pano_enu, covariance_enu=np.diag([tilt_var, tilt_var, heading_var]),
-            field_outlier_share=outliers,
-            hard_iron=h, accel_bias=b_a, soft_iron=self._soft_iron, field_scale=self._field_scale)
+            R_pano_enu=R_pano_enu,
+            covariance_enu=np.array([[tilt_var, 0.0, 0.0], [0.0, tilt_var, 0.0], [0.0, 0.0, heading_var]]),
+            field_outlier_share=field[3], hard_iron=field[1], accel_bias=gravity[1], soft_iron=self._soft_iron,
+            field_scale=self._field_scale)
         self._dirty = False
         return self._estimate
