@@ -140,6 +140,15 @@ class GyroBackupConfig:
     bias_window_s: float = 0.3  # visual/gyro comparison interval for the bias
     bias_gain: float = 0.05  # weight of one comparison in the running bias
     max_bias_rad_s: float = 0.1  # larger observed biases are discarded as outliers
+    #: Time constant of the accelerometer's pull on the backup's tilt (0: gyro only). A phone
+    #: gyro's scale error (0.1-0.5 %) turns a few degrees of the user's turning into tilt over
+    #: a long loss; the mean specific force points up as the hand's acceleration averages out.
+    tilt_tau_s: float = 3.0
+    #: Specific forces further than this share from g are not used (a jerk, a step).
+    tilt_accel_gate: float = 0.15
+    #: The tilt's 1-sigma the accelerometer holds it to (the hand's acceleration over tau).
+    tilt_sigma_rad: float = 0.01
+    gravity_m_s2: float = 9.80665
 
 
 #: Deprecated name (issue 21: the core's configuration dataclasses are all called ``*Config``);
@@ -154,7 +163,9 @@ class GyroBackup:
     frame and propagates ``R_enu_cam <- R_enu_cam exp(R_cam_imu (w - b) dt)`` from there. The gyro
     bias b is learnt while vision works: over a window, the gyro-only rotation of the camera is
     compared with the visual tracker's, and their difference per second is the bias (in the
-    camera frame, turned into the IMU frame).
+    camera frame, turned into the IMU frame). With the accelerometer, the tilt is pulled towards
+    the measured up with time constant ``tilt_tau_s`` (a complementary filter on tilt only; the
+    heading stays the gyro's, which outlasts a disturbed compass).
     """
 
     def __init__(self, R_imu_cam: Array, params: GyroBackupConfig | None = None,
@@ -176,8 +187,9 @@ class GyroBackup:
         self.cov: Array = np.eye(3)
         self.anchor_ns: int | None = None
 
-    def add_gyro(self, t_ns: int, omega_imu: Array) -> None:
-        """One gyro sample (raw rate minus any configured bias, imu frame, rad/s)."""
+    def add_gyro(self, t_ns: int, omega_imu: Array, accel_imu: Array | None = None) -> None:
+        """One gyro sample (raw rate minus any configured bias, imu frame, rad/s), with the
+        specific force of the same sample (imu frame, m/s^2) for the tilt correction."""
         t_ns = int(t_ns)
         if self.t_ns is not None:
             dt = (t_ns - self.t_ns) * 1e-9
@@ -198,9 +210,27 @@ class GyroBackup:
                     since = 0.0 if self.anchor_ns is None else (t_ns - self.anchor_ns) * 1e-9
                     self.cov = self.cov + np.eye(3) * (p.gyro_noise_rad_s**2 * dt * dt
                                                        + 2.0 * p.bias_sigma_rad_s**2 * since * dt)
+                    if accel_imu is not None and p.tilt_tau_s > 0:
+                        self._pull_tilt(np.asarray(accel_imu, dtype=float), dt)
         self.t_ns = t_ns
         self.omega = np.asarray(omega_imu, dtype=float)
         self.chain.add(t_ns, self._chain_R)
+
+    def _pull_tilt(self, accel_imu: Array, dt: float) -> None:
+        """Turn R_enu_cam by dt / tilt_tau_s of the angle between the measured up (the specific
+        force, in ENU through the current estimate) and the ENU z axis, about their common
+        horizontal axis (no heading change); the tilt variance relaxes to tilt_sigma_rad^2."""
+        p = self.params
+        assert self.R_enu_cam is not None
+        norm = float(np.linalg.norm(accel_imu))
+        if not abs(norm - p.gravity_m_s2) <= p.tilt_accel_gate * p.gravity_m_s2:
+            return
+        ux, uy, _ = (self.R_enu_cam @ (self.R_imu_cam.T @ accel_imu)) / norm
+        k = min(1.0, dt / p.tilt_tau_s)
+        # u x z = (uy, -ux, 0): rotating u about it turns u towards z.
+        self.R_enu_cam = so3_exp(np.array([k * uy, -k * ux, 0.0])) @ self.R_enu_cam
+        for i in (0, 1):
+            self.cov[i, i] += k * (p.tilt_sigma_rad ** 2 - self.cov[i, i])
 
     def _turn_since(self, t_ns: int) -> Array:
         """The camera's rotation (camera axes) from ``t_ns`` to the last gyro sample: the gyro's

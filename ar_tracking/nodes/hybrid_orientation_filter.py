@@ -145,6 +145,7 @@ class HybridOrientationFilterNode(TrackingNode):
             bias_sigma_rad_s=v['gyro_bias_sigma_rad_s'],
             bias_window_s=v['gyro_bias_window_s'],
             bias_gain=v['gyro_bias_gain'],
+            tilt_tau_s=v['backup_tilt_tau_s'],
         )
         self.visual_noise_rad: float = v['visual_noise_rad']
         self.max_pair_gap_ns = int(1e9 * v['max_pair_gap_s'])
@@ -484,7 +485,7 @@ class HybridOrientationFilterNode(TrackingNode):
             self.clock.trim_kept(t_imu - _PRE_VISION_NS)
         t_g = t_imu - self.clock.offset_ns  # in the camera's clock from here on
         self.last_imu_ns = t_g
-        self.backup.add_gyro(t_g, sample[2])
+        self.backup.add_gyro(t_g, sample[2], sample[1])
         if self.distortion is not None:
             self.distortion.add_gyro(t_g, sample[2])
         self.pending.append((t_g, *sample[1:]))

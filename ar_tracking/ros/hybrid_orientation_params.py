@@ -91,6 +91,9 @@ PARAMS = (
               min_value=0.05, max_value=10.0),
     ParamSpec('gyro_bias_gain', _GYRO.bias_gain,
               'Weight of one comparison in the running gyro bias (0: no learning)', min_value=0.0, max_value=1.0),
+    ParamSpec('backup_tilt_tau_s', _GYRO.tilt_tau_s,
+              'Time constant of the accelerometer pulling the gyro backup\'s tilt towards the measured up '
+              'while vision is lost, s (0: gyro only)', min_value=0.0, max_value=1000.0),
     ParamSpec('visual_noise_rad', 0.001, 'Noise of the visual orientation, 1-sigma rad', min_value=0.0, max_value=1.0),
     ParamSpec('max_mag_age_s', 0.1,
               'Not used here (each field sample is paired with the visual orientation at its own stamp); kept so '
