@@ -147,7 +147,7 @@ class GyroBackupConfig:
     #: Specific forces further than this share from g are not used (a jerk, a step).
     tilt_accel_gate: float = 0.15
     #: The tilt's 1-sigma the accelerometer holds it to (the hand's acceleration over tau).
-    tilt_sigma_rad: float = 0.01
+    tilt_sigma_rad: float = 0.005
     gravity_m_s2: float = 9.80665
 
 
@@ -219,14 +219,19 @@ class GyroBackup:
     def _pull_tilt(self, accel_imu: Array, dt: float) -> None:
         """Turn R_enu_cam by dt / tilt_tau_s of the angle between the measured up (the specific
         force, in ENU through the current estimate) and the ENU z axis, about their common
-        horizontal axis (no heading change); the tilt variance relaxes to tilt_sigma_rad^2."""
+        horizontal axis (no heading change), weighted by the share of the tilt variance the
+        accelerometer's (tilt_sigma_rad^2) would remove; the variance relaxes towards it."""
         p = self.params
         assert self.R_enu_cam is not None
         norm = float(np.linalg.norm(accel_imu))
         if not abs(norm - p.gravity_m_s2) <= p.tilt_accel_gate * p.gravity_m_s2:
             return
         ux, uy, _ = (self.R_enu_cam @ (self.R_imu_cam.T @ accel_imu)) / norm
-        k = min(1.0, dt / p.tilt_tau_s)
+        # Pulled by how much less the accelerometer's tilt is in doubt than the gyro's own: just
+        # after an anchor (a short loss) the gyro's tilt is the better one and the hand's
+        # acceleration would only disturb it.
+        tilt_var = 0.5 * (self.cov[0, 0] + self.cov[1, 1])
+        k = min(1.0, dt / p.tilt_tau_s) * tilt_var / (tilt_var + p.tilt_sigma_rad ** 2)
         # u x z = (uy, -ux, 0): rotating u about it turns u towards z.
         self.R_enu_cam = so3_exp(np.array([k * uy, -k * ux, 0.0])) @ self.R_enu_cam
         for i in (0, 1):
