@@ -101,6 +101,10 @@ PARAMS = (
               'Search radius of the second attempt and of re-localisation, pixels',
               min_value=1, max_value=48, read_only=True),
     ParamSpec('max_features', 60, 'Map keypoints searched per frame', min_value=10, max_value=1000, read_only=True),
+    ParamSpec('restart_lost_s', 3.0,
+              'Lost this long with nothing in the map to relocalise against (the camera turned on into azimuths '
+              'the map never saw), a new panorama starts from the current frame, s; 0: wait for the old map',
+              min_value=0.0, max_value=3600.0, read_only=True),
     ParamSpec('readout_s', 0.0,
               'Rolling-shutter readout of the camera, s (0: a global shutter); the tracker and the map turn each row '
               'by the camera\'s rate, and panorama/orientation is the orientation at the frame\'s stamp',
@@ -185,7 +189,7 @@ class PanoramaMapperNode(TrackingNode):
                                   min_matched_inlier_ratio=v['min_matched_inlier_ratio'],
                                   weak_ncc=v['weak_ncc'], inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
             wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'], readout_s=v['readout_s'],
-            estimate_readout=v['estimate_readout'], repaint_max_mb=v['repaint_max_mb'],
+            estimate_readout=v['estimate_readout'], repaint_max_mb=v['repaint_max_mb'], restart_lost_s=v['restart_lost_s'],
             offset_exposure=replace(OFFSET_EXPOSURE, smooth=v['edr_smooth']), edr_correction=v['edr_correction'],
         )
         self.core = PanoramaMapper(self.config)
@@ -296,11 +300,16 @@ class PanoramaMapperNode(TrackingNode):
             self.warn_throttled('camera: frame size changed, frame skipped')
             return
         to_map = rgb if (self.color and rgb is not None) else gray
+        restarts = self.core.restarts
         try:
             res = self.core.process(to_map, K, t, gray=gray)
         except PanoramaError as exc:
             self.warn_throttled(f'camera: {exc}, frame skipped')
             return
+        if self.core.restarts != restarts:
+            self.get_logger().warning(
+                f'panorama tracking lost for {self.config.restart_lost_s:g} s with nothing in the map to relocalise '
+                'against: a new panorama starts from this frame')
         self._log_readout()
         R = res.R_pano_cam
         if R is not None and np.all(np.isfinite(R)):

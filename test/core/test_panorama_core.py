@@ -315,3 +315,30 @@ def test_relocaliser_consensus_finds_the_rotation_most_tile_matches_agree_on():
     assert len(hyps) == 2
     assert angle_deg(hyps[0], R_a) < 0.2 and angle_deg(hyps[1], R_b) < 0.2  # the roll is the least sure
     assert _consensus_rotations(rays[17:], d[17:], 6.0 / f, 3, 3) == []  # nothing agrees
+
+
+@pytest.mark.parametrize('restart_lost_s', [0.0, 2.0])
+def test_a_new_panorama_starts_when_the_camera_stays_where_the_map_never_was(world, restart_lost_s):
+    """After 30 deg mapped, the camera looks at a scene the map never saw (another texture) and
+    stays there: with ``restart_lost_s`` a new panorama starts from the frame 2 s into the loss
+    and the frames after it track in it (their rotations from that frame exact); with 0 the
+    mapper waits for its old map and every one of them is lost."""
+    mapper = PanoramaMapper(MapperConfig(restart_lost_s=restart_lost_s))
+    run(mapper, world, sweep(30, 1.0, seed=2))
+    elsewhere = CylinderWorld(7)
+    Rs = [rot('y', 0.3 * k) @ rot('x', 2 * math.sin(0.1 * k)) for k in range(100)]
+    results = []
+    for k, R in enumerate(Rs):
+        results.append(mapper.process(elsewhere.render(R, rng=np.random.default_rng(k)), K, (40 + k) * DT))
+        mapper.background()
+    statuses = [r.status for r in results]
+    if restart_lost_s == 0.0:
+        assert statuses == ['lost'] * len(Rs) and mapper.restarts == 0
+        return
+    start = statuses.index('initialised')
+    assert mapper.restarts == 1 and statuses[:start] == ['lost'] * start
+    assert (start - 1) * DT * 1e-9 < restart_lost_s <= start * DT * 1e-9  # 2 s after the first failed frame
+    tracked = results[start + 1:]
+    assert all(r.status == 'tracked' for r in tracked)
+    for k, r in enumerate(tracked, start + 1):
+        assert angle_deg(r.R_pano_cam, Rs[start].T @ Rs[k]) < 0.1

@@ -77,6 +77,11 @@ class MapperConfig:
     min_keypoints: int = 150
     #: Largest rotation between consecutive tracked frames accepted, degrees.
     max_step_deg: float = 30.0
+    #: Lost this long (stamps) with nothing in the map to relocalise against, a new panorama is
+    #: started from the current frame, s; 0 waits for the map forever. A user who turns on into
+    #: azimuths the map never saw (the tracker lost among near objects) would otherwise stay
+    #: lost until they turn back; the readout estimate is kept (it is the camera's).
+    restart_lost_s: float = 3.0
     #: Frames with a grey-level standard deviation below this are textureless (lost).
     min_texture_std: float = 3.0
     #: EDR correction model (sec. 4.1): 'overlap' - gain and offset fitted on every mapped
@@ -154,6 +159,10 @@ class PanoramaMapper:
         self._overlap_fit: tuple[float, float] | None = None
         self.frame_index = 0
         self.lost_frames = 0
+        #: Stamp of the first frame of the current loss (None while tracking).
+        self._lost_since_ns: int | None = None
+        #: New panoramas started after a loss (restart_lost_s), since the reset.
+        self.restarts = 0
         self.frame_size: tuple[int, int] | None = None
         self._last_R: Array | None = None
         self._last_stamp: int | None = None
@@ -255,6 +264,9 @@ class PanoramaMapper:
                     res = res2 if res2.ok else res
                     break
         if res is None or not res.ok:
+            if self._restart_due(stamp_ns):
+                self._restart()
+                return self.process(frame, K, stamp_ns, gray, prior)
             return self._lose(res.reason if res is not None else 'no relocalisation hypothesis', res)
         R = res.R_pano_cam
         if status == 'tracked':
@@ -414,7 +426,26 @@ class PanoramaMapper:
         self._last_stamp = stamp_ns
         self._last_centre = centre
         self._tracking = True
+        self._lost_since_ns = None
 
+    def _restart_due(self, stamp_ns: int | None) -> bool:
+        """Whether this lost frame ends the wait for the old map (``restart_lost_s``)."""
+        limit = self.config.restart_lost_s
+        if limit <= 0 or stamp_ns is None:
+            return False
+        if self._lost_since_ns is None or stamp_ns < self._lost_since_ns:
+            self._lost_since_ns = stamp_ns
+        return (stamp_ns - self._lost_since_ns) * 1e-9 >= limit
+
+    def _restart(self) -> None:
+        """A new panorama: the map and everything tied to it forgotten, the camera's readout
+        (estimate and estimator) kept; the next frame initialises the new map."""
+        readout_s, estimator, lost, restarts = self.readout_s, self.readout_estimator, self.lost_frames, self.restarts
+        self.reset()
+        self.readout_s, self.readout_estimator, self.lost_frames = readout_s, estimator, lost
+        self.restarts = restarts + 1
+        if readout_s > 0.0:
+            self._early = None  # nothing to paint again: the readout is known
     def _lose(self, reason: str, res: TrackResult | None = None) -> FrameResult:
         if self.config.estimate_readout and self.readout_s == 0.0 and self._tracking:
             # Lost while mapping as a global shutter: from now on an early estimate of the
