@@ -265,7 +265,10 @@ def annotate_bag(bag: str | Path, store_path: str | Path, *, positions: Position
             params_files = [side] if side is not None else []
         cal, R_imu_cam, decl = load_device_params(params_files)
         geo = CylinderGeometry()
-        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), **load_camera_params(params_files)))
+        # One authoring session is one panorama: a restart after a loss would leave the
+        # annotations placed before it in a map that is gone.
+        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), restart_lost_s=0.0,
+                                             **load_camera_params(params_files)))
         world_est = PanoramaWorldEstimator(cal, R_imu_cam, WorldAlignmentConfig(declination_rad=decl))
         fixes, init_ns = _map_bag(bag, mapper, world_est, progress)
         if init_ns is None:

@@ -10,7 +10,8 @@
 Tracking: the panorama frame is the camera at the panorama's first frame, so both the estimate
 (R_pano_cam) and the truth are taken relative to the first frame: the truth R_enu_cam(t0)^T
 R_enu_cam(t) is slerp-interpolated at each estimate stamp, t0 = the stamp of the first
-published orientation (published as identity). Frames are counted from ``/camera/camera_info``
+published orientation (published as identity); a later identity starts a new panorama (the
+mapper's ``restart_lost_s``) and the frames from it are taken relative to it. Frames are counted from ``/camera/camera_info``
 (one per image, copied into the output bag by the runner), so ``lost_frames`` is the number of
 camera frames without an orientation.
 
@@ -156,8 +157,10 @@ def seam_errors(bag_path: str | Path, max_frames: int | None = None,
 
 def tracking_errors(est_stamps: NDArray[np.int64], R_est: Array, truth_stamps: NDArray[np.int64],
                     R_truth: Array) -> tuple[NDArray[np.int64], Array]:
-    """Angle (deg) between each estimate and the truth, both relative to the first estimate's
-    stamp; returns (stamps inside the truth's span, errors)."""
+    """Angle (deg) between each estimate and the truth, both relative to the stamp of the first
+    estimate of its panorama; returns (stamps inside the truth's span, errors). A panorama starts
+    at its first frame, published as the identity: a later identity is a new panorama
+    (panorama_mapper's ``restart_lost_s``), and the frames from it are taken relative to it."""
     inside = (est_stamps >= truth_stamps[0]) & (est_stamps <= truth_stamps[-1])
     st, Re = est_stamps[inside], R_est[inside]
     if st.size == 0:
@@ -165,10 +168,10 @@ def tracking_errors(est_stamps: NDArray[np.int64], R_est: Array, truth_stamps: N
     t = (truth_stamps - truth_stamps[0]) * 1e-9
     q = (st - truth_stamps[0]) * 1e-9
     Rt, _ = interpolate_rotations(t, R_truth, q)
-    R0 = Rt[0]
-    Re0 = Re[0]
-    rel_true = np.einsum('ji,njk->nik', R0, Rt)
-    rel_est = np.einsum('ji,njk->nik', Re0, Re)
+    starts = np.flatnonzero(np.all(np.abs(Re - np.eye(3)) < 1e-12, axis=(1, 2)))
+    first = np.maximum.accumulate(np.where(np.isin(np.arange(len(st)), starts), np.arange(len(st)), 0))
+    rel_true = np.einsum('nji,njk->nik', Rt[first], Rt)
+    rel_est = np.einsum('nji,njk->nik', Re[first], Re)
     E = np.einsum('nji,njk->nik', rel_est, rel_true)
     return st, np.degrees(trace_angle(E))
 

@@ -28,6 +28,19 @@ def test_tracking_errors_are_relative_to_the_first_frame():
     assert np.delete(err, 5).max() < 1e-4
 
 
+def test_tracking_errors_start_over_where_a_new_panorama_starts():
+    """The mapper restarted at frame 6 (published as the identity): the frames from there are
+    relative to it and exact; taken relative to the first panorama they would be 6 deg off."""
+    ts = np.arange(0, 11, dtype=np.int64) * 10
+    truth = np.array([rot('x', 30) @ rot('y', k) for k in range(11)])
+    est = np.array([rot('y', k) for k in range(6)] + [rot('y', k - 6) for k in range(6, 11)])
+    st, err = tracking_errors(ts, est, ts, truth)
+    assert st.size == 11 and err.max() < 1e-4
+    est[6] = est[6] @ rot('x', 1e-3)  # not exactly the identity: the same panorama
+    _, err = tracking_errors(ts, est, ts, truth)
+    assert err[7:].min() > 5.9
+
+
 @pytest.mark.skipif(not BAG.exists(), reason='sample bag missing')
 def test_lockstep_run_is_reproducible_and_tracks_the_sample_bag(tmp_path):
     outs = []
