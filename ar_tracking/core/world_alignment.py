@@ -87,14 +87,7 @@ class WorldAlignment:
 
     def reset(self, prior: tuple[Array, float] | None = None) -> None:
         """Forget every sample. ``prior`` = (R_pano_enu, 1-sigma rad) seeds a new panorama
-        with the orientation carried over (e.g. by the gyro) from the previous one; the hard
-        iron found so far is carried too (it is the phone's, not the panorama's): the new field
-        solve's ridge on h is centred on it instead of on zero."""
-        carried_h = None
-        if prior is not None and getattr(self, '_h_last', None) is not None:
-            carried_h = self._h_last * self._field_scale  # in the field samples' own unit
-        #: The hard iron a new panorama starts from (the field's unit; None: zero).
-        self._h_carried: Array | None = carried_h
+        with the orientation carried over (e.g. by the gyro) from the previous one."""
         # Gravity: normal equations of [g_P; b_a] as sums.
         self._n = 0
         self._lever = self.config.lever_arm_sigma_m > 0
@@ -394,8 +387,7 @@ class WorldAlignment:
         # a joint least-squares start would let h absorb a disturbance - with little rotation a
         # field offset fixed in the world and one fixed in the phone look alike - after which
         # every window agrees with the wrong fit.
-        h_centre = np.zeros(3) if self._h_carried is None else self._h_carried / scale
-        h_held = self._h_last if self._h_last is not None else h_centre
+        h_held = self._h_last if self._h_last is not None else np.zeros(3)
         if n_win >= 3:
             # (Only h: holding the previous soft iron too made fresh seeds 341-370 slightly
             # worse - median +0.01 deg, one seed +0.28.)
@@ -426,7 +418,6 @@ class WorldAlignment:
                 rhs[6:] = rhs_e
             A_data = A.copy()  # what the samples give; the ridges and the prior follow
             A[3:6, 3:6] += np.eye(3) * sw * lam
-            rhs[3:6] += sw * lam * h_centre
             if dim == 12:
                 A[6:, 6:] += np.eye(6) * sw * lam_e
             wp = 0.0
