@@ -76,6 +76,8 @@ _REPAIR_NS = 10_000_000_000
 #: Before the first visual orientation arrives, IMU and field samples of this long are kept
 #: (the first frame's stamp can be this much older than the IMU's newest: camera latency), ns.
 _PRE_VISION_NS = 1_000_000_000
+#: The orientation a tracker publishes for the first frame of a new panorama or map.
+_IDENTITY = np.eye(3)
 #: A visual lag worth telling the user about once, ns.
 _LAG_REPORT_NS = 20_000_000
 
@@ -191,6 +193,7 @@ class HybridOrientationFilterNode(TrackingNode):
         self.first_ahrs_ns: int | None = None  # the first imu/data stamp (start-up hold)
         self.last_published_ns: int | None = None
         self.panorama_frame = 'panorama'
+        self._last_was_identity = False  # the last visual frame was the identity (a first frame)
         self.published = 0
 
         self.pub_global = self.advertise(Imu, 'orientation/global', RELIABLE_QOS)
@@ -360,7 +363,16 @@ class HybridOrientationFilterNode(TrackingNode):
         if msg.header.frame_id:
             self.panorama_frame = msg.header.frame_id.lstrip('/')
         R_raw = R_pano_cam
-        if self.distortion is not None:
+        # A tracker publishes the first frame of a new panorama (or map) as the identity; any
+        # later frame is never exactly it. So a restart is known even when the camera happens
+        # to look where the old panorama started (no jump to see). (A tracker that repeats the
+        # identity until it moves restarts only once.)
+        identity = bool(np.array_equal(R_raw, _IDENTITY))
+        first_of_new = self.last_visual_ns is not None and identity and not self._last_was_identity
+        self._last_was_identity = identity
+        if self.distortion is not None and first_of_new:
+            self.distortion.reset()  # a new panorama has its own (from its next frame: its up is not known yet)
+        elif self.distortion is not None:
             # Learnt from the raw orientation; everything below but the time offset's estimate
             # (the gyro against the raw tracker: corrected, the two would chase each other) uses
             # the corrected one.
@@ -372,17 +384,18 @@ class HybridOrientationFilterNode(TrackingNode):
         # (the estimate below, after _resolve, is the one published; estimate() computes only
         # when samples were added since its last call, so each state is solved once).
         # The backup at the frame's stamp: the gyro runs ahead of it by the camera's latency.
-        R_backup = self.backup.at(t_v) if returning else None
+        R_backup = self.backup.at(t_v) if returning or first_of_new else None
         estimate = self.align.estimate() if R_backup is not None else None
         if estimate is not None and R_backup is not None:
             R_vis = estimate.R_pano_enu.T @ R_pano_cam
             jump = float(np.linalg.norm(so3_log(R_backup.T @ R_vis)))
-            if jump > self.reseed_rad:
+            if first_of_new or jump > self.reseed_rad:
                 # A new visual reference frame (tracker restarted): carry the orientation over
                 # from the gyro backup as a prior of a new panorama-in-world estimate.
                 self.get_logger().warning(
-                    f'vision returned {np.degrees(jump):.1f} deg away from the gyro backup: '
-                    'a new panorama frame, placed in the world from the backup')
+                    ('the first frame of a new panorama' if first_of_new else
+                     f'vision returned {np.degrees(jump):.1f} deg away from the gyro backup: a new panorama frame')
+                    + ', placed in the world from the backup')
                 R_pe = R_pano_cam @ R_backup.T
                 self.align.reset(prior=(R_pe, float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))))
                 self.pending.clear()

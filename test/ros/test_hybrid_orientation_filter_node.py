@@ -210,6 +210,29 @@ def test_a_restarted_panorama_is_placed_in_the_world_from_the_gyro(ros_context):
         h.close()
 
 
+def test_a_new_panorama_close_to_the_old_one_is_known_by_its_first_frame(ros_context):
+    """The tracker restarts after a loss while the camera looks 3.6 deg from where the old
+    panorama started: too close to tell from a lost tracker's return by the jump, but a new
+    panorama publishes its first frame as the identity. The new frame is placed in the world
+    from the gyro; taken for the old one, the output would be 3.6 deg off."""
+    h = Harness(ros_context)
+    try:
+        rng = np.random.default_rng(11)
+        h.play(0.0, 4.0, rng)
+        h.play(4.0, 6.46, rng, visual=False)
+        t_first = 6.44
+        new_frame = truth(t_first).T
+        assert 3.0 < heading_tilt_error_deg(new_frame.T, R_PANO_ENU.T)[0] < 4.0
+        h.visual(T0 + int(round(t_first * 50)) * 20_000_000, np.eye(3))
+        n = len(h.out)
+        h.play(6.46, 9.0, rng, R_pano_enu=new_frame)
+        assert all(abs(heading_err(m)) < 1.0 for m in h.out[n:])
+        R_enu_pano = rotation_from_quaternion(h.frames[-1].transform.rotation)
+        assert heading_tilt_error_deg(R_enu_pano, new_frame.T)[0] < 1.0
+    finally:
+        h.close()
+
+
 def test_gyro_rate_output_fills_the_gaps_between_frames(ros_context):
     h = Harness(ros_context, {'gyro_rate_output': True})
     try:
