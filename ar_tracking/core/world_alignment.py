@@ -266,6 +266,49 @@ class WorldAlignment:
         sums['m'][k] += m.sum(axis=0)
         sums['norm'][k] += np.sqrt((m * m).sum(axis=1)).sum()
 
+    def reanchor(self, Q: Array, sigma_rad: float) -> None:
+        """A new panorama frame P' = Q P (``Q`` = R_P'P, from the gyro across a tracker restart,
+        known to ``sigma_rad``): the windows so far are turned into P' instead of forgotten, so
+        the hard iron, the field's clusters and gravity keep their history. They are weighted
+        down to what a prior known to sigma_rad is worth (:meth:`_prior_weight`) when they hold
+        more than that: an error of Q would otherwise stay in the estimate for as long again.
+        Beyond ``reanchor_max_sigma_rad`` (or before any estimate) it starts afresh from a prior
+        on the orientation, as :meth:`reset` with one."""
+        Q = np.asarray(Q, dtype=float)
+        c = self.config
+        if sigma_rad > c.reanchor_max_sigma_rad or not self.ready:
+            estimate = self.estimate()
+            self.reset(prior=None if estimate is None else (Q @ estimate.R_pano_enu, sigma_rad))
+            return
+        self._flush_gravity()
+        self._flush_field()
+        alpha = 1.0
+        if self._field_samples > 0:
+            alpha = min(1.0, self._prior_weight(sigma_rad, c.field_model_sigma, 1.0) / self._field_samples)
+        for ws, turned in ((self._gw, {'S': 'right', 'Rta': 'left', 'RtK': 'left'}),
+                           (self._fw, {'S': 'right', 'Rtm': 'left'})):
+            k = ws.count
+            ws.n[:k] *= alpha
+            for name, arr in ws.sums.items():
+                v = arr[:k]
+                if turned.get(name) == 'right':  # sums of R_imu_P: R_imu_P' = R_imu_P Q^T
+                    v[...] = v @ Q.T
+                elif turned.get(name) == 'left':  # sums of R_P_imu x: R_P'_imu x = Q R_P_imu x
+                    v[...] = np.einsum('ij,kj...->ki...', Q, v)
+                v *= alpha
+        self._n = max(1, int(round(self._n * alpha))) if self._n else 0
+        self._sum_aa *= alpha
+        self._sum_a_norm *= alpha
+        if self._prior is not None:
+            self._prior = (Q @ self._prior[0], self._prior[1])
+        self._gravity, self._gravity_windows = None, -1
+        self._heading_mode = None
+        self._estimate, self._geometry, self._dirty = None, None, True
+        if self._field is not None:
+            f, h, sigma, outliers = self._field
+            self._field = (Q @ f, h, sigma, outliers)
+            self._field = self._solve_field()
+
     def set_declination(self, declination_rad: float) -> None:
         """Change the magnetic declination (true north = magnetic north turned by it); the
         samples so far stay, the next estimate uses it."""

@@ -33,6 +33,11 @@ class WorldAlignmentConfig:
     lever_arm_tau_s: float = 0.05
     #: At most this many windows are kept (then neighbours are merged two by two).
     max_windows: int = 20000
+    #: A new panorama frame known to better than this (1-sigma) keeps the old frame's windows
+    #: turned into it (:meth:`WorldAlignment.reanchor`); a looser one starts afresh from a prior:
+    #: the window statistics count windows, not their weights, and old windows a few degrees off
+    #: would outvote the new ones.
+    reanchor_max_sigma_rad: float = math.radians(2.0)
     #: Re-solve the field every this long (sample stamps), s ...
     solve_period_s: float = 1.0
     #: ... or, early in a session, every this share of its span (at least every 0.1 s): the

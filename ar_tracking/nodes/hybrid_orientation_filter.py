@@ -397,7 +397,10 @@ class HybridOrientationFilterNode(TrackingNode):
                      f'vision returned {np.degrees(jump):.1f} deg away from the gyro backup: a new panorama frame')
                     + ', placed in the world from the backup')
                 R_pe = R_pano_cam @ R_backup.T
-                self.align.reset(prior=(R_pe, float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))))
+                sigma = float(np.sqrt(max(np.trace(self.backup.cov) / 3.0, 1e-8)))
+                # The old panorama's windows turned into the new frame (hard iron, field
+                # clusters and gravity keep their history), weighted as the backup is known.
+                self.align.reanchor(R_pe @ estimate.R_pano_enu.T, sigma)
                 self.pending.clear()
                 if self.distortion is not None:  # a new panorama has its own distortion
                     self.distortion.reset()
