@@ -101,9 +101,9 @@ PARAMS = (
               'Search radius of the second attempt and of re-localisation, pixels',
               min_value=1, max_value=48, read_only=True),
     ParamSpec('max_features', 60, 'Map keypoints searched per frame', min_value=10, max_value=1000, read_only=True),
-    ParamSpec('restart_lost_s', 3.0,
+    ParamSpec('restart_lost_s', 0.0,
               'Lost this long with nothing in the map to relocalise against (the camera turned on into azimuths '
-              'the map never saw), a new panorama starts from the current frame, s; 0: wait for the old map',
+              'the map never saw), a new panorama starts from the current frame, s; 0 (default): wait for the old map',
               min_value=0.0, max_value=3600.0, read_only=True),
     ParamSpec('readout_s', 0.0,
               'Rolling-shutter readout of the camera, s (0: a global shutter); the tracker and the map turn each row '
