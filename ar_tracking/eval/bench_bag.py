@@ -16,11 +16,16 @@ logger = logging.getLogger('ar_tracking.eval.bench')
 def reusable_sweep_bag(path: Path) -> bool:
     """Whether a rotation_sweep bag a bench made before can be used again: it exists and was
     made by this simulator revision (a hard bag records it; a kind bag, frozen byte for byte,
-    records nothing). A stale one is said so, and made again by the caller."""
+    records nothing), and was finished (a bench killed while making it leaves an empty or
+    unfinished file). A stale or unfinished one is said so, and made again by the caller."""
     from ..io.bags import read_metadata
+    from ..io.mcap_recovery import is_unfinished_mcap
     from ..sim.rotation_sweep_bag import SIM_METADATA, SIM_REVISION
 
     if not path.exists():
+        return False
+    if path.stat().st_size == 0 or is_unfinished_mcap(path):
+        logger.info('%s was not finished (a run stopped while making it): making it again', path)
         return False
     meta = read_metadata(path, SIM_METADATA)
     if meta is None or meta.get('revision') == SIM_REVISION:

@@ -80,6 +80,10 @@ def test_a_bench_reuses_a_simulated_bag_only_from_this_simulator_revision(tmp_pa
     hard = make_bag('rotation_sweep', tmp_path / 'hard.mcap', seed=3, duration_s=1.0)
     kind = make_bag('rotation_sweep', tmp_path / 'kind.mcap', seed=3, duration_s=1.0, profile='kind')
     assert reusable_sweep_bag(hard) and reusable_sweep_bag(kind)  # kind bags are frozen
+    (tmp_path / 'empty.mcap').touch()  # a bench killed as it started making the bag
+    cut = tmp_path / 'cut.mcap'  # ... or while it wrote it
+    cut.write_bytes(hard.read_bytes()[:hard.stat().st_size // 2])
+    assert not reusable_sweep_bag(tmp_path / 'empty.mcap') and not reusable_sweep_bag(cut)
     old = tmp_path / 'old.mcap'  # the hard bag as the simulator before revisions wrote it
     with BagReader(hard) as src, BagWriter(old) as dst:
         dst.add_metadata(SIM_METADATA, {'scenario': 'rotation_sweep', 'profile': 'hard', 'seed': '3',
