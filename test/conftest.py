@@ -9,8 +9,9 @@ from typing import Any, Callable, Iterator
 
 import pytest
 
-#: Real recordings (../shared/data beside the repository) when present.
-SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
+#: Real recordings (../shared/data beside the repository, or $AR_TRACKING_SHARED_DATA) when present.
+SHARED_DATA = Path(os.environ.get('AR_TRACKING_SHARED_DATA')
+                   or Path(__file__).resolve().parents[2] / 'shared' / 'data')
 
 #: DDS domains of the private contexts: 1-99, a block of 33 per pytest-xdist worker, so that
 #: two workers' tests never share a domain (with one count per process they did, and a latched
