@@ -108,5 +108,66 @@ def _lockstep_runs_lose_nothing(request: pytest.FixtureRequest, monkeypatch: pyt
     assert not bad, 'lockstep run lost or dropped deliveries: ' + '; '.join(bad)
 
 
+#: The committed sample bags (bags/): annotations authored on the first, browsed on the second.
+SAMPLE_BAGS = Path(__file__).resolve().parents[1] / 'bags'
+SAMPLE_AUTHORING = SAMPLE_BAGS / 'rotation_sweep_authoring.mcap'
+SAMPLE_BROWSING = SAMPLE_BAGS / 'rotation_sweep_browsing.mcap'
+#: The tests reading the two fixtures below: on one pytest-xdist worker (--dist loadgroup), so
+#: that the authoring and the graph run on the browsing bag are made once per suite.
+SAMPLE_ANNOTATIONS_GROUP = pytest.mark.xdist_group('sample_annotations')
+
+
+@pytest.fixture(scope='session')
+def sample_authored(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Any]:
+    """The simulated user's annotations on the authoring sample bag (author peter, panorama
+    authoring-7): the store and annotate_bag's report. Tests only read the store."""
+    from ar_tracking.annotate import annotate_bag
+    from ar_tracking.eval.annotation_metrics import simulated_user_positions
+
+    store = tmp_path_factory.mktemp('store') / 'annotations.db'
+    report = annotate_bag(SAMPLE_AUTHORING, store, author='peter', panorama_id='authoring-7',
+                          positions=simulated_user_positions(SAMPLE_AUTHORING))
+    return store, report
+
+
+def browse_sample(bag: Path, store: Path, out: Path) -> Path:
+    """The orientation graph and annotation_matcher (store ``store``) run on ``bag``, lockstep."""
+    import yaml
+
+    from ar_tracking.ros.runner import GRAPH_NODES, GraphRunner
+
+    graph = dict(GRAPH_NODES)
+    graph['annotation_matcher'] = 'ar_tracking.nodes.annotation_matcher:AnnotationMatcherNode'
+    params = out.with_suffix('.yaml')
+    params.write_text(yaml.safe_dump({'annotation_matcher': {'ros__parameters': {'store_path': str(store)}}}))
+    result = GraphRunner(bag, out, params_files=[bag.with_name(bag.stem + '.params.yaml'), params],
+                         graph=graph, nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter',
+                                             'annotation_matcher']).run()
+    assert 'annotation_matcher' in result.nodes
+    return out
+
+
+@pytest.fixture(scope='session')
+def sample_browsed(sample_authored: tuple[Path, Any], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The output bag of :func:`browse_sample` on the browsing sample bag with the authored store."""
+    pytest.importorskip('rclpy')
+    return browse_sample(SAMPLE_BROWSING, sample_authored[0], tmp_path_factory.mktemp('browse') / 'out.mcap')
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """For pytest-xdist's ``--dist loadgroup`` (setup.cfg): the tests of a module that use one of
+    its module-scoped fixtures (a simulated bag, a graph run) form one group, run on one worker,
+    so that the fixture is built once and not once per worker; a test with an ``xdist_group``
+    mark of its own keeps it. Every other test is balanced one by one."""
+    for item in items:
+        if item.get_closest_marker('xdist_group') is not None:
+            continue
+        info = getattr(item, '_fixtureinfo', None)
+        defs = info.name2fixturedefs if info is not None else {}
+        if any(name in defs and defs[name][-1].scope == 'module' for name in getattr(item, 'fixturenames', ())):
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split('::')[0]))
+
+
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line('markers', 'lossy: the test provokes lost or dropped lockstep deliveries on purpose')
