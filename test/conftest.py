@@ -112,9 +112,6 @@ def _lockstep_runs_lose_nothing(request: pytest.FixtureRequest, monkeypatch: pyt
 SAMPLE_BAGS = Path(__file__).resolve().parents[1] / 'bags'
 SAMPLE_AUTHORING = SAMPLE_BAGS / 'rotation_sweep_authoring.mcap'
 SAMPLE_BROWSING = SAMPLE_BAGS / 'rotation_sweep_browsing.mcap'
-#: The tests reading the two fixtures below: on one pytest-xdist worker (--dist loadgroup), so
-#: that the authoring and the graph run on the browsing bag are made once per suite.
-SAMPLE_ANNOTATIONS_GROUP = pytest.mark.xdist_group('sample_annotations')
 
 
 @pytest.fixture(scope='session')
@@ -154,19 +151,58 @@ def sample_browsed(sample_authored: tuple[Path, Any], tmp_path_factory: pytest.T
     return browse_sample(SAMPLE_BROWSING, sample_authored[0], tmp_path_factory.mktemp('browse') / 'out.mcap')
 
 
-@pytest.hookimpl(tryfirst=True)
+#: pytest-xdist (-n 2): the modules whose tests share an expensive module- or session-scoped
+#: fixture (a simulated bag, a graph run), by group. A group runs on one worker, so that its
+#: fixtures are built once and not once per worker; the groups are handed out first, the
+#: other tests one by one after them. (xdist's own ``--dist loadgroup`` does not work with
+#: pytest 9.2: it renames the items' nodeids, which pytest 9.2 no longer lets it do.)
+XDIST_GROUPS = {
+    'test/test_end_to_end.py': 'end_to_end',
+    'test/test_annotations_end_to_end.py': 'sample_annotations',  # sample_authored, sample_browsed
+    'test/eval/test_annotation_replay.py': 'sample_annotations',
+    'test/test_slam_end_to_end.py': 'slam_end_to_end',
+    'test/eval/test_vi_metrics.py': 'vi_metrics',
+    'test/sim/test_rotation_sweep.py': 'rotation_sweep',
+    'test/sim/test_photo_world.py': 'photo_world',
+    'test/core/test_panorama_rolling_shutter.py': 'panorama_rolling_shutter',
+    'test/core/test_panorama_core.py': 'panorama_core',
+    'test/core/test_panorama_overlap.py': 'panorama_overlap',
+    'test/eval/test_report.py': 'report',
+    'test/io/test_replay.py': 'replay',
+    'test/ros/test_panorama_mapper_node.py': 'panorama_mapper_node',
+    'test/ros/test_keyframe_slam_mapper_node.py': 'keyframe_slam_mapper_node',
+}
+
+#: Long tests outside the groups: first in the collection, so that none of them is the last
+#: test of a worker while the other worker is done (xdist hands tests out in this order).
+LONG_TESTS = (
+    'test/test_lint.py::test_mypy_on_the_cores_finds_nothing',
+    'test/eval/test_bench_hybrid.py::test_broad_trial_is_scored_for_every_estimator',
+    'test/eval/test_bench_hybrid.py::test_sim_bench_runs_on_a_short_bag',
+    'test/eval/test_bench_annotations.py::test_make_bag_lighting_argument',
+    'test/core/slam/test_slam_robustness.py::test_relocalises_after_a_long_gap_in_another_place',
+    'test/eval/test_panorama_metrics.py::test_seam_errors_on_the_sample_bag_prefer_edr',
+    'test/eval/test_bench.py::test_quiet_bench_prints_its_json_and_no_node_logs',
+    'test/ros/test_ros_citizen.py::test_graph_as_separate_processes_tf_at_camera_rate_and_live_parameter',
+)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """For pytest-xdist's ``--dist loadgroup`` (setup.cfg): the tests of a module that use one of
-    its module-scoped fixtures (a simulated bag, a graph run) form one group, run on one worker,
-    so that the fixture is built once and not once per worker; a test with an ``xdist_group``
-    mark of its own keeps it. Every other test is balanced one by one."""
-    for item in items:
-        if item.get_closest_marker('xdist_group') is not None:
-            continue
-        info = getattr(item, '_fixtureinfo', None)
-        defs = info.name2fixturedefs if info is not None else {}
-        if any(name in defs and defs[name][-1].scope == 'module' for name in getattr(item, 'fixturenames', ())):
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split('::')[0]))
+    """LONG_TESTS first (a stable sort: the rest keeps its order)."""
+    items.sort(key=lambda item: not item.nodeid.startswith(LONG_TESTS))
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """xdist's load scheduling (the default with -n), with the groups of XDIST_GROUPS."""
+    if config.getvalue('dist') != 'load':
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupedLoadScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return XDIST_GROUPS.get(nodeid.split('::', 1)[0], nodeid)
+
+    return GroupedLoadScheduling(config, log)
 
 
 def pytest_configure(config: pytest.Config) -> None:

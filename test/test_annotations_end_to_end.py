@@ -18,10 +18,9 @@ from ar_tracking.core.panorama.cylinder import CylinderGeometry
 from ar_tracking.core.rotations import quat_xyzw_to_matrix
 from ar_tracking.eval.annotation_metrics import evaluate_annotations, simulated_user_positions
 from ar_tracking.io.bags import BagReader, BagWriter
-from conftest import SAMPLE_ANNOTATIONS_GROUP, SAMPLE_AUTHORING, SAMPLE_BROWSING, browse_sample
+from conftest import SAMPLE_AUTHORING, SAMPLE_BROWSING, browse_sample
 
 AUTHORING, BROWSING = SAMPLE_AUTHORING, SAMPLE_BROWSING
-pytestmark = SAMPLE_ANNOTATIONS_GROUP
 
 
 PANO_ID = 'authoring-7'

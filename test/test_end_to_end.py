@@ -14,9 +14,6 @@ from ar_tracking.io.bags import BagReader  # noqa: E402
 
 CLI = [sys.executable, '-m', 'ar_tracking.cli']
 REPO = Path(__file__).resolve().parents[1]
-#: The tests sharing the module's simulated bags and runs: on one pytest-xdist worker
-#: (--dist loadgroup), so that each fixture is built once, not once per worker.
-pytestmark = pytest.mark.xdist_group('end_to_end_sweep')
 
 
 def cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:

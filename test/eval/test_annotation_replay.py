@@ -9,10 +9,9 @@ pytest.importorskip('rclpy')
 from ar_tracking.eval.annotation_metrics import evaluate_annotations  # noqa: E402
 from ar_tracking.eval.annotation_replay import replay_matcher  # noqa: E402
 from ar_tracking.io.bags import BagReader  # noqa: E402
-from conftest import SAMPLE_ANNOTATIONS_GROUP, SAMPLE_AUTHORING, SAMPLE_BROWSING  # noqa: E402
+from conftest import SAMPLE_AUTHORING, SAMPLE_BROWSING  # noqa: E402
 
 
-@SAMPLE_ANNOTATIONS_GROUP
 @pytest.mark.skipif(not (SAMPLE_AUTHORING.exists() and SAMPLE_BROWSING.exists()), reason='sample bags missing')
 def test_replay_reproduces_the_run_and_takes_its_parameters(sample_authored, sample_browsed, tmp_path, ros_context):
     """On the graph run of the browsing bag with the authored store (conftest's session
