@@ -141,6 +141,8 @@ def browse_sample(bag: Path, store: Path, out: Path) -> Path:
                          graph=graph, nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter',
                                              'annotation_matcher']).run()
     assert 'annotation_matcher' in result.nodes
+    # (as a session fixture it runs outside the per-test check below: checked here)
+    assert not (result.lost_deliveries or result.dropped_deliveries)
     return out
 
 
