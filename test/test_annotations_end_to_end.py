@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 import shutil
 
@@ -19,10 +18,9 @@ from ar_tracking.core.panorama.cylinder import CylinderGeometry
 from ar_tracking.core.rotations import quat_xyzw_to_matrix
 from ar_tracking.eval.annotation_metrics import evaluate_annotations, simulated_user_positions
 from ar_tracking.io.bags import BagReader, BagWriter
+from conftest import SAMPLE_AUTHORING, SAMPLE_BROWSING, browse_sample
 
-BAGS = Path(__file__).resolve().parents[1] / 'bags'
-AUTHORING = BAGS / 'rotation_sweep_authoring.mcap'
-BROWSING = BAGS / 'rotation_sweep_browsing.mcap'
+AUTHORING, BROWSING = SAMPLE_AUTHORING, SAMPLE_BROWSING
 
 
 PANO_ID = 'authoring-7'
@@ -40,11 +38,8 @@ def strip_truth(bag: Path, out: Path) -> Path:
 
 
 @pytest.fixture(scope='module')
-def authored(tmp_path_factory):
-    store = tmp_path_factory.mktemp('store') / 'annotations.db'
-    report = annotate_bag(AUTHORING, store, author='peter', panorama_id=PANO_ID,
-                          positions=simulated_user_positions(AUTHORING))
-    return store, report
+def authored(sample_authored):
+    return sample_authored
 
 
 @pytest.fixture(scope='module')
@@ -136,24 +131,9 @@ def test_annotate_refuses_a_corrupt_store_without_touching_it(tmp_path):
     assert bad.read_bytes() == b'not a database' * 10
 
 
-def _browse(bag: Path, store: Path, out: Path) -> Path:
-    from ar_tracking.ros.runner import GRAPH_NODES, GraphRunner
-
-    graph = dict(GRAPH_NODES)
-    graph['annotation_matcher'] = 'ar_tracking.nodes.annotation_matcher:AnnotationMatcherNode'
-    params = out.with_suffix('.yaml')
-    params.write_text(yaml.safe_dump({'annotation_matcher': {'ros__parameters': {'store_path': str(store)}}}))
-    result = GraphRunner(bag, out, params_files=[bag.with_name(bag.stem + '.params.yaml'), params],
-                         graph=graph, nodes=['imu_magnetometer', 'panorama_mapper', 'hybrid_orientation_filter',
-                                             'annotation_matcher']).run()
-    assert 'annotation_matcher' in result.nodes
-    return out
-
-
 @pytest.fixture(scope='module')
-def browsed(authored, tmp_path_factory):
-    pytest.importorskip('rclpy')
-    return _browse(BROWSING, authored[0], tmp_path_factory.mktemp('browse') / 'out.mcap')
+def browsed(sample_browsed):
+    return sample_browsed
 
 
 def _arrays(bag: Path) -> list:
@@ -166,7 +146,7 @@ def _arrays(bag: Path) -> list:
 def test_placements_do_not_depend_on_the_ground_truth(browsed, authored_without_truth, tmp_path):
     pytest.importorskip('rclpy')
     bag = strip_truth(BROWSING, tmp_path / 'browsing.mcap')
-    out = _browse(bag, authored_without_truth[0], tmp_path / 'out.mcap')
+    out = browse_sample(bag, authored_without_truth[0], tmp_path / 'out.mcap')
     a, b = _arrays(browsed), _arrays(out)
     assert a and a == b
 

@@ -48,11 +48,30 @@ def imu_data(path: Path) -> list[tuple[int, bytes]]:
         return [(m.log_time_ns, m.rawdata) for m in bag.messages(['/imu/data'])]
 
 
-def test_run_and_evaluate_rotation_sweep(sweep, tmp_path):
-    out = tmp_path / 'out.mcap'
+@pytest.fixture(scope='module')
+def sweep_run(sweep, tmp_path_factory) -> tuple[Path, dict]:
+    """One CLI run of the sweep (the default graph), with its JSON summary: the tests below
+    score it, repeat it and compare against it."""
+    out = tmp_path_factory.mktemp('sweep_run') / 'out.mcap'
     proc = cli('run', str(sweep), '-o', str(out), '-q', '--json')
     assert proc.returncode == 0, proc.stderr
-    summary = json.loads(proc.stdout)
+    return out, json.loads(proc.stdout)
+
+
+@pytest.fixture(scope='module')
+def kind_runs(kind_sweep, tmp_path_factory) -> tuple[Path, Path]:
+    """The kind sweep through imu_magnetometer with and without its calibration sidecar
+    (/imu/data is imu_magnetometer's alone: the same bytes as in the default graph's run)."""
+    d = tmp_path_factory.mktemp('kind_runs')
+    cal, raw = d / 'cal.mcap', d / 'raw.mcap'
+    assert cli('run', str(kind_sweep), '-o', str(cal), '-q', '--nodes', 'imu_magnetometer').returncode == 0
+    assert cli('run', str(kind_sweep), '-o', str(raw), '-q', '--nodes', 'imu_magnetometer',
+               '--no-sidecar').returncode == 0
+    return cal, raw
+
+
+def test_run_and_evaluate_rotation_sweep(sweep_run):
+    out, summary = sweep_run
     assert {'imu_magnetometer', 'panorama_mapper'} <= set(summary['nodes']) and summary['output_messages'] > 1000
     proc = cli('evaluate', str(out), '--json')
     assert proc.returncode == 0, proc.stderr
@@ -73,26 +92,25 @@ def test_run_and_evaluate_rotation_sweep(sweep, tmp_path):
     assert metrics['bag']['world_alignment'] == 'none'
 
 
-def test_two_runs_give_identical_estimates(sweep, tmp_path):
-    a, b = tmp_path / 'a.mcap', tmp_path / 'b.mcap'
-    assert cli('run', str(sweep), '-o', str(a), '-q').returncode == 0
-    assert cli('run', str(sweep), '-o', str(b), '-q').returncode == 0
-    assert imu_data(a) == imu_data(b) and len(imu_data(a)) > 1000
+def test_two_runs_give_identical_estimates(sweep, sweep_run, tmp_path):
+    first, _ = sweep_run
+    again = tmp_path / 'again.mcap'
+    assert cli('run', str(sweep), '-o', str(again), '-q').returncode == 0
+    assert imu_data(again) == imu_data(first) and len(imu_data(again)) > 1000
 
 
-def test_calibration_sidecar_matters(kind_sweep, tmp_path):
+def test_calibration_sidecar_matters(kind_runs):
     """Without the device calibration, hard/soft iron distort the heading (a real effect)."""
-    cal, raw = tmp_path / 'cal.mcap', tmp_path / 'raw.mcap'
-    assert cli('run', str(kind_sweep), '-o', str(cal), '-q').returncode == 0
-    assert cli('run', str(kind_sweep), '-o', str(raw), '-q', '--no-sidecar').returncode == 0
+    cal, raw = kind_runs
     h_cal = json.loads(cli('evaluate', str(cal), '--json').stdout)['orientation']['imu/data']['heading_rmse_deg']
     h_raw = json.loads(cli('evaluate', str(raw), '--json').stdout)['orientation']['imu/data']['heading_rmse_deg']
     assert h_raw > 1.5 * h_cal
 
 
-def test_evaluate_report_html(sweep, tmp_path):
-    out = tmp_path / 'out.mcap'
-    assert cli('run', str(sweep), '-o', str(out), '-q').returncode == 0
+def test_evaluate_report_html(kind_runs, tmp_path):
+    """evaluate without --json: the console summary and an HTML report with its figure (the
+    default graph's report - panorama sections too - is the demo's, test_demo_on_the_sample_bag)."""
+    out, _ = kind_runs
     proc = cli('evaluate', str(out), '--report', str(tmp_path / 'r.html'))
     assert proc.returncode == 0 and 'imu/data' in proc.stdout
     html = (tmp_path / 'r.html').read_text()
@@ -133,7 +151,7 @@ def test_demo_on_the_sample_bag(tmp_path):
     assert metrics['orientation']['imu/data']['n'] > 1000
 
 
-def test_estimates_do_not_depend_on_the_ground_truth(sweep, tmp_path):
+def test_estimates_do_not_depend_on_the_ground_truth(sweep, sweep_run, tmp_path):
     """The truth is for evaluate and the benches only: the same bag without any /ground_truth/*
     topic (and the same calibration sidecar) gives byte-identical estimates on every output."""
     from ar_tracking.io.bags import BagWriter
@@ -145,8 +163,8 @@ def test_estimates_do_not_depend_on_the_ground_truth(sweep, tmp_path):
         for m in r.messages(kept):
             w.write(m.topic, m.log_time_ns, m.rawdata, msgtype=m.msgtype)
     blind.with_name('blind.params.yaml').write_text(sweep.with_name('sweep.params.yaml').read_text())
-    a, b = tmp_path / 'a.mcap', tmp_path / 'b.mcap'
-    assert cli('run', str(sweep), '-o', str(a), '-q').returncode == 0
+    a, _ = sweep_run
+    b = tmp_path / 'b.mcap'
     assert cli('run', str(blind), '-o', str(b), '-q').returncode == 0
     outputs = ['/imu/data', '/panorama/orientation', '/orientation/global', '/orientation/panorama_in_world']
 

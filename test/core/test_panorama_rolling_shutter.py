@@ -1,6 +1,7 @@
 """The panorama tracker and map with a rolling-shutter camera (MapperConfig.readout_s)."""
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 from collections.abc import Iterator
 from pathlib import Path
@@ -52,26 +53,37 @@ def _frames(bag: Path) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
             yield np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width, 3), K, stamp_to_ns(m.header.stamp)
 
 
-def _track(bag: Path, readout_s: float, estimate: bool = False, after_s: float = 0.0) -> tuple[float, int, set[float]]:
-    """(RMS error deg of the tracked frames against the truth at their stamps, after the one
-    rotation panorama -> world that fits them best (the panorama frame is where the first frame
-    pointed, which is what the hybrid filter estimates; frames from ``after_s`` into the bag),
-    frames lost, the readouts the mapper used)."""
+@functools.lru_cache(maxsize=None)
+def _tracked(bag: Path, readout_s: float, estimate: bool) -> tuple[tuple[tuple[int, np.ndarray], ...], int, frozenset[float]]:
+    """The mapper (``readout_s``, ``estimate_readout``) over every frame of ``bag``: (stamp ns,
+    R_world_pano: the truth times the estimate's inverse) of each tracked frame, frames lost,
+    the readouts it used. Deterministic: run once per bag and setting for the tests here, which
+    ask for the same runs several times."""
     mapper = PanoramaMapper(replace(MapperConfig(), readout_s=readout_s, estimate_readout=estimate))
     used = set()
     traj = rs.make_trajectory(402, 'authoring', 8.0)  # the truth at any time (the camera's stamps)
-    rel = []  # R_world_pano of each tracked frame: truth times the estimate's inverse
+    rel = []
     for rgb, K, t in _frames(bag):
         res = mapper.process(rgb, K, t)
         mapper.background()
         used.add(mapper.readout_s)
         R_true = traj.R_enu_cam(np.array([(t - START_NS) * 1e-9]))[0]
-        if res.R_pano_cam is not None and t - START_NS >= after_s * 1e9:
-            rel.append(R_true @ res.R_pano_cam.T)
+        if res.R_pano_cam is not None:
+            rel.append((t, R_true @ res.R_pano_cam.T))
+    return tuple(rel), mapper.lost_frames, frozenset(used)
+
+
+def _track(bag: Path, readout_s: float, estimate: bool = False, after_s: float = 0.0) -> tuple[float, int, set[float]]:
+    """(RMS error deg of the tracked frames against the truth at their stamps, after the one
+    rotation panorama -> world that fits them best (the panorama frame is where the first frame
+    pointed, which is what the hybrid filter estimates; frames from ``after_s`` into the bag),
+    frames lost, the readouts the mapper used)."""
+    tracked, lost, used = _tracked(bag, readout_s, estimate)
+    rel = [W for t, W in tracked if t - START_NS >= after_s * 1e9]
     U, _, Vt = np.linalg.svd(np.sum(rel, axis=0))  # their chordal mean
     M = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     errs = [np.degrees(np.linalg.norm(so3_log(M.T @ W))) for W in rel]
-    return float(np.sqrt(np.mean(np.square(errs)))), mapper.lost_frames, used
+    return float(np.sqrt(np.mean(np.square(errs)))), lost, set(used)
 
 
 def test_a_rolling_shutter_is_tracked_row_by_row(rolling_bag: Path):

@@ -42,7 +42,7 @@ def test_bench_unknown_area_is_a_usage_error(tmp_path):
 
 def test_quiet_bench_prints_its_json_and_no_node_logs(tmp_path):
     """-q: the nodes the bench runs in this process log nothing (their info lines were printed)."""
-    proc = subprocess.run([sys.executable, '-m', 'ar_tracking.cli', 'bench', '--areas', 'graph', '--duration', '2',
+    proc = subprocess.run([sys.executable, '-m', 'ar_tracking.cli', 'bench', '--areas', 'graph', '--duration', '1',
                            '--workdir', str(tmp_path), '-q'], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert 'graph' in json.loads(proc.stdout)

@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from ar_tracking.io.bags import BagReader, stamp_to_ns
 from ar_tracking.io.euroc import EurocError, euroc_to_bag
+from conftest import SHARED_DATA
 
-MICRO = Path(__file__).resolve().parents[3] / 'shared' / 'data' / 'euroc_v1_01_micro'
+MICRO = SHARED_DATA / 'euroc_v1_01_micro'
 T0 = 1_403_715_273_262_142_976
 CAM_YAML = """%YAML:1.0
 sensor_type: camera

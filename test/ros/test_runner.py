@@ -425,11 +425,12 @@ def test_runner_hands_the_bags_tf_static_to_nodes_that_take_it(tmp_path, caplog)
 
 def _live_graph(slow_sleep_s: float = 0.05, die: bool = False) -> dict:
     """The orientation nodes of an IMU bag plus a deliberately slow node on the IMU topic (and,
-    with ``die``, one whose timer raises: its thread dies)."""
+    with ``die``, one whose timer raises once it has received three field samples: its thread
+    dies while the bag plays)."""
     import time as _time
 
     from rclpy.clock import Clock, ClockType
-    from sensor_msgs.msg import Imu
+    from sensor_msgs.msg import Imu, MagneticField
 
     from ar_tracking.ros.node_base import TrackingNode
     from ar_tracking.ros.runner import GRAPH_NODES
@@ -451,10 +452,20 @@ def _live_graph(slow_sleep_s: float = 0.05, die: bool = False) -> dict:
 
             def __init__(self, **kwargs):
                 super().__init__('dying', **kwargs)
-                self.create_timer(0.2, self.fail, clock=Clock(clock_type=ClockType.STEADY_TIME))
+                self.received = 0
+                self.subscribe(MagneticField, 'imu/mag', self.count)
+                self.create_timer(0.05, self.fail, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+            def count(self, msg):
+                self.received += 1
 
             def fail(self):
-                raise RuntimeError('sensor driver lost')
+                # Not before the bag plays: a timer that fired at a fixed time after start-up
+                # was already due when the node threads started on a loaded machine, and the
+                # node died before the player had published (and recorded) anything. The
+                # third field sample comes after two whole steps of the bag (truth included).
+                if self.received >= 3:
+                    raise RuntimeError('sensor driver lost')
 
         graph['dying'] = DyingNode
     return graph
