@@ -50,6 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 from .alignment_covariance import FieldErrorParts, field_error_parts, field_heading_mse, hand_tilt_variance
 from .rotations import cross3, rot_z
+from .field_clusters import choose_cluster
 from .soft_iron import soft_iron_normal_equations, symmetric_from_params
 from .window_statistics import WindowSums, cauchy_about_median, shorth
 from .world_alignment_config import WorldAlignmentConfig
@@ -272,8 +273,7 @@ class WorldAlignment:
         the hard iron, the field's clusters and gravity keep their history. They are weighted
         down to what a prior known to sigma_rad is worth (:meth:`_prior_weight`) when they hold
         more than that: an error of Q would otherwise stay in the estimate for as long again.
-        Beyond ``reanchor_max_sigma_rad`` (or before any estimate) it starts afresh from a prior
-        on the orientation, as :meth:`reset` with one."""
+        Beyond ``reanchor_max_sigma_rad`` (or before any estimate): :meth:`reset` with a prior."""
         Q = np.asarray(Q, dtype=float)
         c = self.config
         if sigma_rad > c.reanchor_max_sigma_rad or not self.ready:
@@ -400,7 +400,7 @@ class WorldAlignment:
         A disturbance lasts seconds and turns the field for all of its samples at once, so the
         samples are grouped in short windows (``window_s``): each window gives the heading
         of the field it implies in the panorama frame, the windows' headings are compared with
-        the cluster :meth:`_choose_cluster` takes as the Earth's field, and a window
+        the cluster :func:`.field_clusters.choose_cluster` takes as the Earth's field, and a window
         that departs gets a Cauchy weight for all its samples (this survives up to half of the
         windows disturbed; a per-sample loss started from least squares does not, once a long
         disturbance has pulled the fit). f_P and h are
@@ -512,7 +512,8 @@ class WorldAlignment:
         centre, spread = shorth(rel, c.cluster_share)
         spread = max(spread, math.radians(0.25))
         width = c.cauchy_scale * spread
-        centre = self._choose_cluster(rel, centre, f_abs, width)
+        prev = None if self._heading_mode is None else (self._heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
+        centre, self._ambiguity_var = choose_cluster(rel, centre, prev, width, c)
         w_psi = 1.0 / (1.0 + ((rel - centre) / width) ** 2)
         # Past reject_widths the weight is zero, not a Cauchy tail: a tail still lets the hard
         # iron drift towards a disturbance, which then looks like the clean field (with little
@@ -526,60 +527,6 @@ class WorldAlignment:
         w_norm, _ = cauchy_about_median(norm, 0.005, c.cauchy_scale)
         w_dip, _ = cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
         return w_psi * w_norm * w_dip, spread
-
-    def _episode_cost(self, rel: Array, centre: float, width: float) -> float:
-        """Negative log-odds (nats, up to a constant) that the field whose window headings sit at
-        ``centre`` is the Earth's: every other window is then disturbed, each maximal run of
-        them (in time order) is one episode costing ``disturbance_onset_nats``, and every
-        disturbed second costs 1 / ``disturbance_duration_s`` (episodes of exponentially
-        distributed length). Runs shorter than ``min_episode_windows`` are noise: length only."""
-        c = self.config
-        off = np.abs(rel - centre) > c.reject_widths * width
-        n_off = int(off.sum())
-        if n_off == 0:
-            return 0.0
-        edges = np.flatnonzero(np.diff(np.concatenate(([0], off.astype(np.int8), [0]))))
-        lengths = edges[1::2] - edges[0::2]
-        episodes = int(np.sum(lengths >= c.min_episode_windows))
-        return episodes * c.disturbance_onset_nats + n_off * c.window_s / c.disturbance_duration_s
-
-    def _choose_cluster(self, rel: Array, densest: float, f_abs: float, width: float) -> float:
-        """The heading (relative to f_abs) of the window cluster taken as the Earth's field.
-
-        Nothing in one window tells a field turned by a disturbance (strength and dip kept)
-        from the Earth's; the history does. Candidates: the densest cluster, the one the last
-        solve chose and the densest of the windows far from those; the one with the lowest
-        :meth:`_episode_cost` wins, the last choice keeping its place unless beaten by
-        ``mode_switch_nats``. So a disturbance as long as the clean data so far takes over (the
-        longer run is the likelier field), but a field the phone returns to after an episode is
-        the Earth's at once (calling it disturbed would take two episodes). The doubt between
-        the winner and the runner-up enters the heading variance (:attr:`_ambiguity_var`)."""
-        c = self.config
-        candidates = [densest]
-        prev = None
-        if self._heading_mode is not None:
-            prev = (self._heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-            candidates.append(prev)
-        far = np.ones(len(rel), dtype=bool)
-        for x in candidates:
-            far &= np.abs(rel - x) > c.reject_widths * width
-        if int(far.sum()) >= 2:
-            candidates.append(shorth(rel[far])[0])
-        # A candidate no window supports any more (the last choice, after h moved) cannot win.
-        costs = [self._episode_cost(rel, x, width) if np.any(np.abs(rel - x) <= c.reject_widths * width)
-                 else math.inf for x in candidates]
-        best = int(np.argmin(costs))
-        if prev is not None and math.isfinite(costs[1]) and costs[best] > costs[1] - c.mode_switch_nats:
-            best = 1
-        chosen, cost = candidates[best], costs[best]
-        # The runner-up: the cheapest candidate clearly apart from the chosen one.
-        rivals = [(k, x) for k, x in zip(costs, candidates) if abs(x - chosen) > c.reject_widths * width]
-        self._ambiguity_var = 0.0
-        if rivals:
-            k, x = min(rivals)
-            p = 1.0 / (1.0 + math.exp(min(k - cost, 50.0)))
-            self._ambiguity_var = p * (1.0 - p) * (x - chosen) ** 2
-        return chosen
 
     def _up_estimate(self) -> Array:
         """Gravity direction in the panorama frame from the current sums (z before any)."""
