@@ -192,6 +192,14 @@ def test_gyro_backup_publishes_while_vision_is_lost_and_vision_resumes(ros_conte
         h.close()
 
 
+def _assert_placed_from_the_gyro(h: Harness, n: int, new_frame: np.ndarray) -> None:
+    """Every output from the n-th on within 1 deg of the truth, and the new panorama frame
+    learnt (orientation/panorama_in_world within 1 deg of it)."""
+    assert all(abs(heading_err(m)) < 1.0 for m in h.out[n:])
+    R_enu_pano = rotation_from_quaternion(h.frames[-1].transform.rotation)
+    assert heading_tilt_error_deg(R_enu_pano, new_frame.T)[0] < 1.0
+
+
 def test_a_restarted_panorama_is_placed_in_the_world_from_the_gyro(ros_context):
     """Vision lost, then back in a new panorama frame (the tracker restarted 40 deg away): the
     output carries on from the gyro backup without a jump, and the new frame is learnt."""
@@ -203,9 +211,7 @@ def test_a_restarted_panorama_is_placed_in_the_world_from_the_gyro(ros_context):
         n = len(h.out)
         new_frame = rot_z(math.radians(40.0)) @ R_PANO_ENU
         h.play(4.6, 7.0, rng, R_pano_enu=new_frame)
-        assert all(abs(heading_err(m)) < 1.0 for m in h.out[n:])
-        R_enu_pano = rotation_from_quaternion(h.frames[-1].transform.rotation)
-        assert heading_tilt_error_deg(R_enu_pano, new_frame.T)[0] < 1.0
+        _assert_placed_from_the_gyro(h, n, new_frame)
     finally:
         h.close()
 
@@ -226,9 +232,7 @@ def test_a_new_panorama_close_to_the_old_one_is_known_by_its_first_frame(ros_con
         h.visual(T0 + int(round(t_first * 50)) * 20_000_000, np.eye(3))
         n = len(h.out)
         h.play(6.46, 9.0, rng, R_pano_enu=new_frame)
-        assert all(abs(heading_err(m)) < 1.0 for m in h.out[n:])
-        R_enu_pano = rotation_from_quaternion(h.frames[-1].transform.rotation)
-        assert heading_tilt_error_deg(R_enu_pano, new_frame.T)[0] < 1.0
+        _assert_placed_from_the_gyro(h, n, new_frame)
     finally:
         h.close()
 
