@@ -37,33 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .rotations import matrix_to_quat_wxyz_tuple
+from .rotations import matrix_to_quat_wxyz, quat_wxyz_conj, quat_wxyz_log, quat_wxyz_mul
 
 Array = NDArray[np.float64]
-Quat = tuple[float, float, float, float]  # unit quaternion (w, x, y, z) as Python floats
-
-
-def _qmul(a: Quat, b: Quat) -> Quat:
-    """Hamilton product: the rotation of a then b in a's axes (R(a b) = R(a) R(b))."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
-
-
-def _qconj(q: Quat) -> Quat:
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def _qlog_along(q: Quat, u: tuple[float, ...]) -> float:
-    """The component along the unit vector u of the rotation vector of q (rad, |angle| <= pi)."""
-    w, x, y, z = q
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    s = math.sqrt(x * x + y * y + z * z)
-    k = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
-    return k * (x * u[0] + y * u[1] + z * u[2])
-
 
 
 @dataclass(frozen=True)
@@ -139,7 +115,7 @@ class AzimuthDistortion:
         self._axes_key: tuple[float, float, float] | None = None
         self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
         #: Recent frames: (stamp, R_pano_cam, R_pano_imu as a quaternion).
-        self._frames: deque[tuple[int, Array, Quat]] = deque()
+        self._frames: deque[tuple[int, Array, Array]] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -182,7 +158,7 @@ class AzimuthDistortion:
         while self._waiting and self._waiting[0][0] <= t_ns:
             self._frame(*self._waiting.popleft())
 
-    def _gyro_at(self, t_ns: int) -> Quat | None:
+    def _gyro_at(self, t_ns: int) -> Array | None:
         """The gyro chain's R_0_imu at t_ns (interpolated between samples), None outside it."""
         ts = self._gyro_t
         if not ts or t_ns < ts[0] or t_ns > ts[-1]:
@@ -195,7 +171,7 @@ class AzimuthDistortion:
             w, x, y, z = ((1.0 - s) * p + s * sign * q for p, q in zip(a, b))
             norm = math.sqrt(w * w + x * x + y * y + z * z)
             a = (w / norm, x / norm, y / norm, z / norm)
-        return a
+        return np.array(a)
 
     def add_visual(self, t_ns: int, R_pano_cam: Array, up_pano: Array | None) -> None:
         """A tracked frame (its raw panorama orientation) and the panorama's up axis (None while
@@ -215,7 +191,7 @@ class AzimuthDistortion:
         if C is None:  # before the gyro's chain (it restarted after a gap)
             return
         # The IMU's orientation in the panorama frame by the tracker, R_pano_cam R_cam_imu.
-        q_pano_imu = matrix_to_quat_wxyz_tuple(R @ self.R_imu_cam.T)
+        q_pano_imu = matrix_to_quat_wxyz(R @ self.R_imu_cam.T)
         if self.e1 is None and up_pano is not None:
             self.e1 = self._horizontal(R[:, 2], up_pano)
             if self.e1 is not None:  # c = 0 where the panorama starts (a firm pseudo-observation)
@@ -312,7 +288,7 @@ class AzimuthDistortion:
         b[k1] += f
         return b
 
-    def _compare(self, t_ns: int, R_j: Array, qa_j: Quat, c_j: Quat, up: Array) -> None:
+    def _compare(self, t_ns: int, R_j: Array, qa_j: Array, c_j: Array, up: Array) -> None:
         """The comparison of this frame with the last frame at least pair_s before it.
         With A = R_pano_imu by the tracker and G = C_i^T C_j the gyro's turn from i to j (imu
         axes), the tracker's turn beyond the gyro's is A_j G^T A_i^T, and the gyro's turn in
@@ -330,9 +306,9 @@ class AzimuthDistortion:
         if c_i is None or psi_i is None or psi_j is None or self._axes is None:
             return
         u = self._axes[0]
-        g = _qmul(_qconj(c_i), c_j)
-        d = _qlog_along(_qmul(_qmul(qa_j, _qconj(g)), _qconj(qa_i)), u)
-        dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), _qconj(qa_i)), u)
+        g = quat_wxyz_mul(quat_wxyz_conj(c_i), c_j)
+        d = float(quat_wxyz_log(quat_wxyz_mul(quat_wxyz_mul(qa_j, quat_wxyz_conj(g)), quat_wxyz_conj(qa_i))) @ u)
+        dpsi_gyro = float(quat_wxyz_log(quat_wxyz_mul(quat_wxyz_mul(qa_i, g), quat_wxyz_conj(qa_i))) @ u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
         h = np.zeros(K + 2)

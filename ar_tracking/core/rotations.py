@@ -367,11 +367,6 @@ def unit_quat_wxyz_to_matrix(q: Array) -> Array:
 def matrix_to_quat_wxyz(R: Array) -> Array:
     """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (Shepperd's method, the trace
     branch first; :func:`matrix_to_quat_xyzw` picks the largest of trace and diagonal)."""
-    return np.array(matrix_to_quat_wxyz_tuple(R))
-
-
-def matrix_to_quat_wxyz_tuple(R: Array) -> tuple[float, float, float, float]:
-    """:func:`matrix_to_quat_wxyz` as Python floats, for per-sample loops (no numpy per entry)."""
     (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(R, dtype=float).tolist()
     tr = m00 + m11 + m22
     if tr > 0:
@@ -389,4 +384,4 @@ def matrix_to_quat_wxyz_tuple(R: Array) -> tuple[float, float, float, float]:
     n = math.sqrt(w * w + x * x + y * y + z * z)
     if w < 0:
         n = -n
-    return (w / n, x / n, y / n, z / n)
+    return np.array([w / n, x / n, y / n, z / n])
