@@ -22,6 +22,7 @@ from typing import Deque
 import numpy as np
 from numpy.typing import NDArray
 
+from .imu_orientation import STANDARD_GRAVITY_M_S2
 from .rotations import so3_exp, so3_log
 
 logger = logging.getLogger(__name__)
@@ -148,7 +149,7 @@ class GyroBackupConfig:
     tilt_accel_gate: float = 0.15
     #: The tilt's 1-sigma the accelerometer holds it to (the hand's acceleration over tau).
     tilt_sigma_rad: float = 0.005
-    gravity_m_s2: float = 9.80665
+    gravity_m_s2: float = STANDARD_GRAVITY_M_S2
 
 
 #: Deprecated name (issue 21: the core's configuration dataclasses are all called ``*Config``);

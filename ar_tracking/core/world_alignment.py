@@ -79,6 +79,17 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
+def _add_rotated_rows(ws: WindowSums, k: int, rows: list[list[float]], name: str) -> Array:
+    """Add samples kept as rows (R_pano_imu row-major, then a vector x in the IMU frame) to
+    window k: its count, S = sum R_imu_P and ``name`` = sum R_P_imu x. Returns the x, (n, 3)."""
+    arr = np.array(rows)
+    R, x = arr[:, :9].reshape(-1, 3, 3), arr[:, 9:12]
+    ws.n[k] += len(arr)
+    ws.sums['S'][k] += R.sum(axis=0).T
+    ws.sums[name][k] += np.einsum('nij,nj->i', R, x)
+    return x
+
+
 class WorldAlignment:
     """Accumulates (R_pano_imu, accel, field) samples and estimates R_pano_enu (module doc)."""
 
@@ -224,13 +235,8 @@ class WorldAlignment:
         if not self._g_rows:
             return
         k, sums = self._g_window, self._gw.sums
-        rows = np.array(self._g_rows)
+        a = _add_rotated_rows(self._gw, k, self._g_rows, 'Rta')
         self._g_rows = []
-        R = rows[:, :9].reshape(-1, 3, 3)
-        a = rows[:, 9:12]
-        self._gw.n[k] += len(rows)
-        sums['S'][k] += R.sum(axis=0).T
-        sums['Rta'][k] += np.einsum('nij,nj->i', R, a)
         sums['a'][k] += a.sum(axis=0)
         if self._lever_rows:
             lever = np.array(self._lever_rows)
@@ -257,13 +263,8 @@ class WorldAlignment:
         if not self._f_rows:
             return
         k, sums = self._f_window, self._fw.sums
-        rows = np.array(self._f_rows)
+        m = _add_rotated_rows(self._fw, k, self._f_rows, 'Rtm')
         self._f_rows = []
-        R = rows[:, :9].reshape(-1, 3, 3)
-        m = rows[:, 9:12]
-        self._fw.n[k] += len(rows)
-        sums['S'][k] += R.sum(axis=0).T
-        sums['Rtm'][k] += np.einsum('nij,nj->i', R, m)
         sums['m'][k] += m.sum(axis=0)
         sums['norm'][k] += np.sqrt((m * m).sum(axis=1)).sum()
 
@@ -285,17 +286,16 @@ class WorldAlignment:
         alpha = 1.0
         if self._field_samples > 0:
             alpha = min(1.0, self._prior_weight(sigma_rad, c.field_model_sigma, 1.0) / self._field_samples)
-        for ws, turned in ((self._gw, {'S': 'right', 'Rta': 'left', 'RtK': 'left'}),
-                           (self._fw, {'S': 'right', 'Rtm': 'left'})):
+        # S sums R_imu_P (R_imu_P' = R_imu_P Q^T); Rta, RtK, Rtm sum R_P_imu x (R_P'_imu x =
+        # Q R_P_imu x); the rest are in the IMU frame.
+        for ws, turned in ((self._gw, ('Rta', 'RtK')), (self._fw, ('Rtm',))):
             k = ws.count
             ws.n[:k] *= alpha
-            for name, arr in ws.sums.items():
-                v = arr[:k]
-                if turned.get(name) == 'right':  # sums of R_imu_P: R_imu_P' = R_imu_P Q^T
-                    v[...] = v @ Q.T
-                elif turned.get(name) == 'left':  # sums of R_P_imu x: R_P'_imu x = Q R_P_imu x
-                    v[...] = np.einsum('ij,kj...->ki...', Q, v)
-                v *= alpha
+            ws.sums['S'][:k] = ws.sums['S'][:k] @ Q.T
+            for name in turned:
+                ws.sums[name][:k] = np.einsum('ij,kj...->ki...', Q, ws.sums[name][:k])
+            for v in ws.sums.values():
+                v[:k] *= alpha
         self._n = max(1, int(round(self._n * alpha))) if self._n else 0
         self._sum_aa *= alpha
         self._sum_a_norm *= alpha
@@ -563,7 +563,6 @@ class WorldAlignment:
         field_var = field_heading_mse(self._field_error, f_sigma, east, f_h, c.hard_iron_prior_sigma,
                                       c.soft_iron_prior_sigma, prior_sigma)
         return R_pano_enu, float(np.linalg.norm(g_P)), tan_dip, field_var
-
 
     def estimate(self) -> WorldAlignmentEstimate | None:
         """The current R_pano_enu with its covariance (None before any field sample)."""

@@ -449,6 +449,7 @@ class PanoramaMapper:
         self.restarts = restarts + 1
         if readout_s > 0.0:
             self._early = None  # nothing to paint again: the readout is known
+
     def _lose(self, reason: str, res: TrackResult | None = None) -> FrameResult:
         if self.config.estimate_readout and self.readout_s == 0.0 and self._tracking:
             # Lost while mapping as a global shutter: from now on an early estimate of the
