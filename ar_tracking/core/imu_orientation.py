@@ -181,11 +181,8 @@ class GravityFieldOrientation:
         if R is None:
             return None
         g = self.model.gravity_m_s2
-        ax, ay, az = a.tolist()
-        mx, my, mz = m.tolist()
-        aa, mm = ax * ax + ay * ay + az * az, mx * mx + my * my + mz * mz
-        a_norm, m_norm = math.sqrt(aa), math.sqrt(mm)
-        dip = math.asin(min(1.0, max(-1.0, -(mx * ax + my * ay + mz * az) / math.sqrt(mm * aa))))  # field_dip_rad
+        a_norm, m_norm = math.sqrt(float(a @ a)), math.sqrt(float(m @ m))
+        dip = field_dip_rad(a, m)
         if self._field_ref is None or self._dip_ref is None:
             self._field_ref, self._dip_ref = m_norm, dip
         field_ref, dip_ref = self._field_ref, self._dip_ref
