@@ -33,11 +33,15 @@ def percentiles_ms(values: list[float]) -> dict[str, float]:
             'p95_ms': round(float(np.percentile(arr, 95)), 4), 'n': int(arr.size)}
 
 
-def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0) -> dict[str, Any]:
+def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
+                live_executors: tuple[str, ...] = ('processes', 'threads')) -> dict[str, Any]:
     """realtime_factor of the lockstep graph, the transport floor, per-node processing times;
-    and with ``live_rate`` > 0 a realtime pass at that rate (``live``: inputs dropped per node,
-    ``orientation/global`` latency p50/p95 in ms; DESIGN names ``graph.live.dropped`` and
-    ``graph.live.latency_ms_p95``). The live pass takes the bag's duration / live_rate."""
+    and with ``live_rate`` > 0 a realtime pass at that rate per executor in ``live_executors``
+    (inputs dropped per node, ``orientation/global`` latency p50/p95 in ms). The first is
+    ``live`` (DESIGN names ``graph.live.dropped`` and ``graph.live.latency_ms_p95``): every node
+    its own process, as a device runs the graph (``ar-tracking run --executor processes``, like
+    ``ros2 launch``); the others ``live_<executor>`` (threads: every node in this process on its
+    own thread, sharing the interpreter). Each pass takes the bag's duration / live_rate."""
     from ..ros.runner import GraphRunner, transport_probe_graph
 
     bag = benchmark_bag(workdir, duration_s)
@@ -68,7 +72,8 @@ def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0) -> dic
         'superseded_deliveries': full.superseded_deliveries,
         'dropped': full.dropped,
         'nodes': nodes,
-        **({'live': _live_pass(bag, params, workdir, live_rate)} if live_rate > 0 else {}),
+        **{('live' if k == 0 else f'live_{executor}'): _live_pass(bag, params, workdir, live_rate, executor)
+           for k, executor in enumerate(live_executors) if live_rate > 0},
     }
 
 
@@ -86,12 +91,13 @@ def bench_photo_worlds(workdir: Path, seeds: range = range(301, 306)) -> dict[st
     return {name: bench_seeds(workdir / name, seeds=seeds, world_photos=SHARED_DATA / name) for name in present}
 
 
-def _live_pass(bag: Path, params: list[Path], workdir: Path, rate: float) -> dict[str, Any]:
-    """The graph at ``rate`` x bag speed, every node on its own thread, as a device runs it."""
+def _live_pass(bag: Path, params: list[Path], workdir: Path, rate: float, executor: str) -> dict[str, Any]:
+    """The graph at ``rate`` x bag speed with the runner's ``executor`` (processes or threads)."""
     from ..ros.runner import GraphRunner
 
-    live = GraphRunner(bag, workdir / 'graph.live.out.mcap', params_files=params, rate=rate).run()
-    return {'rate': rate, 'wall_s': round(live.wall_s, 3), 'failed_nodes': live.failed_nodes,
+    live = GraphRunner(bag, workdir / f'graph.live_{executor}.out.mcap', params_files=params, rate=rate,
+                       executor=executor).run()
+    return {'rate': rate, 'executor': executor, 'wall_s': round(live.wall_s, 3), 'failed_nodes': live.failed_nodes,
             **live.live_summary()}
 
 
@@ -105,8 +111,10 @@ def machine() -> dict[str, Any]:
     return {'python': platform.python_version(), 'cpus': os.cpu_count(), 'machine': platform.machine()}
 
 
-def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None = None) -> dict[str, Any]:
-    """All benchmark areas (or the chosen ones) as one nested dict."""
+def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None = None,
+              live_executors: tuple[str, ...] = ('processes', 'threads')) -> dict[str, Any]:
+    """All benchmark areas (or the chosen ones) as one nested dict (``live_executors``: the
+    graph area's realtime passes, see :func:`bench_graph`)."""
     workdir.mkdir(parents=True, exist_ok=True)
     chosen = list(areas or AREAS)
     unknown = [a for a in chosen if a not in AREAS]
@@ -126,7 +134,7 @@ def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None =
         # the first 5 of those seeds in each real photo world (~8 min per world)
         results['orientation_photo_worlds'] = bench_photo_worlds(workdir / 'photo_worlds')
     if 'graph' in chosen:
-        results['graph'] = bench_graph(workdir, duration_s)
+        results['graph'] = bench_graph(workdir, duration_s, live_executors=live_executors)
     if 'panorama' in chosen:
         from .bench_panorama import bench_panorama
 

@@ -13,7 +13,9 @@ from ar_tracking.eval.bench import run_bench  # noqa: E402
 
 
 def test_bench_reports_the_design_names(tmp_path):
-    results = run_bench(tmp_path, duration_s=2.0, areas=['graph'])
+    # the live pass as the graph is deployed: every node its own process (the threads pass is
+    # the same code with the runner's default executor, which test_runner covers)
+    results = run_bench(tmp_path, duration_s=2.0, areas=['graph'], live_executors=('processes',))
     graph = results['graph']
     for key in ('realtime_factor', 'transport_floor_factor', 'wall_s', 'input_messages'):
         assert key in graph
@@ -28,6 +30,7 @@ def test_bench_reports_the_design_names(tmp_path):
     assert 0 < graph['node_callbacks_s'] < graph['wall_s']
     assert graph['node_callbacks_s'] + graph['wall_minus_callbacks_s'] == pytest.approx(graph['wall_s'], abs=2e-3)
     live = graph['live']  # the realtime pass at 1x: counts per node and the latency keys
+    assert live['executor'] == 'processes' and 'live_threads' not in graph
     assert live['failed_nodes'] == {} and set(live['dropped']) == set(graph['nodes'])
     assert live['inputs']['imu_magnetometer']['/imu/data_raw']['published'] == 200
     assert live['latency_n'] > 0 and 'latency_ms_p95' in live
