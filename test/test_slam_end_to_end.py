@@ -29,14 +29,14 @@ def slam_messages(path: Path) -> list[tuple[str, int, bytes]]:
         return [(m.topic, m.log_time_ns, bytes(m.rawdata)) for m in bag.messages(SLAM_TOPICS)]
 
 
-def test_slam_runs_reproducibly_and_evaluates(desk, tmp_path):
-    outs = []
-    for name in ('a.mcap', 'b.mcap'):
-        out = tmp_path / name
-        proc = cli('run', str(desk), '-o', str(out), '-q', '--json', '--nodes', 'keyframe_slam_mapper')
-        assert proc.returncode == 0, proc.stderr
-        assert json.loads(proc.stdout)['nodes'] == ['keyframe_slam_mapper']
-        outs.append(out)
+def test_slam_runs_reproducibly_and_evaluates(desk, plain_run, tmp_path):
+    """The CLI's run gives the bytes of the in-process run of the same bag and nodes
+    (plain_run below: the second run of the pair, shared with the thread-timing tests)."""
+    out = tmp_path / 'a.mcap'
+    proc = cli('run', str(desk), '-o', str(out), '-q', '--json', '--nodes', 'keyframe_slam_mapper')
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)['nodes'] == ['keyframe_slam_mapper']
+    outs = [out, plain_run]
     a, b = slam_messages(outs[0]), slam_messages(outs[1])
     assert sum(1 for t, _, _ in a if t == '/slam/pose') > 60
     assert a == b  # lockstep: the mapping thread is waited for after each frame's outputs

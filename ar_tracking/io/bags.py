@@ -132,7 +132,7 @@ class BagReader:
 
     def open(self) -> None:
         """Open the bag; :class:`BagError` with the reason if it cannot be read."""
-        from rosbags.highlevel import AnyReader
+        from .bag_typestores import CachedTypesReader
 
         if not self.path.exists():
             raise BagError(f'{self.path}: no such bag')
@@ -147,7 +147,7 @@ class BagReader:
             self._reader = self._recovered
             return
         try:
-            reader = AnyReader([self.path], default_typestore=TYPESTORE)
+            reader = CachedTypesReader([self.path], default_typestore=TYPESTORE)
             reader.open()
         except Exception as exc:
             raise BagError(f'{self.path}: not a readable bag ({_reason(exc)})') from exc

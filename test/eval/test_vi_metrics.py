@@ -14,7 +14,7 @@ from ar_tracking.eval.vi_metrics import evaluate_markers, evaluate_vi  # noqa: E
 from ar_tracking.nodes.marker_tracker import MarkerTrackerNode  # noqa: E402
 from ar_tracking.nodes.visual_inertial_filter import VisualInertialFilterNode  # noqa: E402
 from ar_tracking.ros.runner import GraphRunner  # noqa: E402
-from ar_tracking.io.bags import BagWriter  # noqa: E402
+from ar_tracking.io.bags import BagReader, BagWriter  # noqa: E402
 from ar_tracking.sim import robot_arcs_real as rr  # noqa: E402
 from ar_tracking.sim.bagmaker import make_bag  # noqa: E402
 
@@ -58,15 +58,19 @@ def test_no_odometry_gives_none(runs):
 @pytest.fixture(scope='module')
 def mount_runs(tmp_path_factory) -> tuple[dict, dict, Path]:
     """The same hard bag twice: the mount only on /tf_static (the sidecar has no mount), and
-    without /tf_static with the mount in the parameters."""
+    without /tf_static with the mount in the parameters (a copy of the first without its
+    /tf_static: what rr.write_bag(mount_on_tf_static=False) writes, see the test below, without
+    rendering the frames a second time)."""
     d = tmp_path_factory.mktemp('vi_mount')
     seed, duration = 7, 5.0
     tf_bag = make_bag('robot_arcs', d / 'tf.mcap', seed=seed, duration_s=duration)
     side = yaml.safe_load((d / 'tf.params.yaml').read_text())
     assert 'imu_to_camera_xyzw' not in side['visual_inertial_filter']['ros__parameters']
     par_bag = d / 'par.mcap'
-    with BagWriter(par_bag) as bag:
-        rr.write_bag(bag, seed, duration, 'raw', mount_on_tf_static=False)
+    with BagReader(tf_bag) as r, BagWriter(par_bag) as w:
+        assert '/tf_static' in r.topics
+        for m in r.messages([t for t in r.topics if t != '/tf_static']):
+            w.write(m.topic, m.log_time_ns, m.rawdata, m.msgtype)
     side['visual_inertial_filter']['ros__parameters'].update(rr.mount_params())
     (d / 'par.params.yaml').write_text(yaml.safe_dump(side))
     out = {}
@@ -75,6 +79,24 @@ def mount_runs(tmp_path_factory) -> tuple[dict, dict, Path]:
         assert res.lost_deliveries == 0
         out[name] = evaluate_vi(d / f'{name}.out.mcap')
     return out['tf'], out['par'], d / 'tf.out.mcap'
+
+
+def _bag_messages(path: Path) -> list[tuple[str, int, bytes]]:
+    with BagReader(path) as bag:
+        return [(m.topic, m.log_time_ns, m.rawdata) for m in bag.messages()]
+
+
+def test_a_bag_without_the_mount_on_tf_static_is_the_same_bag_without_tf_static(tmp_path):
+    """rr.write_bag(mount_on_tf_static=False) leaves out /tf_static and nothing else (the
+    mount_runs fixture strips /tf_static from the 5 s bag instead of rendering it twice)."""
+    bags = {}
+    for flag in (True, False):
+        bags[flag] = tmp_path / f'{flag}.mcap'
+        with BagWriter(bags[flag]) as bag:
+            rr.write_bag(bag, 7, 0.15, 'raw', mount_on_tf_static=flag)
+    with_tf, without = _bag_messages(bags[True]), _bag_messages(bags[False])
+    assert [m for m in with_tf if m[0] != '/tf_static'] == without
+    assert len(with_tf) == len(without) + 1 and any(m[0] == '/camera/image_raw' for m in without)
 
 
 def test_mount_from_tf_static_equals_mount_from_parameters(mount_runs):
