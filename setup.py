@@ -42,7 +42,7 @@ setup(
         'numpy>=1.24',
         'scipy>=1.10',
         'opencv-python-headless>=4.8',
-        'rosbags>=0.10',
+        'rosbags>=0.11,<0.12',  # io/bag_typestores.py builds on AnyReader's opening (0.11)
         'mcap>=1.1',
         'gtsam>=4.2',
         'evo>=1.25',
