@@ -32,14 +32,46 @@ from __future__ import annotations
 import bisect
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.blas import dger
 
-from .rotations import matrix_to_quat_wxyz, quat_wxyz_conj, quat_wxyz_log, quat_wxyz_mul
+from .rotations import matrix_to_quat_wxyz
 
 Array = NDArray[np.float64]
+Quat = tuple[float, float, float, float]  # unit quaternion (w, x, y, z) as Python floats
+
+
+# The frame comparison's quaternion algebra on Python floats: :mod:`.rotations`' quat_wxyz_mul /
+# conj / log take and return arrays, and numpy's per-call cost on 4-vectors made the
+# comparison's four products and two logarithms about half of a frame's cost (42 of ~80 us,
+# 2026-11-28). The same arithmetic (test_panorama_azimuth checks them against rotations').
+
+def _qmul(a: Sequence[float], b: Sequence[float]) -> Quat:
+    """Hamilton product a * b in (w, x, y, z) order, as :func:`.rotations.quat_wxyz_mul`."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def _qconj(q: Sequence[float]) -> Quat:
+    """The conjugate (inverse of a unit quaternion), as :func:`.rotations.quat_wxyz_conj`."""
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def _qlog_along(q: Quat, u: Sequence[float]) -> float:
+    """The component along u of q's rotation vector (the shorter way round), as
+    ``quat_wxyz_log(q) @ u`` of :mod:`.rotations`."""
+    w, x, y, z = q
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    n = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 if n < 1e-12 else 2.0 * math.atan2(n, w) / n
+    return k * (x * u[0] + y * u[1] + z * u[2])
 
 
 @dataclass(frozen=True)
@@ -110,12 +142,12 @@ class AzimuthDistortion:
         # Gyro chain R_0_imu(t) of recent samples: stamps and unit quaternions (w, x, y, z) as
         # Python floats (per IMU sample, numpy's per-call overhead was most of the cost).
         self._gyro_t: list[int] = []
-        self._gyro_q: list[tuple[float, float, float, float]] = []
+        self._gyro_q: list[Quat] = []
         self._omega: tuple[float, float, float] | None = None
         self._axes_key: tuple[float, float, float] | None = None
         self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
-        #: Recent frames: (stamp, R_pano_cam, R_pano_imu as a quaternion).
-        self._frames: deque[tuple[int, Array, Array]] = deque()
+        #: Recent frames: (stamp, R_pano_cam, R_pano_imu as a quaternion of Python floats).
+        self._frames: deque[tuple[int, Array, list[float]]] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -158,8 +190,9 @@ class AzimuthDistortion:
         while self._waiting and self._waiting[0][0] <= t_ns:
             self._frame(*self._waiting.popleft())
 
-    def _gyro_at(self, t_ns: int) -> Array | None:
-        """The gyro chain's R_0_imu at t_ns (interpolated between samples), None outside it."""
+    def _gyro_at(self, t_ns: int) -> Quat | None:
+        """The gyro chain's R_0_imu at t_ns (interpolated between samples), None outside it; as
+        Python floats, for the comparison's quaternion algebra (:func:`_qmul`)."""
         ts = self._gyro_t
         if not ts or t_ns < ts[0] or t_ns > ts[-1]:
             return None
@@ -171,7 +204,7 @@ class AzimuthDistortion:
             w, x, y, z = ((1.0 - s) * p + s * sign * q for p, q in zip(a, b))
             norm = math.sqrt(w * w + x * x + y * y + z * z)
             a = (w / norm, x / norm, y / norm, z / norm)
-        return np.array(a)
+        return a
 
     def add_visual(self, t_ns: int, R_pano_cam: Array, up_pano: Array | None) -> None:
         """A tracked frame (its raw panorama orientation) and the panorama's up axis (None while
@@ -191,7 +224,7 @@ class AzimuthDistortion:
         if C is None:  # before the gyro's chain (it restarted after a gap)
             return
         # The IMU's orientation in the panorama frame by the tracker, R_pano_cam R_cam_imu.
-        q_pano_imu = matrix_to_quat_wxyz(R @ self.R_imu_cam.T)
+        q_pano_imu: list[float] = matrix_to_quat_wxyz(R @ self.R_imu_cam.T).tolist()
         if self.e1 is None and up_pano is not None:
             self.e1 = self._horizontal(R[:, 2], up_pano)
             if self.e1 is not None:  # c = 0 where the panorama starts (a firm pseudo-observation)
@@ -288,17 +321,17 @@ class AzimuthDistortion:
         b[k1] += f
         return b
 
-    def _compare(self, t_ns: int, R_j: Array, qa_j: Array, c_j: Array, up: Array) -> None:
+    def _compare(self, t_ns: int, R_j: Array, qa_j: list[float], c_j: Quat, up: Array) -> None:
         """The comparison of this frame with the last frame at least pair_s before it.
         With A = R_pano_imu by the tracker and G = C_i^T C_j the gyro's turn from i to j (imu
         axes), the tracker's turn beyond the gyro's is A_j G^T A_i^T, and the gyro's turn in
         panorama axes A_i G A_i^T; their components about up are d and dpsi_gyro."""
         cfg = self.config
         t_old = t_ns - int(cfg.pair_s * 1e9)
-        older = [f for f in reversed(self._frames) if f[0] <= t_old]
-        if not older:
+        older = next((f for f in reversed(self._frames) if f[0] <= t_old), None)
+        if older is None:
             return
-        t_i, R_i, qa_i = older[0]
+        t_i, R_i, qa_i = older
         if (t_ns - t_i) * 1e-9 > cfg.max_pair_s:
             return
         c_i = self._gyro_at(t_i)
@@ -306,9 +339,10 @@ class AzimuthDistortion:
         if c_i is None or psi_i is None or psi_j is None or self._axes is None:
             return
         u = self._axes[0]
-        g = quat_wxyz_mul(quat_wxyz_conj(c_i), c_j)
-        d = float(quat_wxyz_log(quat_wxyz_mul(quat_wxyz_mul(qa_j, quat_wxyz_conj(g)), quat_wxyz_conj(qa_i))) @ u)
-        dpsi_gyro = float(quat_wxyz_log(quat_wxyz_mul(quat_wxyz_mul(qa_i, g), quat_wxyz_conj(qa_i))) @ u)
+        g = _qmul(_qconj(c_i), c_j)
+        qa_i_inv = _qconj(qa_i)
+        d = _qlog_along(_qmul(_qmul(qa_j, _qconj(g)), qa_i_inv), u)
+        dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), qa_i_inv), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
         h = np.zeros(K + 2)
@@ -341,7 +375,13 @@ class AzimuthDistortion:
         self.t_filter_ns = t_ns
 
     def _update(self, h: Array, z: float, sigma: float) -> None:
+        """Kalman update by one scalar measurement z = h x (1-sigma ``sigma``). The covariance's
+        rank-one downdate P - (P h)(P h)^T / s is one in-place BLAS ``dger`` with v = P h / sqrt(s)
+        (numpy's outer product, division and subtraction were three passes over the 38 x 38
+        matrix, the update's largest cost); v_i v_j = v_j v_i, so P stays symmetric as computed."""
         Ph = self.P @ h
         s = float(h @ Ph) + sigma ** 2
         self.x = self.x + Ph * ((z - float(h @ self.x)) / s)
-        self.P -= np.outer(Ph, Ph) / s  # symmetric as computed
+        v = Ph * (1.0 / math.sqrt(s))
+        # P.T is the same matrix in Fortran order, updated in place (a copy if it ever is not).
+        self.P = dger(-1.0, v, v, a=self.P.T, overwrite_a=1).T
