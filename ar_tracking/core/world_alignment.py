@@ -50,9 +50,9 @@ import numpy as np
 from numpy.typing import NDArray
 from .alignment_covariance import FieldErrorParts, field_error_parts, field_heading_mse, hand_tilt_variance
 from .rotations import cross3, rot_z
-from .field_clusters import choose_cluster
+from .field_windows import FieldWindows
 from .soft_iron import soft_iron_normal_equations, symmetric_from_params
-from .window_statistics import WindowSums, cauchy_about_median, shorth
+from .window_statistics import WindowSums, median
 from .world_alignment_config import WorldAlignmentConfig
 
 __all__ = ['WorldAlignment', 'WorldAlignmentConfig', 'WorldAlignmentEstimate']
@@ -79,15 +79,33 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
-def _add_rotated_rows(ws: WindowSums, k: int, rows: list[list[float]], name: str) -> Array:
-    """Add samples kept as rows (R_pano_imu row-major, then a vector x in the IMU frame) to
-    window k: its count, S = sum R_imu_P and ``name`` = sum R_P_imu x. Returns the x, (n, 3)."""
-    arr = np.array(rows)
-    R, x = arr[:, :9].reshape(-1, 3, 3), arr[:, 9:12]
+def _weighted_sum(w: Array, M: Array) -> Array:
+    """sum_k w_k M_k of a stack of 3x3 matrices, as one matrix-vector product."""
+    return (w @ M.reshape(len(M), 9)).reshape(3, 3)
+
+
+def _rows(flat: list[float], width: int) -> Array:
+    """Samples kept as one flat list of floats, ``width`` per sample, as an (n, width) array."""
+    return np.fromiter(flat, float, len(flat)).reshape(-1, width)
+
+
+def _add_rotated_rows(ws: WindowSums, k: int, flat: list[float], name: str) -> Array:
+    """Add samples kept as flat rows of 12 floats (R_pano_imu row-major, then a vector x in the
+    IMU frame) to window k: its count, S = sum R_imu_P and ``name`` = sum R_P_imu x. Returns the
+    x, (n, 3). The sums are matrix products over the rows (batched einsums cost more)."""
+    arr = _rows(flat, 12)
+    R, x = arr[:, :9], arr[:, 9:12]
     ws.n[k] += len(arr)
-    ws.sums['S'][k] += R.sum(axis=0).T
-    ws.sums[name][k] += np.einsum('nij,nj->i', R, x)
+    ws.sums['S'][k] += R.sum(axis=0).reshape(3, 3).T
+    # sum_n R_n x_n: entry i is sum_j of (R^T x)[(i, j), j]
+    ws.sums[name][k] += (R.T @ x).reshape(3, 3, 3).trace(axis1=1, axis2=2)
     return x
+
+
+# The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
+_SKEW_AT = np.array([1, 2, 3, 5, 6, 7])
+_SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
+_SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
 class WorldAlignment:
@@ -114,9 +132,9 @@ class WorldAlignment:
             'S': (3, 3), 'Rta': (3,), 'a': (3,),
             'RtK': (3, 3), 'K': (3, 3), 'KtK': (3, 3), 'Kta': (3,)})
         # Samples not yet in their window's sums (rows of floats, see add) and those windows.
-        self._g_rows: list[list[float]] = []
-        self._lever_rows: list[list[float]] = []
-        self._f_rows: list[list[float]] = []
+        self._g_rows: list[float] = []
+        self._lever_rows: list[float] = []
+        self._f_rows: list[float] = []
         self._g_window = 0
         self._f_window = 0
         self._solve_period_ns = int(self.config.solve_period_s * 1e9)
@@ -169,10 +187,9 @@ class WorldAlignment:
         self._g_window = gw.open(t_ns)
         r = R_pano_imu.ravel().tolist()
         ax, ay, az = np.asarray(accel, dtype=float).tolist()
-        r.append(ax)
-        r.append(ay)
-        r.append(az)
-        self._g_rows.append(r)
+        rows = self._g_rows
+        rows += r
+        rows += (ax, ay, az)
         if omega is not None and self._lever:
             self._add_lever_arm(t_ns, r, np.asarray(omega, dtype=float).tolist(), ax, ay, az)
         aa = ax * ax + ay * ay + az * az
@@ -190,9 +207,9 @@ class WorldAlignment:
         if fw.end_ns is not None and t_ns >= fw.end_ns:
             self._flush_field()
         self._f_window = fw.open(t_ns)
-        r = R_pano_imu.ravel().tolist()
-        r.extend(np.asarray(mag, dtype=float).tolist())
-        self._f_rows.append(r)
+        rows = self._f_rows
+        rows += R_pano_imu.ravel().tolist()
+        rows += np.asarray(mag, dtype=float).tolist()
         self._field_samples += 1
         span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
         period_ns = min(self._solve_period_ns, max(100_000_000, int(self.config.solve_period_share * span_ns)))
@@ -207,8 +224,8 @@ class WorldAlignment:
         alpha x r + omega x (omega x r) = K r. The person's turn, not the wrist's tremor, carries
         the phone around that centre, so rate and specific force are low-passed alike
         (``lever_arm_tau_s``) and alpha is the difference of the low-passed rate. ``row`` is the
-        sample's R_pano_imu (row-major) and specific force; K and its sums are formed when the
-        window's sums are (:meth:`_flush_gravity`)."""
+        sample's R_pano_imu (row-major, 9 floats); K and its sums are formed when the window's
+        sums are (:meth:`_flush_gravity`)."""
         prev_t = self._prev_omega_t_ns
         lp = self._lever_lp
         if lp is None or not 0 < t_ns - prev_t < 100_000_000:
@@ -225,8 +242,10 @@ class WorldAlignment:
         if self._lever_count % 2:
             return  # every other sample, counted twice: the orbit is slow next to the rate
         # R_pano_imu (9), low-passed specific force (3), rate (3), angular acceleration (3).
-        self._lever_rows.append(row[:9] + self._lever_lp[3:] + [wx, wy, wz, (wx - wx0) / dt,
-                                                               (wy - wy0) / dt, (wz - wz0) / dt])
+        rows = self._lever_rows
+        rows += row
+        rows += self._lever_lp[3:]
+        rows += (wx, wy, wz, (wx - wx0) / dt, (wy - wy0) / dt, (wz - wz0) / dt)
 
     def _flush_gravity(self) -> None:
         """Add the kept samples to the open gravity window's sums (S = sum R_imu_P, Rta = sum
@@ -239,23 +258,22 @@ class WorldAlignment:
         self._g_rows = []
         sums['a'][k] += a.sum(axis=0)
         if self._lever_rows:
-            lever = np.array(self._lever_rows)
+            lever = _rows(self._lever_rows, 18)
             self._lever_rows = []
+            n = len(lever)
             R = lever[:, :9].reshape(-1, 3, 3)
             a_lp, w, alpha = lever[:, 9:12], lever[:, 12:15], lever[:, 15:18]
-            K = w[:, :, None] * w[:, None, :]
-            K -= np.einsum('ni,jk->njk', (w * w).sum(axis=1, keepdims=True), np.eye(3))
-            K[:, 0, 1] -= alpha[:, 2]
-            K[:, 0, 2] += alpha[:, 1]
-            K[:, 1, 0] += alpha[:, 2]
-            K[:, 1, 2] -= alpha[:, 0]
-            K[:, 2, 0] -= alpha[:, 1]
-            K[:, 2, 1] += alpha[:, 0]
+            # K = w w^T - |w|^2 I + [alpha]x, flat row-major per sample, times 2.
+            K = (w[:, :, None] * w[:, None, :]).reshape(n, 9)
+            K[:, 0::4] -= (w * w).sum(axis=1, keepdims=True)
+            K[:, _SKEW_AT] += alpha[:, _SKEW_OF] * _SKEW_SIGN
             K *= 2.0
-            sums['RtK'][k] += np.einsum('nij,njk->ik', R, K)
-            sums['K'][k] += K.sum(axis=0)
-            sums['KtK'][k] += 0.5 * np.einsum('nji,njk->ik', K, K)
-            sums['Kta'][k] += np.einsum('nji,nj->i', K, a_lp)
+            K_rows = K.reshape(3 * n, 3)  # rows (sample, j) of each K
+            # sum R K, sum K, sum K^T K / 2 and sum K^T a_lp as products over the rows.
+            sums['RtK'][k] += np.ascontiguousarray(R.transpose(1, 0, 2)).reshape(3, 3 * n) @ K_rows
+            sums['K'][k] += K.sum(axis=0).reshape(3, 3)
+            sums['KtK'][k] += 0.5 * (K_rows.T @ K_rows)
+            sums['Kta'][k] += K_rows.T @ a_lp.reshape(3 * n)
 
     def _flush_field(self) -> None:
         """Add the kept field samples to the open field window's sums (S = sum R_imu_P, Rtm =
@@ -349,7 +367,7 @@ class WorldAlignment:
         idx = np.arange(k) + 0.5
         w = np.minimum(1.0, np.minimum(idx, k - idx) / ramp)
         n = float(w @ n_w)
-        sum_R = np.einsum('k,kij->ij', w, S_w)
+        sum_R = _weighted_sum(w, S_w)
         sum_Rta = w @ Rta_w
         sum_a = w @ a_w
         g_mag = self._sum_a_norm / self._n
@@ -366,13 +384,13 @@ class WorldAlignment:
         rhs = np.zeros(dim)
         rhs[:3], rhs[3:6] = sum_Rta, sum_a
         if lever:
-            RtK = np.einsum('k,kij->ij', w, sums['RtK'])
-            K = np.einsum('k,kij->ij', w, sums['K'])
+            RtK = _weighted_sum(w, sums['RtK'])
+            K = _weighted_sum(w, sums['K'])
             A[:3, 6:] = RtK
             A[6:, :3] = RtK.T
             A[3:6, 6:] = K
             A[6:, 3:6] = K.T
-            A[6:, 6:] = np.einsum('k,kij->ij', w, sums['KtK']) + np.eye(3) * (var / c.lever_arm_sigma_m ** 2)
+            A[6:, 6:] = _weighted_sum(w, sums['KtK']) + np.eye(3) * (var / c.lever_arm_sigma_m ** 2)
             rhs[6:] = w @ sums['Kta']
         if self._prior is not None:
             R_pe, sigma = self._prior
@@ -412,7 +430,7 @@ class WorldAlignment:
         self._flush_field()
         n_w, sums = self._fw.arrays()
         S_w, Rtm_w, m_w, norm_w = sums['S'], sums['Rtm'], sums['m'], sums['norm']
-        scale = float(np.median(norm_w / n_w))
+        scale = median(norm_w / n_w)
         if scale <= 0 or not math.isfinite(scale):
             scale = 1.0
         self._field_scale = scale
@@ -423,7 +441,7 @@ class WorldAlignment:
         prior = None
         if self._prior is not None and self._field_enu_ref is not None:
             prior = self._prior[0] @ self._field_enu_ref
-        up = self._up_estimate()
+        windows = FieldWindows(n_w, S_w, Rtm_w, self._up_estimate())
         spread = math.radians(2.0)
         outliers = 0.0
         # The windows are first judged with the previous hard iron held (zero at the start):
@@ -434,8 +452,8 @@ class WorldAlignment:
         if n_win >= 3:
             # (Only h: holding the previous soft iron too made fresh seeds 341-370 slightly
             # worse - median +0.01 deg, one seed +0.28.)
-            f_held = (Rtm_w.sum(axis=0) - np.einsum('nji,j->i', S_w, h_held)) / n_w.sum()
-            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up, None)
+            f_held = (Rtm_w.sum(axis=0) - S_w.sum(axis=0).T @ h_held) / n_w.sum()
+            w_win, spread = windows.weights(f_held, h_held, None, self._heading_mode, c)
         lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         soft = c.soft_iron_sigma > 0 and n_win >= 3
         lam_e = (c.field_model_sigma / c.soft_iron_sigma) ** 2 if soft else 0.0
@@ -476,57 +494,15 @@ class WorldAlignment:
             f_lin = f
             if n_win < 3:
                 break
-            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f, h, up, E)
-            outliers = float(np.mean(w_win < 0.5))
+            w_win, spread = windows.weights(f, h, E, self._heading_mode, c)
+            outliers = float(np.count_nonzero(w_win < 0.5) / n_win)
         self._h_last = h
         self._soft_iron = np.zeros((3, 3)) if E is None else E
         self._field_error = field_error_parts(*error_parts)  # once per solve, for estimate()
         if n_win >= 3:
-            e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
-            if float(e1 @ e1) < 1e-6:
-                e1 = np.array([0.0, 1.0, 0.0]) - up[1] * up
-            e1 /= float(np.linalg.norm(e1))
-            self._heading_mode = math.atan2(float(f @ cross3(up, e1)), float(f @ e1))
+            self._ambiguity_var = windows.ambiguity_var
+            self._heading_mode = windows.heading(f)
         return f, h, spread, outliers
-
-    def _window_weights(self, n_w: Array, S_w: Array, Rtm_w: Array, f: Array, h: Array,
-                        up: Array, E: Array | None) -> tuple[Array, float]:
-        """Cauchy weights of the windows (heading, strength and dip of the field each implies
-        in the panorama frame, about their medians) and the heading spread (rad). ``E``: the
-        residual soft iron of the fit being judged (None: not modelled)."""
-        c = self.config
-        mean_f = (Rtm_w - np.einsum('nji,j->ni', S_w, h)) / n_w[:, None]  # mean R_P_imu (m - h)
-        if E is not None:
-            S_mean = S_w / n_w[:, None, None]
-            # sum_jkl S_ji E_jk S_kl f_l per window, as two products (a four-operand einsum
-            # takes ten times longer).
-            mean_f -= np.einsum('nji,nj->ni', S_mean, (S_mean @ f) @ E.T)
-        # Headings about up in a basis fixed in the panorama frame, relative to f's.
-        e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
-        if float(e1 @ e1) < 1e-6:
-            e1 = np.array([0.0, 1.0, 0.0]) - up[1] * up
-        e1 /= float(np.linalg.norm(e1))
-        e2 = cross3(up, e1)
-        f_abs = math.atan2(float(f @ e2), float(f @ e1))
-        rel = (np.arctan2(mean_f @ e2, mean_f @ e1) - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-        centre, spread = shorth(rel, c.cluster_share)
-        spread = max(spread, math.radians(0.25))
-        width = c.cauchy_scale * spread
-        prev = None if self._heading_mode is None else (self._heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-        centre, self._ambiguity_var = choose_cluster(rel, centre, prev, width, c)
-        w_psi = 1.0 / (1.0 + ((rel - centre) / width) ** 2)
-        # Past reject_widths the weight is zero, not a Cauchy tail: a tail still lets the hard
-        # iron drift towards a disturbance, which then looks like the clean field (with little
-        # rotation a field offset fixed in the phone and one fixed in the world look alike).
-        w_psi[np.abs(rel - centre) > c.reject_widths * width] = 0.0
-        # Most real disturbances also change the field's strength or dip: a window whose mean
-        # field departs in either is down-weighted too (a turn that keeps both is left to the
-        # heading test).
-        norm = np.linalg.norm(mean_f, axis=1)
-        dip = np.arcsin(np.clip(-(mean_f @ up) / np.maximum(norm, 1e-12), -1.0, 1.0))
-        w_norm, _ = cauchy_about_median(norm, 0.005, c.cauchy_scale)
-        w_dip, _ = cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
-        return w_psi * w_norm * w_dip, spread
 
     def _up_estimate(self) -> Array:
         """Gravity direction in the panorama frame from the current sums (z before any)."""
