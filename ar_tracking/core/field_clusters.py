@@ -34,7 +34,7 @@ def _episode_costs(off: NDArray[np.bool_], config: WorldAlignmentConfig) -> list
     """:func:`episode_cost` of each row of ``off`` (candidates x windows in time order: the
     windows off that candidate), all rows in a few whole-array operations."""
     c = config
-    n_off = np.count_nonzero(off, axis=1).tolist()
+    n_off = off.sum(axis=1).tolist()
     # A run of at least m off-windows is a run of the windows that start m in a row: counting
     # the starts of those runs counts the episodes.
     long = off
@@ -42,7 +42,7 @@ def _episode_costs(off: NDArray[np.bool_], config: WorldAlignmentConfig) -> list
         long = long[:, :-1] & off[:, k:]
     if long.shape[1] == 0:  # fewer windows than an episode takes
         return [0.0 if k == 0 else k * c.window_s / c.disturbance_duration_s for k in n_off]
-    starts = np.count_nonzero(long[:, 1:] & ~long[:, :-1], axis=1) + long[:, 0]
+    starts = (long[:, 1:] & ~long[:, :-1]).sum(axis=1) + long[:, 0]
     return [0.0 if k == 0 else int(e) * c.disturbance_onset_nats + k * c.window_s / c.disturbance_duration_s
             for k, e in zip(n_off, starts.tolist())]
 
@@ -63,14 +63,14 @@ def choose_cluster(rel: Array, densest: float, previous: float | None, width: fl
     c = config
     limit = c.reject_widths * width
     candidates = [densest] if previous is None else [densest, previous]
-    dev = np.abs(rel[None, :] - np.array(candidates)[:, None])
+    dev = np.abs(rel - np.array(candidates)[:, None])
     off = dev > limit
     far = off.all(axis=0)
-    if int(np.count_nonzero(far)) >= 2:
+    if int(far.sum()) >= 2:
         third = shorth(rel[far])[0]
         candidates.append(third)
-        dev = np.vstack([dev, np.abs(rel - third)[None, :]])
-        off = np.vstack([off, dev[-1:] > limit])
+        dev = np.concatenate((dev, np.abs(rel - third)[None, :]))
+        off = dev > limit
     # A candidate no window supports any more (the last choice, after h moved) cannot win.
     supported = (dev <= limit).any(axis=1).tolist()
     costs = [k if ok else math.inf for k, ok in zip(_episode_costs(off, c), supported)]

@@ -16,10 +16,11 @@ from numpy.typing import NDArray
 
 from .field_clusters import choose_cluster
 from .rotations import cross3
-from .window_statistics import cauchy_about_median, shorth
+from .window_statistics import cauchy_about_medians, shorth
 from .world_alignment_config import WorldAlignmentConfig
 
 Array = NDArray[np.float64]
+_DIP_FLOOR = math.radians(0.25)  # of the windows' dip sigma
 
 
 def heading_basis(up: Array) -> tuple[Array, Array]:
@@ -90,8 +91,9 @@ class FieldWindows:
         # Most real disturbances also change the field's strength or dip: a window whose mean
         # field departs in either is down-weighted too (a turn that keeps both is left to the
         # heading test).
-        norm = np.sqrt(np.add.reduce(mean_f * mean_f, axis=1))
-        dip = np.arcsin(np.clip(-along[:, 2] / np.maximum(norm, 1e-12), -1.0, 1.0))
-        w_norm, _ = cauchy_about_median(norm, 0.005, c.cauchy_scale)
-        w_dip, _ = cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
+        norm_dip = np.empty((2, len(rel)))
+        norm = np.sqrt(np.add.reduce(mean_f * mean_f, axis=1), out=norm_dip[0])
+        sin_dip = -along[:, 2] / np.maximum(norm, 1e-12)
+        np.arcsin(np.minimum(np.maximum(sin_dip, -1.0), 1.0), out=norm_dip[1])  # clipped to [-1, 1]
+        w_norm, w_dip = cauchy_about_medians(norm_dip, (0.005, _DIP_FLOOR), c.cauchy_scale)
         return w_psi * w_norm * w_dip, spread

@@ -146,8 +146,9 @@ class AzimuthDistortion:
         self._omega: tuple[float, float, float] | None = None
         self._axes_key: tuple[float, float, float] | None = None
         self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
-        #: Recent frames: (stamp, R_pano_cam, R_pano_imu as a quaternion of Python floats).
-        self._frames: deque[tuple[int, Array, list[float]]] = deque()
+        #: Recent frames: (stamp, the camera's forward axis (R_pano_cam's third column) and
+        #: R_pano_imu as a quaternion, both as Python floats).
+        self._frames: deque[tuple[int, list[float], list[float]]] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -230,10 +231,11 @@ class AzimuthDistortion:
             if self.e1 is not None:  # c = 0 where the panorama starts (a firm pseudo-observation)
                 h = np.zeros(self.x.size)
                 h[:self.config.knots] = self._basis(0.0)
-                self._update(h, 0.0, 1e-5)
+                self._update(h, 0.0 - float(h @ self.x), 1e-5)
+        forward: list[float] = R[:, 2].tolist()
         if up_pano is not None and self.e1 is not None:
-            self._compare(t_ns, R, q_pano_imu, C, up_pano)
-        self._frames.append((t_ns, R, q_pano_imu))
+            self._compare(t_ns, forward, q_pano_imu, C, up_pano)
+        self._frames.append((t_ns, forward, q_pano_imu))
         while self._frames and t_ns - self._frames[0][0] > int(1e9 * self.config.max_pair_s):
             self._frames.popleft()
 
@@ -242,11 +244,11 @@ class AzimuthDistortion:
     def distortion(self, R_pano_cam: Array, up_pano: Array | None) -> float:
         """c (rad) where R_pano_cam looks: 0 before the panorama's azimuth is known or when it
         looks too steeply up or down."""
-        psi = self._azimuth(np.asarray(R_pano_cam, dtype=float)[:, 2], up_pano)
+        psi = self._azimuth(np.asarray(R_pano_cam, dtype=float)[:, 2].tolist(), up_pano)
         if psi is None:
             return 0.0
         k0, k1, f = self._knots_of(psi)
-        return (1.0 - f) * float(self.x[k0]) + f * float(self.x[k1])
+        return (1.0 - f) * self.x.item(k0) + f * self.x.item(k1)
 
     def correct(self, R_pano_cam: Array, up_pano: Array | None) -> Array:
         """R_pano_cam turned back by the distortion about up: the orientation in the panorama's
@@ -280,7 +282,8 @@ class AzimuthDistortion:
 
     def _axes_of(self, up_pano: Array) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None:
         """(up, azimuth 0, azimuth 90 deg) unit vectors for this up axis (kept while it stays)."""
-        key = (float(up_pano[0]), float(up_pano[1]), float(up_pano[2]))
+        ux, uy, uz = np.asarray(up_pano, dtype=float).tolist()
+        key = (ux, uy, uz)
         if key != self._axes_key:
             assert self.e1 is not None
             up = np.array(key) / np.linalg.norm(key)
@@ -295,14 +298,16 @@ class AzimuthDistortion:
                 self._axes = (tuple(up.tolist()), tuple(e1.tolist()), tuple(e2.tolist()))
         return self._axes
 
-    def _azimuth(self, forward: Array, up_pano: Array | None) -> float | None:
+    def _azimuth(self, forward: list[float], up_pano: Array | None) -> float | None:
+        """Azimuth (rad) of the camera's forward axis (floats, panorama frame) about up; None
+        before the panorama's azimuth 0 is known or when it looks too steeply up or down."""
         if self.e1 is None or up_pano is None:
             return None
         axes = self._axes_of(up_pano)
         if axes is None:
             return None
         u, e1, e2 = axes
-        fx, fy, fz = forward.tolist()
+        fx, fy, fz = forward
         if abs(fx * u[0] + fy * u[1] + fz * u[2]) > math.sin(self.config.max_elevation_rad):
             return None
         return math.atan2(fx * e2[0] + fy * e2[1] + fz * e2[2], fx * e1[0] + fy * e1[1] + fz * e1[2])
@@ -321,7 +326,7 @@ class AzimuthDistortion:
         b[k1] += f
         return b
 
-    def _compare(self, t_ns: int, R_j: Array, qa_j: list[float], c_j: Quat, up: Array) -> None:
+    def _compare(self, t_ns: int, fwd_j: list[float], qa_j: list[float], c_j: Quat, up: Array) -> None:
         """The comparison of this frame with the last frame at least pair_s before it.
         With A = R_pano_imu by the tracker and G = C_i^T C_j the gyro's turn from i to j (imu
         axes), the tracker's turn beyond the gyro's is A_j G^T A_i^T, and the gyro's turn in
@@ -331,11 +336,11 @@ class AzimuthDistortion:
         older = next((f for f in reversed(self._frames) if f[0] <= t_old), None)
         if older is None:
             return
-        t_i, R_i, qa_i = older
+        t_i, fwd_i, qa_i = older
         if (t_ns - t_i) * 1e-9 > cfg.max_pair_s:
             return
         c_i = self._gyro_at(t_i)
-        psi_i, psi_j = self._azimuth(R_i[:, 2], up), self._azimuth(R_j[:, 2], up)
+        psi_i, psi_j = self._azimuth(fwd_i, up), self._azimuth(fwd_j, up)
         if c_i is None or psi_i is None or psi_j is None or self._axes is None:
             return
         u = self._axes[0]
@@ -345,15 +350,16 @@ class AzimuthDistortion:
         dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), qa_i_inv), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
-        h = np.zeros(K + 2)
+        row = [0.0] * (K + 2)  # h, as floats (one array at the end)
         j0, j1, fj = self._knots_of(psi_j)
         i0, i1, fi = self._knots_of(psi_i)
-        h[j0] += 1.0 - fj
-        h[j1] += fj
-        h[i0] -= 1.0 - fi
-        h[i1] -= fi
-        h[K] = -dt
-        h[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
+        row[j0] += 1.0 - fj
+        row[j1] += fj
+        row[i0] -= 1.0 - fi
+        row[i1] -= fi
+        row[K] = -dt
+        row[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
+        h = np.array(row)
         self._predict(t_ns)
         r = d - float(h @ self.x)
         if abs(r) > cfg.max_residual_rad:
@@ -365,7 +371,7 @@ class AzimuthDistortion:
             # smooth prior makes of it (the jump is not learnt: docs/orientation.md).
             self.outliers += 1
             return
-        self._update(h, d, cfg.pair_noise_rad)
+        self._update(h, r, cfg.pair_noise_rad)
         self.pairs += 1
 
     def _predict(self, t_ns: int) -> None:
@@ -374,14 +380,15 @@ class AzimuthDistortion:
             self.P[K, K] += self.config.bias_walk_rad_s ** 2 * (t_ns - self.t_filter_ns) * 1e-9
         self.t_filter_ns = t_ns
 
-    def _update(self, h: Array, z: float, sigma: float) -> None:
-        """Kalman update by one scalar measurement z = h x (1-sigma ``sigma``). The covariance's
+    def _update(self, h: Array, residual: float, sigma: float) -> None:
+        """Kalman update by one scalar measurement z = h x (1-sigma ``sigma``) whose residual
+        z - h x is ``residual`` (the caller has it already). The covariance's
         rank-one downdate P - (P h)(P h)^T / s is one in-place BLAS ``dger`` with v = P h / sqrt(s)
         (numpy's outer product, division and subtraction were three passes over the 38 x 38
         matrix, the update's largest cost); v_i v_j = v_j v_i, so P stays symmetric as computed."""
         Ph = self.P @ h
         s = float(h @ Ph) + sigma ** 2
-        self.x = self.x + Ph * ((z - float(h @ self.x)) / s)
+        self.x = self.x + Ph * (residual / s)
         v = Ph * (1.0 / math.sqrt(s))
         # P.T is the same matrix in Fortran order, updated in place (a copy if it ever is not).
         self.P = dger(-1.0, v, v, a=self.P.T, overwrite_a=1).T

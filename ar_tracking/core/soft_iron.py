@@ -32,7 +32,10 @@ def soft_iron_jacobian(v: Array) -> Array:
 
 def symmetric_from_params(e: Array) -> Array:
     """The symmetric 3x3 matrix of the six entries ordered as in :func:`soft_iron_jacobian`."""
-    return np.array([[e[0], e[3], e[4]], [e[3], e[1], e[5]], [e[4], e[5], e[2]]], dtype=float)
+    return np.asarray(e, dtype=float)[_SYMMETRIC]
+
+
+_SYMMETRIC = np.array([[0, 3, 4], [3, 1, 5], [4, 5, 2]])
 
 
 # J(v) = sum_k _T[:, :, k] v_k: the Jacobian of soft_iron_jacobian as a constant tensor

@@ -48,11 +48,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.lapack import dgesv
+
 from .alignment_covariance import FieldErrorParts, field_error_parts, field_heading_mse, hand_tilt_variance
-from .rotations import cross3, rot_z
+from .rotations import rot_z
 from .field_windows import FieldWindows
 from .soft_iron import soft_iron_normal_equations, symmetric_from_params
-from .window_statistics import WindowSums, median
+from .window_statistics import WindowSums, add_rotated_rows, flat_rows, median, weighted_sum
 from .world_alignment_config import WorldAlignmentConfig
 
 __all__ = ['WorldAlignment', 'WorldAlignmentConfig', 'WorldAlignmentEstimate']
@@ -79,27 +81,16 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
-def _weighted_sum(w: Array, M: Array) -> Array:
-    """sum_k w_k M_k of a stack of 3x3 matrices, as one matrix-vector product."""
-    return (w @ M.reshape(len(M), 9)).reshape(3, 3)
+_D3, _D6 = np.arange(3), np.arange(6)  # diagonal indices
 
 
-def _rows(flat: list[float], width: int) -> Array:
-    """Samples kept as one flat list of floats, ``width`` per sample, as an (n, width) array."""
-    return np.fromiter(flat, float, len(flat)).reshape(-1, width)
-
-
-def _add_rotated_rows(ws: WindowSums, k: int, flat: list[float], name: str) -> Array:
-    """Add samples kept as flat rows of 12 floats (R_pano_imu row-major, then a vector x in the
-    IMU frame) to window k: its count, S = sum R_imu_P and ``name`` = sum R_P_imu x. Returns the
-    x, (n, 3). The sums are matrix products over the rows (batched einsums cost more)."""
-    arr = _rows(flat, 12)
-    R, x = arr[:, :9], arr[:, 9:12]
-    ws.n[k] += len(arr)
-    ws.sums['S'][k] += R.sum(axis=0).reshape(3, 3).T
-    # sum_n R_n x_n: entry i is sum_j of (R^T x)[(i, j), j]
-    ws.sums[name][k] += (R.T @ x).reshape(3, 3, 3).trace(axis1=1, axis2=2)
-    return x
+def _solve(A: Array, b: Array) -> Array:
+    """x of A x = b by LAPACK's dgesv, as np.linalg.solve, without its wrapper's checks (~10 us
+    of a small solve). A is square and regular here (normal equations with ridges)."""
+    _, _, x, info = dgesv(A, b)
+    if info != 0:
+        raise np.linalg.LinAlgError('Singular matrix')
+    return np.asarray(x, dtype=np.float64)
 
 
 # The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
@@ -197,18 +188,22 @@ class WorldAlignment:
         self._sum_a_norm += math.sqrt(aa)
         self._dirty = True
         if mag is not None:
-            self.add_field(t_ns, R_pano_imu, mag)
+            self._add_field(t_ns, r, mag)
 
     def add_field(self, t_ns: int, R_pano_imu: Array, mag: Array) -> None:
         """One calibrated field sample (any unit) with the IMU's orientation in the panorama
         frame at its own stamp (a magnetometer has its own rate and stamps)."""
-        t_ns, fw = int(t_ns), self._fw
+        self._add_field(int(t_ns), R_pano_imu.ravel().tolist(), mag)
+
+    def _add_field(self, t_ns: int, r: list[float], mag: Array) -> None:
+        """:meth:`add_field` with R_pano_imu as 9 floats (row-major)."""
+        fw = self._fw
         self._dirty = True
         if fw.end_ns is not None and t_ns >= fw.end_ns:
             self._flush_field()
         self._f_window = fw.open(t_ns)
         rows = self._f_rows
-        rows += R_pano_imu.ravel().tolist()
+        rows += r
         rows += np.asarray(mag, dtype=float).tolist()
         self._field_samples += 1
         span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
@@ -254,11 +249,11 @@ class WorldAlignment:
         if not self._g_rows:
             return
         k, sums = self._g_window, self._gw.sums
-        a = _add_rotated_rows(self._gw, k, self._g_rows, 'Rta')
+        a = add_rotated_rows(self._gw, k, self._g_rows, 'Rta')
         self._g_rows = []
         sums['a'][k] += a.sum(axis=0)
         if self._lever_rows:
-            lever = _rows(self._lever_rows, 18)
+            lever = flat_rows(self._lever_rows, 18)
             self._lever_rows = []
             n = len(lever)
             R = lever[:, :9].reshape(-1, 3, 3)
@@ -281,7 +276,7 @@ class WorldAlignment:
         if not self._f_rows:
             return
         k, sums = self._f_window, self._fw.sums
-        m = _add_rotated_rows(self._fw, k, self._f_rows, 'Rtm')
+        m = add_rotated_rows(self._fw, k, self._f_rows, 'Rtm')
         self._f_rows = []
         sums['m'][k] += m.sum(axis=0)
         sums['norm'][k] += np.sqrt((m * m).sum(axis=1)).sum()
@@ -367,7 +362,7 @@ class WorldAlignment:
         idx = np.arange(k) + 0.5
         w = np.minimum(1.0, np.minimum(idx, k - idx) / ramp)
         n = float(w @ n_w)
-        sum_R = _weighted_sum(w, S_w)
+        sum_R = weighted_sum(w, S_w)
         sum_Rta = w @ Rta_w
         sum_a = w @ a_w
         g_mag = self._sum_a_norm / self._n
@@ -377,27 +372,28 @@ class WorldAlignment:
         lever = c.lever_arm_sigma_m > 0
         dim = 9 if lever else 6
         A = np.zeros((dim, dim))
-        A[:3, :3] = np.eye(3) * n
+        A[_D3, _D3] = n
         A[:3, 3:6] = sum_R.T
         A[3:6, :3] = sum_R
-        A[3:6, 3:6] = np.eye(3) * (n + lam_b)
+        A[_D3 + 3, _D3 + 3] = n + lam_b
         rhs = np.zeros(dim)
         rhs[:3], rhs[3:6] = sum_Rta, sum_a
         if lever:
-            RtK = _weighted_sum(w, sums['RtK'])
-            K = _weighted_sum(w, sums['K'])
+            RtK = weighted_sum(w, sums['RtK'])
+            K = weighted_sum(w, sums['K'])
             A[:3, 6:] = RtK
             A[6:, :3] = RtK.T
             A[3:6, 6:] = K
             A[6:, 3:6] = K.T
-            A[6:, 6:] = _weighted_sum(w, sums['KtK']) + np.eye(3) * (var / c.lever_arm_sigma_m ** 2)
+            A[6:, 6:] = weighted_sum(w, sums['KtK'])
+            A[_D3 + 6, _D3 + 6] += var / c.lever_arm_sigma_m ** 2
             rhs[6:] = w @ sums['Kta']
         if self._prior is not None:
             R_pe, sigma = self._prior
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
-            A[:3, :3] += np.eye(3) * wp
+            A[_D3, _D3] += wp
             rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
-        x = np.asarray(np.linalg.solve(A, rhs), dtype=np.float64)
+        x = _solve(A, rhs)
         g, b = x[:3], x[3:6]
         if lever:
             self._lever_arm = x[6:]
@@ -436,6 +432,7 @@ class WorldAlignment:
         self._field_scale = scale
         Rtm_w = Rtm_w / scale
         m_w = m_w / scale
+        Rtm_m_w = np.concatenate((Rtm_w, m_w), axis=1)  # the right-hand side's sums, side by side
         n_win = len(n_w)
         w_win = np.ones(n_win)
         prior = None
@@ -462,15 +459,15 @@ class WorldAlignment:
         for _ in range(max(1, c.irls_iterations)):
             wn = w_win * n_w
             sw = float(wn.sum())
-            WS = (w_win @ S_w.reshape(-1, 9)).reshape(3, 3)  # sum w R_imu_P
+            WS = weighted_sum(w_win, S_w)  # sum w R_imu_P
             dim = 6 if f_lin is None or not soft else 12
+            # (Diagonals set through index arrays: np.eye per block costs more than the solve.)
             A = np.zeros((dim, dim))
-            A[:3, :3] = np.eye(3) * sw
+            A[_D6, _D6] = sw
             A[:3, 3:6] = WS.T
             A[3:6, :3] = WS
-            A[3:6, 3:6] = np.eye(3) * sw
             rhs = np.zeros(dim)
-            rhs[:3], rhs[3:6] = w_win @ Rtm_w, w_win @ m_w
+            rhs[:6] = w_win @ Rtm_m_w
             if dim == 12:
                 assert f_lin is not None  # dim 12 only with a previous f
                 A_fe, A_he, A_ee, rhs_e = soft_iron_normal_equations(w_win, n_w, S_w, m_w, f_lin, 0.0)
@@ -478,16 +475,16 @@ class WorldAlignment:
                 A[6:, :3], A[6:, 3:6] = A_fe.T, A_he.T
                 rhs[6:] = rhs_e
             A_data = A.copy()  # what the samples give; the ridges and the prior follow
-            A[3:6, 3:6] += np.eye(3) * sw * lam
+            A[_D3 + 3, _D3 + 3] += sw * lam
             if dim == 12:
-                A[6:, 6:] += np.eye(6) * sw * lam_e
+                A[_D6 + 6, _D6 + 6] += sw * lam_e
             wp = 0.0
             if prior is not None:
                 wp = self._prior_weight(self._prior[1], c.field_model_sigma, 1.0)  # type: ignore[index]
-                A[:3, :3] += np.eye(3) * wp
+                A[_D3, _D3] += wp
                 rhs[:3] += wp * prior
             error_parts = (A, A_data, sw * lam, sw * lam_e, wp, sw / max(float(w_win.sum()), 1e-12))
-            x = np.asarray(np.linalg.solve(A, rhs), dtype=np.float64)
+            x = _solve(A, rhs)
             f, h = x[:3], x[3:6]
             if dim == 12:
                 E = symmetric_from_params(x[6:])
@@ -495,7 +492,7 @@ class WorldAlignment:
             if n_win < 3:
                 break
             w_win, spread = windows.weights(f, h, E, self._heading_mode, c)
-            outliers = float(np.count_nonzero(w_win < 0.5) / n_win)
+            outliers = int((w_win < 0.5).sum()) / n_win
         self._h_last = h
         self._soft_iron = np.zeros((3, 3)) if E is None else E
         self._field_error = field_error_parts(*error_parts)  # once per solve, for estimate()
@@ -520,25 +517,28 @@ class WorldAlignment:
         solve, with |g|, tan(dip) and the field's part of the heading variance (None when the
         field is vertical)."""
         c = self.config
-        g_P = gravity[0]
         f_P, _, f_sigma, _ = field
-        up = g_P / np.linalg.norm(g_P)
-        east = cross3(f_P, up)
-        f_h = float(np.linalg.norm(east))
+        # The 3-vectors as Python floats (this runs at every gravity and field solve).
+        g0, g1, g2 = gravity[0].tolist()
+        f0, f1, f2 = f_P.tolist()
+        g_norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        u0, u1, u2 = g0 / g_norm, g1 / g_norm, g2 / g_norm  # up
+        e0, e1, e2 = f1 * u2 - f2 * u1, f2 * u0 - f0 * u2, f0 * u1 - f1 * u0  # east = f x up
+        f_h = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
         if f_h < 1e-6:
             return None
-        east /= f_h
-        north = cross3(up, east)
-        R_pano_magenu = np.column_stack([east, north, up])
+        e0, e1, e2 = e0 / f_h, e1 / f_h, e2 / f_h
+        n0, n1, n2 = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0  # north = up x east
+        R_pano_magenu = np.array([[e0, n0, u0], [e1, n1, u1], [e2, n2, u2]])
         R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
         self._field_enu_ref = R_pano_enu.T @ f_P
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
-        tan_dip = abs(float(f_P @ up)) / f_h
+        tan_dip = abs(f0 * u0 + f1 * u1 + f2 * u2) / f_h
         assert self._field_error is not None  # set by every field solve
         prior_sigma = self._prior[1] if self._prior is not None else 0.0
-        field_var = field_heading_mse(self._field_error, f_sigma, east, f_h, c.hard_iron_prior_sigma,
+        field_var = field_heading_mse(self._field_error, f_sigma, R_pano_magenu[:, 0], f_h, c.hard_iron_prior_sigma,
                                       c.soft_iron_prior_sigma, prior_sigma)
-        return R_pano_enu, float(np.linalg.norm(g_P)), tan_dip, field_var
+        return R_pano_enu, g_norm, tan_dip, field_var
 
     def estimate(self) -> WorldAlignmentEstimate | None:
         """The current R_pano_enu with its covariance (None before any field sample)."""
@@ -551,14 +551,15 @@ class WorldAlignment:
         field = self._field
         assert field is not None  # ready
         key = (gravity, field, c.declination_rad)
-        if self._geometry is None or not all(a is b for a, b in zip(self._geometry[0], key)):
+        geometry = self._geometry
+        if geometry is None or not all(a is b for a, b in zip(geometry[0], key)):
             # Between solves only the session's span changes (the tilt variance): the rotation
             # and the field's part of the heading variance are computed once per solve pair.
-            geometry = self._solve_geometry(gravity, field)
-            if geometry is None:
+            solved = self._solve_geometry(gravity, field)
+            if solved is None:
                 return self._estimate
-            self._geometry = (key, *geometry)
-        _, R_pano_enu, g, tan_dip, field_var = self._geometry
+            geometry = self._geometry = (key, *solved)
+        _, R_pano_enu, g, tan_dip, field_var = geometry
         # Covariance (alignment_covariance): the hand's motion in the tilt; the windows' scatter
         # and the hard iron's bias through the field solve in the heading; plus floors.
         span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
@@ -568,7 +569,7 @@ class WorldAlignment:
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu,
-            covariance_enu=np.array([[tilt_var, 0.0, 0.0], [0.0, tilt_var, 0.0], [0.0, 0.0, heading_var]]),
+            covariance_enu=np.array((tilt_var, 0.0, 0.0, 0.0, tilt_var, 0.0, 0.0, 0.0, heading_var)).reshape(3, 3),
             field_outlier_share=field[3], hard_iron=field[1], accel_bias=gravity[1], soft_iron=self._soft_iron,
             field_scale=self._field_scale)
         self._dirty = False
