@@ -60,8 +60,8 @@ def field_error_parts(A_solved: Array, A_data: Array, hard_iron_ridge: float, so
     bias_h = hard_iron_ridge * B_f[:, 3:6]
     bias_e = soft_iron_ridge * B_f[:, 6:]
     bias_p = prior_weight * B_f[:, :3]
-    return FieldErrorParts(noise=(B_f @ A_data @ B_f.T), hard_iron=bias_h @ bias_h.T,
-                           soft_iron=bias_e @ bias_e.T, prior=bias_p @ bias_p.T,
+    return FieldErrorParts(noise=B_f.dot(A_data).dot(B_f.T), hard_iron=bias_h.dot(bias_h.T),
+                           soft_iron=bias_e.dot(bias_e.T), prior=bias_p.dot(bias_p.T),
                            samples_per_window=samples_per_window)
 
 
@@ -77,4 +77,4 @@ def field_heading_mse(parts: FieldErrorParts, window_sigma_rad: float, east: Arr
     per_sample = (window_sigma_rad * f_h) ** 2 * parts.samples_per_window
     mse = (per_sample * parts.noise + hard_iron_sigma ** 2 * parts.hard_iron
            + soft_iron_sigma ** 2 * parts.soft_iron + prior_sigma_rad ** 2 * parts.prior)
-    return float(east @ mse @ east) / f_h ** 2
+    return float(east.dot(mse).dot(east)) / f_h ** 2

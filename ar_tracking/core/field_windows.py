@@ -53,15 +53,15 @@ class FieldWindows:
 
     def heading(self, f: Array) -> float:
         """Heading of f about up in the basis of :func:`heading_basis` (rad)."""
-        return math.atan2(float(f @ self.e2), float(f @ self.e1))
+        return math.atan2(float(f.dot(self.e2)), float(f.dot(self.e1)))
 
     def mean_fields(self, f: Array, h: Array, E: Array | None) -> Array:
         """Per window, the field in the panorama frame it implies with hard iron h and soft
         iron E (None: not modelled): mean R_P_imu (m - h) - S^T E S f with S the window's mean
         R_imu_P (the soft-iron term at the mean rotation, as the normal equations take it)."""
         if E is None:
-            return self.Rtm_mean - (self._rows_t @ h).reshape(-1, 3)
-        z = (self._rows @ f).reshape(-1, 3) @ E.T + h  # h + E S f per window
+            return self.Rtm_mean - self._rows_t.dot(h).reshape(-1, 3)
+        z = self._rows.dot(f).reshape(-1, 3).dot(E.T) + h  # h + E S f per window
         return self.Rtm_mean - np.einsum('nji,nj->ni', self.S_mean, z)
 
     def weights(self, f: Array, h: Array, E: Array | None, heading_mode: float | None,
@@ -73,7 +73,7 @@ class FieldWindows:
         :attr:`ambiguity_var`."""
         c = config
         mean_f = self.mean_fields(f, h, E)
-        along = mean_f @ self._basis  # components along e1, e2 and up
+        along = mean_f.dot(self._basis)  # components along e1, e2 and up
         # Headings about up relative to f's.
         f_abs = self.heading(f)
         rel = (np.arctan2(along[:, 1], along[:, 0]) - f_abs + math.pi) % (2.0 * math.pi) - math.pi

@@ -143,12 +143,14 @@ class AzimuthDistortion:
         # Python floats (per IMU sample, numpy's per-call overhead was most of the cost).
         self._gyro_t: list[int] = []
         self._gyro_q: list[Quat] = []
+        self._chain = 0  # counts the chain's restarts: a kept R_0_imu belongs to one chain
         self._omega: tuple[float, float, float] | None = None
         self._axes_key: tuple[float, float, float] | None = None
         self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
         #: Recent frames: (stamp, the camera's forward axis (R_pano_cam's third column) and
-        #: R_pano_imu as a quaternion, both as Python floats).
-        self._frames: deque[tuple[int, list[float], list[float]]] = deque()
+        #: R_pano_imu as a quaternion, both as Python floats; the gyro chain's R_0_imu at the
+        #: stamp and the chain it is of, kept for the frame's later comparison).
+        self._frames: deque[tuple[int, list[float], list[float], Quat, int]] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -169,6 +171,7 @@ class AzimuthDistortion:
             if dt <= 0.0 or dt > self.config.max_pair_s:
                 ts.clear()
                 qs.clear()
+                self._chain += 1
             else:  # the trapezoid rate over the step, as one rotation
                 p = self._omega if self._omega is not None else w
                 vx, vy, vz = 0.5 * (p[0] + w[0]) * dt, 0.5 * (p[1] + w[1]) * dt, 0.5 * (p[2] + w[2]) * dt
@@ -225,7 +228,7 @@ class AzimuthDistortion:
         if C is None:  # before the gyro's chain (it restarted after a gap)
             return
         # The IMU's orientation in the panorama frame by the tracker, R_pano_cam R_cam_imu.
-        q_pano_imu: list[float] = matrix_to_quat_wxyz(R @ self.R_imu_cam.T).tolist()
+        q_pano_imu: list[float] = matrix_to_quat_wxyz(R.dot(self.R_imu_cam.T)).tolist()
         if self.e1 is None and up_pano is not None:
             self.e1 = self._horizontal(R[:, 2], up_pano)
             if self.e1 is not None:  # c = 0 where the panorama starts (a firm pseudo-observation)
@@ -235,7 +238,7 @@ class AzimuthDistortion:
         forward: list[float] = R[:, 2].tolist()
         if up_pano is not None and self.e1 is not None:
             self._compare(t_ns, forward, q_pano_imu, C, up_pano)
-        self._frames.append((t_ns, forward, q_pano_imu))
+        self._frames.append((t_ns, forward, q_pano_imu, C, self._chain))
         while self._frames and t_ns - self._frames[0][0] > int(1e9 * self.config.max_pair_s):
             self._frames.popleft()
 
@@ -336,10 +339,13 @@ class AzimuthDistortion:
         older = next((f for f in reversed(self._frames) if f[0] <= t_old), None)
         if older is None:
             return
-        t_i, fwd_i, qa_i = older
+        t_i, fwd_i, qa_i, c_i_kept, chain_i = older
         if (t_ns - t_i) * 1e-9 > cfg.max_pair_s:
             return
-        c_i = self._gyro_at(t_i)
+        # The chain's R_0_imu at t_i as it was when frame i arrived, while the chain still
+        # holds t_i (samples are only appended to it, and trimmed from its start).
+        kept = chain_i == self._chain and self._gyro_t and t_i >= self._gyro_t[0]
+        c_i = c_i_kept if kept else self._gyro_at(t_i)
         psi_i, psi_j = self._azimuth(fwd_i, up), self._azimuth(fwd_j, up)
         if c_i is None or psi_i is None or psi_j is None or self._axes is None:
             return
@@ -350,18 +356,17 @@ class AzimuthDistortion:
         dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), qa_i_inv), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
-        row = [0.0] * (K + 2)  # h, as floats (one array at the end)
+        h = np.zeros(K + 2)
         j0, j1, fj = self._knots_of(psi_j)
         i0, i1, fi = self._knots_of(psi_i)
-        row[j0] += 1.0 - fj
-        row[j1] += fj
-        row[i0] -= 1.0 - fi
-        row[i1] -= fi
-        row[K] = -dt
-        row[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
-        h = np.array(row)
+        h[j0] += 1.0 - fj
+        h[j1] += fj
+        h[i0] -= 1.0 - fi
+        h[i1] -= fi
+        h[K] = -dt
+        h[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
         self._predict(t_ns)
-        r = d - float(h @ self.x)
+        r = d - float(h.dot(self.x))
         if abs(r) > cfg.max_residual_rad:
             # The map jumps between the two frames (the seam, where a turn met its own start
             # and the two ends of the panorama disagree by the stretch of the whole turn), or a
@@ -386,9 +391,9 @@ class AzimuthDistortion:
         rank-one downdate P - (P h)(P h)^T / s is one in-place BLAS ``dger`` with v = P h / sqrt(s)
         (numpy's outer product, division and subtraction were three passes over the 38 x 38
         matrix, the update's largest cost); v_i v_j = v_j v_i, so P stays symmetric as computed."""
-        Ph = self.P @ h
-        s = float(h @ Ph) + sigma ** 2
+        Ph = self.P.dot(h)  # (ndarray.dot: less per-call cost than @ on small arrays)
+        s = float(h.dot(Ph)) + sigma ** 2
         self.x = self.x + Ph * (residual / s)
         v = Ph * (1.0 / math.sqrt(s))
         # P.T is the same matrix in Fortran order, updated in place (a copy if it ever is not).
-        self.P = dger(-1.0, v, v, a=self.P.T, overwrite_a=1).T
+        self.P = dger(-1.0, v, v, 1, 1, self.P.T, 1, 1, 1).T  # incx, incy, a, overwrite x, y, a

@@ -65,13 +65,14 @@ def soft_iron_normal_equations(w_win: Array, n_w: Array, S_w: Array, m_w: Array,
     windows instead of one Jacobian per window (numpy's per-call cost on the (n, 3, 6) arrays
     was most of the cost)."""
     n = len(n_w)
-    v = (S_w.reshape(-1, 3) @ f_lin).reshape(n, 3) / n_w[:, None]
+    v = S_w.reshape(-1, 3).dot(f_lin).reshape(n, 3) / n_w[:, None]
     wv = v * w_win[:, None]
     wnv = wv * n_w[:, None]
     # sum_n w S[j, i] v[k] as [(j, i), k], then A_fe[i, p] = sum_jk T[j, p, k] N[j, i, k]
-    N = (S_w.reshape(n, 9).T @ wv).reshape(3, 3, 3)
-    A_fe = N.transpose(1, 0, 2).reshape(3, 9) @ _T_FE
-    A_he = (_T_HE @ (n_w @ wv)).reshape(3, 6)
-    A_ee = (_T_EE @ (wnv.T @ v).reshape(9)).reshape(6, 6) + np.eye(6) * ridge
-    rhs = _T_RHS @ (m_w.T @ wv).reshape(9)
+    # (ndarray.dot: less per-call cost than @ on these small arrays.)
+    N = S_w.reshape(n, 9).T.dot(wv).reshape(3, 3, 3)
+    A_fe = N.transpose(1, 0, 2).reshape(3, 9).dot(_T_FE)
+    A_he = _T_HE.dot(n_w.dot(wv)).reshape(3, 6)
+    A_ee = _T_EE.dot(wnv.T.dot(v).reshape(9)).reshape(6, 6) + np.eye(6) * ridge
+    rhs = _T_RHS.dot(m_w.T.dot(wv).reshape(9))
     return A_fe, A_he, A_ee, rhs

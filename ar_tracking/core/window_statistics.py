@@ -127,7 +127,7 @@ class WindowSums:
 
 def weighted_sum(w: Array, M: Array) -> Array:
     """sum_k w_k M_k of a stack of 3x3 matrices, as one matrix-vector product."""
-    return (w @ M.reshape(len(M), 9)).reshape(3, 3)
+    return w.dot(M.reshape(len(M), 9)).reshape(3, 3)
 
 
 def flat_rows(flat: list[float], width: int) -> Array:
@@ -144,5 +144,5 @@ def add_rotated_rows(ws: WindowSums, k: int, flat: list[float], name: str) -> Ar
     ws.n[k] += len(arr)
     ws.sums['S'][k] += R.sum(axis=0).reshape(3, 3).T
     # sum_n R_n x_n: entry i is sum_j of (R^T x)[(i, j), j]
-    ws.sums[name][k] += (R.T @ x).reshape(3, 3, 3).trace(axis1=1, axis2=2)
+    ws.sums[name][k] += R.T.dot(x).reshape(3, 3, 3).trace(axis1=1, axis2=2)
     return x

@@ -265,10 +265,10 @@ class WorldAlignment:
             K *= 2.0
             K_rows = K.reshape(3 * n, 3)  # rows (sample, j) of each K
             # sum R K, sum K, sum K^T K / 2 and sum K^T a_lp as products over the rows.
-            sums['RtK'][k] += np.ascontiguousarray(R.transpose(1, 0, 2)).reshape(3, 3 * n) @ K_rows
+            sums['RtK'][k] += np.ascontiguousarray(R.transpose(1, 0, 2)).reshape(3, 3 * n).dot(K_rows)
             sums['K'][k] += K.sum(axis=0).reshape(3, 3)
-            sums['KtK'][k] += 0.5 * (K_rows.T @ K_rows)
-            sums['Kta'][k] += K_rows.T @ a_lp.reshape(3 * n)
+            sums['KtK'][k] += 0.5 * K_rows.T.dot(K_rows)
+            sums['Kta'][k] += K_rows.T.dot(a_lp.reshape(3 * n))
 
     def _flush_field(self) -> None:
         """Add the kept field samples to the open field window's sums (S = sum R_imu_P, Rtm =
@@ -361,10 +361,10 @@ class WorldAlignment:
         self._ramp_s = ramp * c.window_s
         idx = np.arange(k) + 0.5
         w = np.minimum(1.0, np.minimum(idx, k - idx) / ramp)
-        n = float(w @ n_w)
+        n = float(w.dot(n_w))
         sum_R = weighted_sum(w, S_w)
-        sum_Rta = w @ Rta_w
-        sum_a = w @ a_w
+        sum_Rta = w.dot(Rta_w)
+        sum_a = w.dot(a_w)
         g_mag = self._sum_a_norm / self._n
         # Per-sample noise of the model, for the ridge weight: the scatter of |a| about g.
         var = max(self._accel_var, 0.05 ** 2)
@@ -387,7 +387,7 @@ class WorldAlignment:
             A[6:, 3:6] = K.T
             A[6:, 6:] = weighted_sum(w, sums['KtK'])
             A[_D3 + 6, _D3 + 6] += var / c.lever_arm_sigma_m ** 2
-            rhs[6:] = w @ sums['Kta']
+            rhs[6:] = w.dot(sums['Kta'])
         if self._prior is not None:
             R_pe, sigma = self._prior
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
@@ -403,8 +403,8 @@ class WorldAlignment:
         # Per-axis residual variance of a - R g - b from the sums (the hand's acceleration and
         # the sensor noise): it weighs the ridge of the next solve and sets the covariance.
         all_R, all_Rta, all_a = S_w.sum(axis=0), Rta_w.sum(axis=0), a_w.sum(axis=0)
-        sq = (self._sum_aa - 2.0 * g @ all_Rta - 2.0 * b @ all_a + n * (g @ g)
-              + 2.0 * g @ (all_R.T @ b) + n * (b @ b))
+        sq = (self._sum_aa - 2.0 * g.dot(all_Rta) - 2.0 * b.dot(all_a) + n * g.dot(g)
+              + 2.0 * g.dot(all_R.T.dot(b)) + n * b.dot(b))
         self._accel_var = max(sq / (3.0 * n), 0.0)
         return g, b
 
@@ -449,7 +449,7 @@ class WorldAlignment:
         if n_win >= 3:
             # (Only h: holding the previous soft iron too made fresh seeds 341-370 slightly
             # worse - median +0.01 deg, one seed +0.28.)
-            f_held = (Rtm_w.sum(axis=0) - S_w.sum(axis=0).T @ h_held) / n_w.sum()
+            f_held = (Rtm_w.sum(axis=0) - S_w.sum(axis=0).T.dot(h_held)) / n_w.sum()
             w_win, spread = windows.weights(f_held, h_held, None, self._heading_mode, c)
         lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         soft = c.soft_iron_sigma > 0 and n_win >= 3
@@ -467,7 +467,7 @@ class WorldAlignment:
             A[:3, 3:6] = WS.T
             A[3:6, :3] = WS
             rhs = np.zeros(dim)
-            rhs[:6] = w_win @ Rtm_m_w
+            rhs[:6] = w_win.dot(Rtm_m_w)
             if dim == 12:
                 assert f_lin is not None  # dim 12 only with a previous f
                 A_fe, A_he, A_ee, rhs_e = soft_iron_normal_equations(w_win, n_w, S_w, m_w, f_lin, 0.0)
@@ -531,7 +531,7 @@ class WorldAlignment:
         n0, n1, n2 = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0  # north = up x east
         R_pano_magenu = np.array([[e0, n0, u0], [e1, n1, u1], [e2, n2, u2]])
         R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
-        self._field_enu_ref = R_pano_enu.T @ f_P
+        self._field_enu_ref = R_pano_enu.T.dot(f_P)
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
         tan_dip = abs(f0 * u0 + f1 * u1 + f2 * u2) / f_h
         assert self._field_error is not None  # set by every field solve
