@@ -15,7 +15,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .field_clusters import choose_cluster
-from .rotations import cross3
 from .window_statistics import cauchy_about_medians, shorth
 from .world_alignment_config import WorldAlignmentConfig
 
@@ -26,12 +25,14 @@ _DIP_FLOOR = math.radians(0.25)  # of the windows' dip sigma
 def heading_basis(up: Array) -> tuple[Array, Array]:
     """Two horizontal unit vectors (e1, e2 = up x e1) fixed in the panorama frame, in which the
     headings of field vectors about ``up`` (unit) are measured: x (or y when up is near x) with
-    its part along up removed."""
-    e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
-    if float(e1 @ e1) < 1e-6:
-        e1 = np.array([0.0, 1.0, 0.0]) - up[1] * up
-    e1 /= float(np.linalg.norm(e1))
-    return e1, cross3(up, e1)
+    its part along up removed. (On Python floats: a few numpy calls would cost more.)"""
+    u0, u1, u2 = np.asarray(up, dtype=float).tolist()
+    a0, a1, a2 = 1.0 - u0 * u0, -u0 * u1, -u0 * u2
+    if a0 * a0 + a1 * a1 + a2 * a2 < 1e-6:
+        a0, a1, a2 = -u1 * u0, 1.0 - u1 * u1, -u1 * u2
+    norm = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    a0, a1, a2 = a0 / norm, a1 / norm, a2 / norm
+    return np.array((a0, a1, a2)), np.array((u1 * a2 - u2 * a1, u2 * a0 - u0 * a2, u0 * a1 - u1 * a0))
 
 
 class FieldWindows:
@@ -47,7 +48,7 @@ class FieldWindows:
         self._rows = self.S_mean.reshape(-1, 3)
         self._rows_t = np.ascontiguousarray(self.S_mean.transpose(0, 2, 1)).reshape(-1, 3)
         self.e1, self.e2 = heading_basis(up)
-        self._basis = np.column_stack([self.e1, self.e2, up])
+        self._basis = np.array((self.e1, self.e2, up)).T  # columns e1, e2, up
         #: The doubt between the chosen field cluster and the runner-up, of the last :meth:`weights`.
         self.ambiguity_var = 0.0
 

@@ -173,9 +173,10 @@ class WorldAlignment:
             self._t_first_ns = t_ns
         self._t_last_ns = t_ns
         gw = self._gw
-        if gw.end_ns is not None and t_ns >= gw.end_ns:
-            self._flush_gravity()
-        self._g_window = gw.open(t_ns)
+        if gw.end_ns is None or t_ns >= gw.end_ns:  # (otherwise the open window takes it)
+            if gw.end_ns is not None:
+                self._flush_gravity()
+            self._g_window = gw.open(t_ns)
         r = R_pano_imu.ravel().tolist()
         ax, ay, az = np.asarray(accel, dtype=float).tolist()
         rows = self._g_rows
@@ -199,17 +200,26 @@ class WorldAlignment:
         """:meth:`add_field` with R_pano_imu as 9 floats (row-major)."""
         fw = self._fw
         self._dirty = True
-        if fw.end_ns is not None and t_ns >= fw.end_ns:
-            self._flush_field()
-        self._f_window = fw.open(t_ns)
+        if fw.end_ns is None or t_ns >= fw.end_ns:  # (otherwise the open window takes it)
+            if fw.end_ns is not None:
+                self._flush_field()
+            self._f_window = fw.open(t_ns)
         rows = self._f_rows
         rows += r
         rows += np.asarray(mag, dtype=float).tolist()
         self._field_samples += 1
-        span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
-        period_ns = min(self._solve_period_ns, max(100_000_000, int(self.config.solve_period_share * span_ns)))
-        if self._solve_t_ns is None or t_ns - self._solve_t_ns >= period_ns \
-                or self._field_samples < 8:
+        # Solve every min(solve_period, max(0.1 s, share x span)) of stamps: at once past the
+        # full period, never before 0.1 s (when the period is longer), in between by the span.
+        solve_t = self._solve_t_ns
+        solve = solve_t is None or self._field_samples < 8
+        if solve_t is not None and not solve:
+            elapsed = t_ns - solve_t
+            solve = elapsed >= self._solve_period_ns
+            if not solve and elapsed >= 100_000_000:
+                span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
+                solve = elapsed >= min(self._solve_period_ns,
+                                       max(100_000_000, int(self.config.solve_period_share * span_ns)))
+        if solve:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()
 
