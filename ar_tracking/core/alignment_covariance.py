@@ -21,8 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.lapack import dgesv
 
 Array = NDArray[np.float64]
+_FIRST3 = np.eye(12)[:, :3]  # identity columns for up to 12 unknowns
 
 
 def hand_tilt_variance(hand_velocity_m_s: float, hand_period_s: float, ramp_s: float, span_s: float,
@@ -55,13 +57,17 @@ def field_error_parts(A_solved: Array, A_data: Array, hard_iron_ridge: float, so
     ``A_solved`` the samples give (no ridge, no prior); ``hard_iron_ridge`` / ``soft_iron_ridge``:
     the weights on h = 0 (unknowns 3-5) and E = 0 (6-11); ``prior_weight``: the weight on f =
     the carried prior (0 without one)."""
-    B = np.linalg.inv(A_solved)
-    B_f = B[:3]
+    # The first three rows of A^-1, as A^-T's first three columns (LAPACK dgesv: the rows
+    # needed, without np.linalg.inv's wrapper).
+    _, _, X, info = dgesv(A_solved.T, _FIRST3[:len(A_solved)])
+    if info != 0:
+        raise np.linalg.LinAlgError('Singular matrix')
+    B_f = np.asarray(X, dtype=np.float64).T
     bias_h = hard_iron_ridge * B_f[:, 3:6]
     bias_e = soft_iron_ridge * B_f[:, 6:]
     bias_p = prior_weight * B_f[:, :3]
-    return FieldErrorParts(noise=(B_f @ A_data @ B_f.T), hard_iron=bias_h @ bias_h.T,
-                           soft_iron=bias_e @ bias_e.T, prior=bias_p @ bias_p.T,
+    return FieldErrorParts(noise=B_f.dot(A_data).dot(B_f.T), hard_iron=bias_h.dot(bias_h.T),
+                           soft_iron=bias_e.dot(bias_e.T), prior=bias_p.dot(bias_p.T),
                            samples_per_window=samples_per_window)
 
 
@@ -77,4 +83,4 @@ def field_heading_mse(parts: FieldErrorParts, window_sigma_rad: float, east: Arr
     per_sample = (window_sigma_rad * f_h) ** 2 * parts.samples_per_window
     mse = (per_sample * parts.noise + hard_iron_sigma ** 2 * parts.hard_iron
            + soft_iron_sigma ** 2 * parts.soft_iron + prior_sigma_rad ** 2 * parts.prior)
-    return float(east @ mse @ east) / f_h ** 2
+    return float(east.dot(mse).dot(east)) / f_h ** 2

@@ -26,15 +26,25 @@ def episode_cost(rel: Array, centre: float, width: float, config: WorldAlignment
     maximal run of them is one episode costing ``disturbance_onset_nats``, and every disturbed
     second costs 1 / ``disturbance_duration_s`` (episodes of exponentially distributed length).
     Runs shorter than ``min_episode_windows`` are noise: length only."""
+    off = np.abs(rel - centre)[None, :] > config.reject_widths * width
+    return _episode_costs(off, config)[0]
+
+
+def _episode_costs(off: NDArray[np.bool_], config: WorldAlignmentConfig) -> list[float]:
+    """:func:`episode_cost` of each row of ``off`` (candidates x windows in time order: the
+    windows off that candidate), all rows in a few whole-array operations."""
     c = config
-    off = np.abs(rel - centre) > c.reject_widths * width
-    n_off = int(off.sum())
-    if n_off == 0:
-        return 0.0
-    edges = np.flatnonzero(np.diff(np.concatenate(([0], off.astype(np.int8), [0]))))
-    lengths = edges[1::2] - edges[0::2]
-    episodes = int(np.sum(lengths >= c.min_episode_windows))
-    return episodes * c.disturbance_onset_nats + n_off * c.window_s / c.disturbance_duration_s
+    n_off = off.sum(axis=1).tolist()
+    # A run of at least m off-windows is a run of the windows that start m in a row: counting
+    # the starts of those runs counts the episodes.
+    long = off
+    for k in range(1, c.min_episode_windows):
+        long = long[:, :-1] & off[:, k:]
+    if long.shape[1] == 0:  # fewer windows than an episode takes
+        return [0.0 if k == 0 else k * c.window_s / c.disturbance_duration_s for k in n_off]
+    starts = (long[:, 1:] & ~long[:, :-1]).sum(axis=1) + long[:, 0]
+    return [0.0 if k == 0 else int(e) * c.disturbance_onset_nats + k * c.window_s / c.disturbance_duration_s
+            for k, e in zip(n_off, starts.tolist())]
 
 
 def choose_cluster(rel: Array, densest: float, previous: float | None, width: float,
@@ -47,25 +57,29 @@ def choose_cluster(rel: Array, densest: float, previous: float | None, width: fl
     wins, the last choice keeping its place unless beaten by ``mode_switch_nats``. So a
     disturbance as long as the clean data so far takes over (the longer run is the likelier
     field), but a field the phone returns to after an episode is the Earth's at once (calling it
-    disturbed would take two episodes)."""
+    disturbed would take two episodes). The candidates' deviations are one (candidates x
+    windows) array that serves the far test, their support and their costs (numpy's per-call
+    cost, not arithmetic, is most of a solve's)."""
     c = config
-    candidates = [densest]
-    if previous is not None:
-        candidates.append(previous)
-    far = np.ones(len(rel), dtype=bool)
-    for x in candidates:
-        far &= np.abs(rel - x) > c.reject_widths * width
+    limit = c.reject_widths * width
+    candidates = [densest] if previous is None else [densest, previous]
+    dev = np.abs(rel - np.array(candidates)[:, None])
+    off = dev > limit
+    far = off.all(axis=0)
     if int(far.sum()) >= 2:
-        candidates.append(shorth(rel[far])[0])
+        third = shorth(rel[far])[0]
+        candidates.append(third)
+        dev = np.concatenate((dev, np.abs(rel - third)[None, :]))
+        off = dev > limit
     # A candidate no window supports any more (the last choice, after h moved) cannot win.
-    costs = [episode_cost(rel, x, width, c) if np.any(np.abs(rel - x) <= c.reject_widths * width)
-             else math.inf for x in candidates]
-    best = int(np.argmin(costs))
+    supported = (dev <= limit).any(axis=1).tolist()
+    costs = [k if ok else math.inf for k, ok in zip(_episode_costs(off, c), supported)]
+    best = min(range(len(costs)), key=costs.__getitem__)  # the first of equal costs
     if previous is not None and math.isfinite(costs[1]) and costs[best] > costs[1] - c.mode_switch_nats:
         best = 1
     chosen, cost = candidates[best], costs[best]
     # The runner-up: the cheapest candidate clearly apart from the chosen one.
-    rivals = [(k, x) for k, x in zip(costs, candidates) if abs(x - chosen) > c.reject_widths * width]
+    rivals = [(k, x) for k, x in zip(costs, candidates) if abs(x - chosen) > limit]
     ambiguity_var = 0.0
     if rivals:
         k, x = min(rivals)

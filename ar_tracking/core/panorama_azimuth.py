@@ -32,14 +32,46 @@ from __future__ import annotations
 import bisect
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.blas import dger
 
-from .rotations import matrix_to_quat_wxyz, quat_wxyz_conj, quat_wxyz_log, quat_wxyz_mul
+from .rotations import matrix_to_quat_wxyz
 
 Array = NDArray[np.float64]
+Quat = tuple[float, float, float, float]  # unit quaternion (w, x, y, z) as Python floats
+
+
+# The frame comparison's quaternion algebra on Python floats: :mod:`.rotations`' quat_wxyz_mul /
+# conj / log take and return arrays, and numpy's per-call cost on 4-vectors made the
+# comparison's four products and two logarithms about half of a frame's cost (42 of ~80 us,
+# 2026-11-28). The same arithmetic (test_panorama_azimuth checks them against rotations').
+
+def _qmul(a: Sequence[float], b: Sequence[float]) -> Quat:
+    """Hamilton product a * b in (w, x, y, z) order, as :func:`.rotations.quat_wxyz_mul`."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def _qconj(q: Sequence[float]) -> Quat:
+    """The conjugate (inverse of a unit quaternion), as :func:`.rotations.quat_wxyz_conj`."""
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def _qlog_along(q: Quat, u: Sequence[float]) -> float:
+    """The component along u of q's rotation vector (the shorter way round), as
+    ``quat_wxyz_log(q) @ u`` of :mod:`.rotations`."""
+    w, x, y, z = q
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    n = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 if n < 1e-12 else 2.0 * math.atan2(n, w) / n
+    return k * (x * u[0] + y * u[1] + z * u[2])
 
 
 @dataclass(frozen=True)
@@ -110,12 +142,15 @@ class AzimuthDistortion:
         # Gyro chain R_0_imu(t) of recent samples: stamps and unit quaternions (w, x, y, z) as
         # Python floats (per IMU sample, numpy's per-call overhead was most of the cost).
         self._gyro_t: list[int] = []
-        self._gyro_q: list[tuple[float, float, float, float]] = []
+        self._gyro_q: list[Quat] = []
+        self._chain = 0  # counts the chain's restarts: a kept R_0_imu belongs to one chain
         self._omega: tuple[float, float, float] | None = None
         self._axes_key: tuple[float, float, float] | None = None
         self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
-        #: Recent frames: (stamp, R_pano_cam, R_pano_imu as a quaternion).
-        self._frames: deque[tuple[int, Array, Array]] = deque()
+        #: Recent frames: (stamp, the camera's forward axis (R_pano_cam's third column) and
+        #: R_pano_imu as a quaternion, both as Python floats; the gyro chain's R_0_imu at the
+        #: stamp and the chain it is of, kept for the frame's later comparison).
+        self._frames: deque[tuple[int, list[float], list[float], Quat, int]] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -136,6 +171,7 @@ class AzimuthDistortion:
             if dt <= 0.0 or dt > self.config.max_pair_s:
                 ts.clear()
                 qs.clear()
+                self._chain += 1
             else:  # the trapezoid rate over the step, as one rotation
                 p = self._omega if self._omega is not None else w
                 vx, vy, vz = 0.5 * (p[0] + w[0]) * dt, 0.5 * (p[1] + w[1]) * dt, 0.5 * (p[2] + w[2]) * dt
@@ -158,8 +194,9 @@ class AzimuthDistortion:
         while self._waiting and self._waiting[0][0] <= t_ns:
             self._frame(*self._waiting.popleft())
 
-    def _gyro_at(self, t_ns: int) -> Array | None:
-        """The gyro chain's R_0_imu at t_ns (interpolated between samples), None outside it."""
+    def _gyro_at(self, t_ns: int) -> Quat | None:
+        """The gyro chain's R_0_imu at t_ns (interpolated between samples), None outside it; as
+        Python floats, for the comparison's quaternion algebra (:func:`_qmul`)."""
         ts = self._gyro_t
         if not ts or t_ns < ts[0] or t_ns > ts[-1]:
             return None
@@ -171,7 +208,7 @@ class AzimuthDistortion:
             w, x, y, z = ((1.0 - s) * p + s * sign * q for p, q in zip(a, b))
             norm = math.sqrt(w * w + x * x + y * y + z * z)
             a = (w / norm, x / norm, y / norm, z / norm)
-        return np.array(a)
+        return a
 
     def add_visual(self, t_ns: int, R_pano_cam: Array, up_pano: Array | None) -> None:
         """A tracked frame (its raw panorama orientation) and the panorama's up axis (None while
@@ -191,16 +228,17 @@ class AzimuthDistortion:
         if C is None:  # before the gyro's chain (it restarted after a gap)
             return
         # The IMU's orientation in the panorama frame by the tracker, R_pano_cam R_cam_imu.
-        q_pano_imu = matrix_to_quat_wxyz(R @ self.R_imu_cam.T)
+        q_pano_imu: list[float] = matrix_to_quat_wxyz(R.dot(self.R_imu_cam.T)).tolist()
         if self.e1 is None and up_pano is not None:
             self.e1 = self._horizontal(R[:, 2], up_pano)
             if self.e1 is not None:  # c = 0 where the panorama starts (a firm pseudo-observation)
                 h = np.zeros(self.x.size)
                 h[:self.config.knots] = self._basis(0.0)
-                self._update(h, 0.0, 1e-5)
+                self._update(h, 0.0 - float(h @ self.x), 1e-5)
+        forward: list[float] = R[:, 2].tolist()
         if up_pano is not None and self.e1 is not None:
-            self._compare(t_ns, R, q_pano_imu, C, up_pano)
-        self._frames.append((t_ns, R, q_pano_imu))
+            self._compare(t_ns, forward, q_pano_imu, C, up_pano)
+        self._frames.append((t_ns, forward, q_pano_imu, C, self._chain))
         while self._frames and t_ns - self._frames[0][0] > int(1e9 * self.config.max_pair_s):
             self._frames.popleft()
 
@@ -209,11 +247,11 @@ class AzimuthDistortion:
     def distortion(self, R_pano_cam: Array, up_pano: Array | None) -> float:
         """c (rad) where R_pano_cam looks: 0 before the panorama's azimuth is known or when it
         looks too steeply up or down."""
-        psi = self._azimuth(np.asarray(R_pano_cam, dtype=float)[:, 2], up_pano)
+        psi = self._azimuth(np.asarray(R_pano_cam, dtype=float)[:, 2].tolist(), up_pano)
         if psi is None:
             return 0.0
         k0, k1, f = self._knots_of(psi)
-        return (1.0 - f) * float(self.x[k0]) + f * float(self.x[k1])
+        return (1.0 - f) * self.x.item(k0) + f * self.x.item(k1)
 
     def correct(self, R_pano_cam: Array, up_pano: Array | None) -> Array:
         """R_pano_cam turned back by the distortion about up: the orientation in the panorama's
@@ -247,7 +285,8 @@ class AzimuthDistortion:
 
     def _axes_of(self, up_pano: Array) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None:
         """(up, azimuth 0, azimuth 90 deg) unit vectors for this up axis (kept while it stays)."""
-        key = (float(up_pano[0]), float(up_pano[1]), float(up_pano[2]))
+        ux, uy, uz = np.asarray(up_pano, dtype=float).tolist()
+        key = (ux, uy, uz)
         if key != self._axes_key:
             assert self.e1 is not None
             up = np.array(key) / np.linalg.norm(key)
@@ -262,14 +301,16 @@ class AzimuthDistortion:
                 self._axes = (tuple(up.tolist()), tuple(e1.tolist()), tuple(e2.tolist()))
         return self._axes
 
-    def _azimuth(self, forward: Array, up_pano: Array | None) -> float | None:
+    def _azimuth(self, forward: list[float], up_pano: Array | None) -> float | None:
+        """Azimuth (rad) of the camera's forward axis (floats, panorama frame) about up; None
+        before the panorama's azimuth 0 is known or when it looks too steeply up or down."""
         if self.e1 is None or up_pano is None:
             return None
         axes = self._axes_of(up_pano)
         if axes is None:
             return None
         u, e1, e2 = axes
-        fx, fy, fz = forward.tolist()
+        fx, fy, fz = forward
         if abs(fx * u[0] + fy * u[1] + fz * u[2]) > math.sin(self.config.max_elevation_rad):
             return None
         return math.atan2(fx * e2[0] + fy * e2[1] + fz * e2[2], fx * e1[0] + fy * e1[1] + fz * e1[2])
@@ -288,27 +329,31 @@ class AzimuthDistortion:
         b[k1] += f
         return b
 
-    def _compare(self, t_ns: int, R_j: Array, qa_j: Array, c_j: Array, up: Array) -> None:
+    def _compare(self, t_ns: int, fwd_j: list[float], qa_j: list[float], c_j: Quat, up: Array) -> None:
         """The comparison of this frame with the last frame at least pair_s before it.
         With A = R_pano_imu by the tracker and G = C_i^T C_j the gyro's turn from i to j (imu
         axes), the tracker's turn beyond the gyro's is A_j G^T A_i^T, and the gyro's turn in
         panorama axes A_i G A_i^T; their components about up are d and dpsi_gyro."""
         cfg = self.config
         t_old = t_ns - int(cfg.pair_s * 1e9)
-        older = [f for f in reversed(self._frames) if f[0] <= t_old]
-        if not older:
+        older = next((f for f in reversed(self._frames) if f[0] <= t_old), None)
+        if older is None:
             return
-        t_i, R_i, qa_i = older[0]
+        t_i, fwd_i, qa_i, c_i_kept, chain_i = older
         if (t_ns - t_i) * 1e-9 > cfg.max_pair_s:
             return
-        c_i = self._gyro_at(t_i)
-        psi_i, psi_j = self._azimuth(R_i[:, 2], up), self._azimuth(R_j[:, 2], up)
+        # The chain's R_0_imu at t_i as it was when frame i arrived, while the chain still
+        # holds t_i (samples are only appended to it, and trimmed from its start).
+        kept = chain_i == self._chain and self._gyro_t and t_i >= self._gyro_t[0]
+        c_i = c_i_kept if kept else self._gyro_at(t_i)
+        psi_i, psi_j = self._azimuth(fwd_i, up), self._azimuth(fwd_j, up)
         if c_i is None or psi_i is None or psi_j is None or self._axes is None:
             return
         u = self._axes[0]
-        g = quat_wxyz_mul(quat_wxyz_conj(c_i), c_j)
-        d = float(quat_wxyz_log(quat_wxyz_mul(quat_wxyz_mul(qa_j, quat_wxyz_conj(g)), quat_wxyz_conj(qa_i))) @ u)
-        dpsi_gyro = float(quat_wxyz_log(quat_wxyz_mul(quat_wxyz_mul(qa_i, g), quat_wxyz_conj(qa_i))) @ u)
+        g = _qmul(_qconj(c_i), c_j)
+        qa_i_inv = _qconj(qa_i)
+        d = _qlog_along(_qmul(_qmul(qa_j, _qconj(g)), qa_i_inv), u)
+        dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), qa_i_inv), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
         h = np.zeros(K + 2)
@@ -321,7 +366,7 @@ class AzimuthDistortion:
         h[K] = -dt
         h[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
         self._predict(t_ns)
-        r = d - float(h @ self.x)
+        r = d - float(h.dot(self.x))
         if abs(r) > cfg.max_residual_rad:
             # The map jumps between the two frames (the seam, where a turn met its own start
             # and the two ends of the panorama disagree by the stretch of the whole turn), or a
@@ -331,7 +376,7 @@ class AzimuthDistortion:
             # smooth prior makes of it (the jump is not learnt: docs/orientation.md).
             self.outliers += 1
             return
-        self._update(h, d, cfg.pair_noise_rad)
+        self._update(h, r, cfg.pair_noise_rad)
         self.pairs += 1
 
     def _predict(self, t_ns: int) -> None:
@@ -340,8 +385,15 @@ class AzimuthDistortion:
             self.P[K, K] += self.config.bias_walk_rad_s ** 2 * (t_ns - self.t_filter_ns) * 1e-9
         self.t_filter_ns = t_ns
 
-    def _update(self, h: Array, z: float, sigma: float) -> None:
-        Ph = self.P @ h
-        s = float(h @ Ph) + sigma ** 2
-        self.x = self.x + Ph * ((z - float(h @ self.x)) / s)
-        self.P -= np.outer(Ph, Ph) / s  # symmetric as computed
+    def _update(self, h: Array, residual: float, sigma: float) -> None:
+        """Kalman update by one scalar measurement z = h x (1-sigma ``sigma``) whose residual
+        z - h x is ``residual`` (the caller has it already). The covariance's
+        rank-one downdate P - (P h)(P h)^T / s is one in-place BLAS ``dger`` with v = P h / sqrt(s)
+        (numpy's outer product, division and subtraction were three passes over the 38 x 38
+        matrix, the update's largest cost); v_i v_j = v_j v_i, so P stays symmetric as computed."""
+        Ph = self.P.dot(h)  # (ndarray.dot: less per-call cost than @ on small arrays)
+        s = float(h.dot(Ph)) + sigma ** 2
+        self.x = self.x + Ph * (residual / s)
+        v = Ph * (1.0 / math.sqrt(s))
+        # P.T is the same matrix in Fortran order, updated in place (a copy if it ever is not).
+        self.P = dger(-1.0, v, v, 1, 1, self.P.T, 1, 1, 1).T  # incx, incy, a, overwrite x, y, a

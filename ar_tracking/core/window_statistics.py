@@ -1,13 +1,15 @@
 """Robust statistics over short time windows of samples, for estimators that keep only sums.
 
 :class:`WindowSums` keeps the per-window sums of the normal equations of a least-squares
-problem, so that a robust solve (per-window weights) costs O(windows), not O(samples);
+problem, so that a robust solve (per-window weights) costs O(windows), not O(samples); samples
+kept as flat rows of Python floats are added to them as matrix products (:func:`add_rotated_rows`);
 :func:`shorth` and :func:`cauchy_about_median` give the robust centre, spread and weights of
 per-window values. Used by :mod:`.world_alignment` (Langlotz 2011 sec. 5, the panorama's place
 in the world).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -19,11 +21,13 @@ Array = NDArray[np.float64]
 
 def median(x: Array) -> float:
     """The median of a 1-D array, as ``np.median`` computes it (the mean of the two middle
-    values), without its per-call overhead (~130 -> ~15 us for a few hundred values)."""
+    values), without its per-call overhead (~130 -> ~15 us for a few hundred values; the
+    partition of a copy in place, as np.partition does, without its wrapper)."""
     n = len(x)
     lo, hi = (n - 1) // 2, n // 2
-    part = np.partition(x, [lo, hi]) if hi != lo else np.partition(x, lo)
-    return float((part[lo] + part[hi]) / 2.0)
+    part = x.copy()
+    part.partition([lo, hi] if hi != lo else lo)
+    return (part.item(lo) + part.item(hi)) / 2.0
 
 
 def cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, float]:
@@ -34,19 +38,44 @@ def cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, fl
     return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
 
 
+def cauchy_about_medians(x: Array, floors: tuple[float, ...], scale: float) -> Array:
+    """Each row's :func:`cauchy_about_median` weights for the rows of x (k, n) (floor
+    ``floors[i]`` for row i), all rows at once: the same values, without a median and a weight
+    formula per row (numpy's per-call cost is most of the cost at a few hundred values)."""
+    n = x.shape[1]
+    lo, hi = (n - 1) // 2, n // 2
+    kth = [lo, hi] if hi != lo else lo
+    part = x.copy()
+    part.partition(kth, axis=1)
+    dev = np.abs(x - ((part[:, lo] + part[:, hi]) / 2.0)[:, None])
+    part = dev.copy()
+    part.partition(kth, axis=1)
+    mad = ((part[:, lo] + part[:, hi]) / 2.0).tolist()
+    width = np.array([scale * max(1.4826 * m, f) for m, f in zip(mad, floors)])
+    return 1.0 / (1.0 + (dev / width[:, None]) ** 2)
+
+
 def shorth(x: Array, share: float = 0.5) -> tuple[float, float]:
     """Centre and robust sigma of the densest ``share`` of x: the shortest interval that holds
     that share of the values (Rousseeuw's shorth / least median of squares location for one
     half). Unlike the median it sits in the larger of two clusters instead of between them;
     with a share below one half its width is not inflated by a second cluster as large as the
     first (a half of two equal clusters spans both). The width is scaled to a normal sigma."""
-    xs = np.sort(x)
+    xs = x.copy()  # np.sort(x), without its wrapper
+    xs.sort()
     n = len(xs)
     h = min(n, max(2, int(n * share) + 1))
     widths = xs[h - 1:] - xs[:n - h + 1]
-    i = int(np.argmin(widths))
-    # A normal's central share p spans 2 sqrt(2) erfinv(p) sigma.
-    return float(np.mean(xs[i:i + h])), float(widths[i]) / (2.0 * math.sqrt(2.0) * float(erfinv(min(h / n, 0.999))))
+    i = int(widths.argmin())
+    # The mean as np.mean computes it (pairwise sum / count), without its per-call overhead.
+    return float(xs[i:i + h].sum() / h), float(widths[i]) / _normal_width(min(h / n, 0.999))
+
+
+@functools.lru_cache(maxsize=4096)
+def _normal_width(p: float) -> float:
+    """Width, in sigmas, of a normal's central share p: 2 sqrt(2) erfinv(p) (cached: scipy's
+    ufunc costs a few microseconds per scalar call, and a solve asks for the same few shares)."""
+    return 2.0 * math.sqrt(2.0) * float(erfinv(p))
 
 
 class WindowSums:
@@ -94,3 +123,26 @@ class WindowSums:
         """Counts and sums of the windows so far (views)."""
         k = self.count
         return self.n[:k], {name: v[:k] for name, v in self.sums.items()}
+
+
+def weighted_sum(w: Array, M: Array) -> Array:
+    """sum_k w_k M_k of a stack of 3x3 matrices, as one matrix-vector product."""
+    return w.dot(M.reshape(len(M), 9)).reshape(3, 3)
+
+
+def flat_rows(flat: list[float], width: int) -> Array:
+    """Samples kept as one flat list of floats, ``width`` per sample, as an (n, width) array."""
+    return np.fromiter(flat, float, len(flat)).reshape(-1, width)
+
+
+def add_rotated_rows(ws: WindowSums, k: int, flat: list[float], name: str) -> Array:
+    """Add samples kept as flat rows of 12 floats (R_pano_imu row-major, then a vector x in the
+    IMU frame) to window k: its count, S = sum R_imu_P and ``name`` = sum R_P_imu x. Returns the
+    x, (n, 3). The sums are matrix products over the rows (batched einsums cost more)."""
+    arr = flat_rows(flat, 12)
+    R, x = arr[:, :9], arr[:, 9:12]
+    ws.n[k] += len(arr)
+    ws.sums['S'][k] += R.sum(axis=0).reshape(3, 3).T
+    # sum_n R_n x_n: entry i is sum_j of (R^T x)[(i, j), j]
+    ws.sums[name][k] += R.T.dot(x).reshape(3, 3, 3).trace(axis1=1, axis2=2)
+    return x

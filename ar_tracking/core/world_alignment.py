@@ -48,11 +48,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.lapack import dgesv
+
 from .alignment_covariance import FieldErrorParts, field_error_parts, field_heading_mse, hand_tilt_variance
-from .rotations import cross3, rot_z
-from .field_clusters import choose_cluster
+from .rotations import rot_z
+from .field_windows import FieldWindows
 from .soft_iron import soft_iron_normal_equations, symmetric_from_params
-from .window_statistics import WindowSums, cauchy_about_median, shorth
+from .window_statistics import WindowSums, add_rotated_rows, flat_rows, median, weighted_sum
 from .world_alignment_config import WorldAlignmentConfig
 
 __all__ = ['WorldAlignment', 'WorldAlignmentConfig', 'WorldAlignmentEstimate']
@@ -79,15 +81,22 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
-def _add_rotated_rows(ws: WindowSums, k: int, rows: list[list[float]], name: str) -> Array:
-    """Add samples kept as rows (R_pano_imu row-major, then a vector x in the IMU frame) to
-    window k: its count, S = sum R_imu_P and ``name`` = sum R_P_imu x. Returns the x, (n, 3)."""
-    arr = np.array(rows)
-    R, x = arr[:, :9].reshape(-1, 3, 3), arr[:, 9:12]
-    ws.n[k] += len(arr)
-    ws.sums['S'][k] += R.sum(axis=0).T
-    ws.sums[name][k] += np.einsum('nij,nj->i', R, x)
-    return x
+_D3, _D6 = np.arange(3), np.arange(6)  # diagonal indices
+
+
+def _solve(A: Array, b: Array) -> Array:
+    """x of A x = b by LAPACK's dgesv, as np.linalg.solve, without its wrapper's checks (~10 us
+    of a small solve). A is square and regular here (normal equations with ridges)."""
+    _, _, x, info = dgesv(A, b)
+    if info != 0:
+        raise np.linalg.LinAlgError('Singular matrix')
+    return np.asarray(x, dtype=np.float64)
+
+
+# The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
+_SKEW_AT = np.array([1, 2, 3, 5, 6, 7])
+_SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
+_SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
 class WorldAlignment:
@@ -114,9 +123,9 @@ class WorldAlignment:
             'S': (3, 3), 'Rta': (3,), 'a': (3,),
             'RtK': (3, 3), 'K': (3, 3), 'KtK': (3, 3), 'Kta': (3,)})
         # Samples not yet in their window's sums (rows of floats, see add) and those windows.
-        self._g_rows: list[list[float]] = []
-        self._lever_rows: list[list[float]] = []
-        self._f_rows: list[list[float]] = []
+        self._g_rows: list[float] = []
+        self._lever_rows: list[float] = []
+        self._f_rows: list[float] = []
         self._g_window = 0
         self._f_window = 0
         self._solve_period_ns = int(self.config.solve_period_s * 1e9)
@@ -164,15 +173,15 @@ class WorldAlignment:
             self._t_first_ns = t_ns
         self._t_last_ns = t_ns
         gw = self._gw
-        if gw.end_ns is not None and t_ns >= gw.end_ns:
-            self._flush_gravity()
-        self._g_window = gw.open(t_ns)
+        if gw.end_ns is None or t_ns >= gw.end_ns:  # (otherwise the open window takes it)
+            if gw.end_ns is not None:
+                self._flush_gravity()
+            self._g_window = gw.open(t_ns)
         r = R_pano_imu.ravel().tolist()
         ax, ay, az = np.asarray(accel, dtype=float).tolist()
-        r.append(ax)
-        r.append(ay)
-        r.append(az)
-        self._g_rows.append(r)
+        rows = self._g_rows
+        rows += r
+        rows += (ax, ay, az)
         if omega is not None and self._lever:
             self._add_lever_arm(t_ns, r, np.asarray(omega, dtype=float).tolist(), ax, ay, az)
         aa = ax * ax + ay * ay + az * az
@@ -180,24 +189,37 @@ class WorldAlignment:
         self._sum_a_norm += math.sqrt(aa)
         self._dirty = True
         if mag is not None:
-            self.add_field(t_ns, R_pano_imu, mag)
+            self._add_field(t_ns, r, mag)
 
     def add_field(self, t_ns: int, R_pano_imu: Array, mag: Array) -> None:
         """One calibrated field sample (any unit) with the IMU's orientation in the panorama
         frame at its own stamp (a magnetometer has its own rate and stamps)."""
-        t_ns, fw = int(t_ns), self._fw
+        self._add_field(int(t_ns), R_pano_imu.ravel().tolist(), mag)
+
+    def _add_field(self, t_ns: int, r: list[float], mag: Array) -> None:
+        """:meth:`add_field` with R_pano_imu as 9 floats (row-major)."""
+        fw = self._fw
         self._dirty = True
-        if fw.end_ns is not None and t_ns >= fw.end_ns:
-            self._flush_field()
-        self._f_window = fw.open(t_ns)
-        r = R_pano_imu.ravel().tolist()
-        r.extend(np.asarray(mag, dtype=float).tolist())
-        self._f_rows.append(r)
+        if fw.end_ns is None or t_ns >= fw.end_ns:  # (otherwise the open window takes it)
+            if fw.end_ns is not None:
+                self._flush_field()
+            self._f_window = fw.open(t_ns)
+        rows = self._f_rows
+        rows += r
+        rows += np.asarray(mag, dtype=float).tolist()
         self._field_samples += 1
-        span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
-        period_ns = min(self._solve_period_ns, max(100_000_000, int(self.config.solve_period_share * span_ns)))
-        if self._solve_t_ns is None or t_ns - self._solve_t_ns >= period_ns \
-                or self._field_samples < 8:
+        # Solve every min(solve_period, max(0.1 s, share x span)) of stamps: at once past the
+        # full period, never before 0.1 s (when the period is longer), in between by the span.
+        solve_t = self._solve_t_ns
+        solve = solve_t is None or self._field_samples < 8
+        if solve_t is not None and not solve:
+            elapsed = t_ns - solve_t
+            solve = elapsed >= self._solve_period_ns
+            if not solve and elapsed >= 100_000_000:
+                span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
+                solve = elapsed >= min(self._solve_period_ns,
+                                       max(100_000_000, int(self.config.solve_period_share * span_ns)))
+        if solve:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()
 
@@ -207,8 +229,8 @@ class WorldAlignment:
         alpha x r + omega x (omega x r) = K r. The person's turn, not the wrist's tremor, carries
         the phone around that centre, so rate and specific force are low-passed alike
         (``lever_arm_tau_s``) and alpha is the difference of the low-passed rate. ``row`` is the
-        sample's R_pano_imu (row-major) and specific force; K and its sums are formed when the
-        window's sums are (:meth:`_flush_gravity`)."""
+        sample's R_pano_imu (row-major, 9 floats); K and its sums are formed when the window's
+        sums are (:meth:`_flush_gravity`)."""
         prev_t = self._prev_omega_t_ns
         lp = self._lever_lp
         if lp is None or not 0 < t_ns - prev_t < 100_000_000:
@@ -225,8 +247,10 @@ class WorldAlignment:
         if self._lever_count % 2:
             return  # every other sample, counted twice: the orbit is slow next to the rate
         # R_pano_imu (9), low-passed specific force (3), rate (3), angular acceleration (3).
-        self._lever_rows.append(row[:9] + self._lever_lp[3:] + [wx, wy, wz, (wx - wx0) / dt,
-                                                               (wy - wy0) / dt, (wz - wz0) / dt])
+        rows = self._lever_rows
+        rows += row
+        rows += self._lever_lp[3:]
+        rows += (wx, wy, wz, (wx - wx0) / dt, (wy - wy0) / dt, (wz - wz0) / dt)
 
     def _flush_gravity(self) -> None:
         """Add the kept samples to the open gravity window's sums (S = sum R_imu_P, Rta = sum
@@ -235,27 +259,26 @@ class WorldAlignment:
         if not self._g_rows:
             return
         k, sums = self._g_window, self._gw.sums
-        a = _add_rotated_rows(self._gw, k, self._g_rows, 'Rta')
+        a = add_rotated_rows(self._gw, k, self._g_rows, 'Rta')
         self._g_rows = []
         sums['a'][k] += a.sum(axis=0)
         if self._lever_rows:
-            lever = np.array(self._lever_rows)
+            lever = flat_rows(self._lever_rows, 18)
             self._lever_rows = []
+            n = len(lever)
             R = lever[:, :9].reshape(-1, 3, 3)
             a_lp, w, alpha = lever[:, 9:12], lever[:, 12:15], lever[:, 15:18]
-            K = w[:, :, None] * w[:, None, :]
-            K -= np.einsum('ni,jk->njk', (w * w).sum(axis=1, keepdims=True), np.eye(3))
-            K[:, 0, 1] -= alpha[:, 2]
-            K[:, 0, 2] += alpha[:, 1]
-            K[:, 1, 0] += alpha[:, 2]
-            K[:, 1, 2] -= alpha[:, 0]
-            K[:, 2, 0] -= alpha[:, 1]
-            K[:, 2, 1] += alpha[:, 0]
+            # K = w w^T - |w|^2 I + [alpha]x, flat row-major per sample, times 2.
+            K = (w[:, :, None] * w[:, None, :]).reshape(n, 9)
+            K[:, 0::4] -= (w * w).sum(axis=1, keepdims=True)
+            K[:, _SKEW_AT] += alpha[:, _SKEW_OF] * _SKEW_SIGN
             K *= 2.0
-            sums['RtK'][k] += np.einsum('nij,njk->ik', R, K)
-            sums['K'][k] += K.sum(axis=0)
-            sums['KtK'][k] += 0.5 * np.einsum('nji,njk->ik', K, K)
-            sums['Kta'][k] += np.einsum('nji,nj->i', K, a_lp)
+            K_rows = K.reshape(3 * n, 3)  # rows (sample, j) of each K
+            # sum R K, sum K, sum K^T K / 2 and sum K^T a_lp as products over the rows.
+            sums['RtK'][k] += np.ascontiguousarray(R.transpose(1, 0, 2)).reshape(3, 3 * n).dot(K_rows)
+            sums['K'][k] += K.sum(axis=0).reshape(3, 3)
+            sums['KtK'][k] += 0.5 * K_rows.T.dot(K_rows)
+            sums['Kta'][k] += K_rows.T.dot(a_lp.reshape(3 * n))
 
     def _flush_field(self) -> None:
         """Add the kept field samples to the open field window's sums (S = sum R_imu_P, Rtm =
@@ -263,7 +286,7 @@ class WorldAlignment:
         if not self._f_rows:
             return
         k, sums = self._f_window, self._fw.sums
-        m = _add_rotated_rows(self._fw, k, self._f_rows, 'Rtm')
+        m = add_rotated_rows(self._fw, k, self._f_rows, 'Rtm')
         self._f_rows = []
         sums['m'][k] += m.sum(axis=0)
         sums['norm'][k] += np.sqrt((m * m).sum(axis=1)).sum()
@@ -348,10 +371,10 @@ class WorldAlignment:
         self._ramp_s = ramp * c.window_s
         idx = np.arange(k) + 0.5
         w = np.minimum(1.0, np.minimum(idx, k - idx) / ramp)
-        n = float(w @ n_w)
-        sum_R = np.einsum('k,kij->ij', w, S_w)
-        sum_Rta = w @ Rta_w
-        sum_a = w @ a_w
+        n = float(w.dot(n_w))
+        sum_R = weighted_sum(w, S_w)
+        sum_Rta = w.dot(Rta_w)
+        sum_a = w.dot(a_w)
         g_mag = self._sum_a_norm / self._n
         # Per-sample noise of the model, for the ridge weight: the scatter of |a| about g.
         var = max(self._accel_var, 0.05 ** 2)
@@ -359,27 +382,28 @@ class WorldAlignment:
         lever = c.lever_arm_sigma_m > 0
         dim = 9 if lever else 6
         A = np.zeros((dim, dim))
-        A[:3, :3] = np.eye(3) * n
+        A[_D3, _D3] = n
         A[:3, 3:6] = sum_R.T
         A[3:6, :3] = sum_R
-        A[3:6, 3:6] = np.eye(3) * (n + lam_b)
+        A[_D3 + 3, _D3 + 3] = n + lam_b
         rhs = np.zeros(dim)
         rhs[:3], rhs[3:6] = sum_Rta, sum_a
         if lever:
-            RtK = np.einsum('k,kij->ij', w, sums['RtK'])
-            K = np.einsum('k,kij->ij', w, sums['K'])
+            RtK = weighted_sum(w, sums['RtK'])
+            K = weighted_sum(w, sums['K'])
             A[:3, 6:] = RtK
             A[6:, :3] = RtK.T
             A[3:6, 6:] = K
             A[6:, 3:6] = K.T
-            A[6:, 6:] = np.einsum('k,kij->ij', w, sums['KtK']) + np.eye(3) * (var / c.lever_arm_sigma_m ** 2)
-            rhs[6:] = w @ sums['Kta']
+            A[6:, 6:] = weighted_sum(w, sums['KtK'])
+            A[_D3 + 6, _D3 + 6] += var / c.lever_arm_sigma_m ** 2
+            rhs[6:] = w.dot(sums['Kta'])
         if self._prior is not None:
             R_pe, sigma = self._prior
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
-            A[:3, :3] += np.eye(3) * wp
+            A[_D3, _D3] += wp
             rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
-        x = np.asarray(np.linalg.solve(A, rhs), dtype=np.float64)
+        x = _solve(A, rhs)
         g, b = x[:3], x[3:6]
         if lever:
             self._lever_arm = x[6:]
@@ -389,8 +413,8 @@ class WorldAlignment:
         # Per-axis residual variance of a - R g - b from the sums (the hand's acceleration and
         # the sensor noise): it weighs the ridge of the next solve and sets the covariance.
         all_R, all_Rta, all_a = S_w.sum(axis=0), Rta_w.sum(axis=0), a_w.sum(axis=0)
-        sq = (self._sum_aa - 2.0 * g @ all_Rta - 2.0 * b @ all_a + n * (g @ g)
-              + 2.0 * g @ (all_R.T @ b) + n * (b @ b))
+        sq = (self._sum_aa - 2.0 * g.dot(all_Rta) - 2.0 * b.dot(all_a) + n * g.dot(g)
+              + 2.0 * g.dot(all_R.T.dot(b)) + n * b.dot(b))
         self._accel_var = max(sq / (3.0 * n), 0.0)
         return g, b
 
@@ -412,18 +436,19 @@ class WorldAlignment:
         self._flush_field()
         n_w, sums = self._fw.arrays()
         S_w, Rtm_w, m_w, norm_w = sums['S'], sums['Rtm'], sums['m'], sums['norm']
-        scale = float(np.median(norm_w / n_w))
+        scale = median(norm_w / n_w)
         if scale <= 0 or not math.isfinite(scale):
             scale = 1.0
         self._field_scale = scale
         Rtm_w = Rtm_w / scale
         m_w = m_w / scale
+        Rtm_m_w = np.concatenate((Rtm_w, m_w), axis=1)  # the right-hand side's sums, side by side
         n_win = len(n_w)
         w_win = np.ones(n_win)
         prior = None
         if self._prior is not None and self._field_enu_ref is not None:
             prior = self._prior[0] @ self._field_enu_ref
-        up = self._up_estimate()
+        windows = FieldWindows(n_w, S_w, Rtm_w, self._up_estimate())
         spread = math.radians(2.0)
         outliers = 0.0
         # The windows are first judged with the previous hard iron held (zero at the start):
@@ -434,8 +459,8 @@ class WorldAlignment:
         if n_win >= 3:
             # (Only h: holding the previous soft iron too made fresh seeds 341-370 slightly
             # worse - median +0.01 deg, one seed +0.28.)
-            f_held = (Rtm_w.sum(axis=0) - np.einsum('nji,j->i', S_w, h_held)) / n_w.sum()
-            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f_held, h_held, up, None)
+            f_held = (Rtm_w.sum(axis=0) - S_w.sum(axis=0).T.dot(h_held)) / n_w.sum()
+            w_win, spread = windows.weights(f_held, h_held, None, self._heading_mode, c)
         lam = (c.field_model_sigma / c.hard_iron_sigma) ** 2
         soft = c.soft_iron_sigma > 0 and n_win >= 3
         lam_e = (c.field_model_sigma / c.soft_iron_sigma) ** 2 if soft else 0.0
@@ -444,15 +469,15 @@ class WorldAlignment:
         for _ in range(max(1, c.irls_iterations)):
             wn = w_win * n_w
             sw = float(wn.sum())
-            WS = (w_win @ S_w.reshape(-1, 9)).reshape(3, 3)  # sum w R_imu_P
+            WS = weighted_sum(w_win, S_w)  # sum w R_imu_P
             dim = 6 if f_lin is None or not soft else 12
+            # (Diagonals set through index arrays: np.eye per block costs more than the solve.)
             A = np.zeros((dim, dim))
-            A[:3, :3] = np.eye(3) * sw
+            A[_D6, _D6] = sw
             A[:3, 3:6] = WS.T
             A[3:6, :3] = WS
-            A[3:6, 3:6] = np.eye(3) * sw
             rhs = np.zeros(dim)
-            rhs[:3], rhs[3:6] = w_win @ Rtm_w, w_win @ m_w
+            rhs[:6] = w_win.dot(Rtm_m_w)
             if dim == 12:
                 assert f_lin is not None  # dim 12 only with a previous f
                 A_fe, A_he, A_ee, rhs_e = soft_iron_normal_equations(w_win, n_w, S_w, m_w, f_lin, 0.0)
@@ -460,73 +485,31 @@ class WorldAlignment:
                 A[6:, :3], A[6:, 3:6] = A_fe.T, A_he.T
                 rhs[6:] = rhs_e
             A_data = A.copy()  # what the samples give; the ridges and the prior follow
-            A[3:6, 3:6] += np.eye(3) * sw * lam
+            A[_D3 + 3, _D3 + 3] += sw * lam
             if dim == 12:
-                A[6:, 6:] += np.eye(6) * sw * lam_e
+                A[_D6 + 6, _D6 + 6] += sw * lam_e
             wp = 0.0
             if prior is not None:
                 wp = self._prior_weight(self._prior[1], c.field_model_sigma, 1.0)  # type: ignore[index]
-                A[:3, :3] += np.eye(3) * wp
+                A[_D3, _D3] += wp
                 rhs[:3] += wp * prior
             error_parts = (A, A_data, sw * lam, sw * lam_e, wp, sw / max(float(w_win.sum()), 1e-12))
-            x = np.asarray(np.linalg.solve(A, rhs), dtype=np.float64)
+            x = _solve(A, rhs)
             f, h = x[:3], x[3:6]
             if dim == 12:
                 E = symmetric_from_params(x[6:])
             f_lin = f
             if n_win < 3:
                 break
-            w_win, spread = self._window_weights(n_w, S_w, Rtm_w, f, h, up, E)
-            outliers = float(np.mean(w_win < 0.5))
+            w_win, spread = windows.weights(f, h, E, self._heading_mode, c)
+            outliers = int((w_win < 0.5).sum()) / n_win
         self._h_last = h
         self._soft_iron = np.zeros((3, 3)) if E is None else E
         self._field_error = field_error_parts(*error_parts)  # once per solve, for estimate()
         if n_win >= 3:
-            e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
-            if float(e1 @ e1) < 1e-6:
-                e1 = np.array([0.0, 1.0, 0.0]) - up[1] * up
-            e1 /= float(np.linalg.norm(e1))
-            self._heading_mode = math.atan2(float(f @ cross3(up, e1)), float(f @ e1))
+            self._ambiguity_var = windows.ambiguity_var
+            self._heading_mode = windows.heading(f)
         return f, h, spread, outliers
-
-    def _window_weights(self, n_w: Array, S_w: Array, Rtm_w: Array, f: Array, h: Array,
-                        up: Array, E: Array | None) -> tuple[Array, float]:
-        """Cauchy weights of the windows (heading, strength and dip of the field each implies
-        in the panorama frame, about their medians) and the heading spread (rad). ``E``: the
-        residual soft iron of the fit being judged (None: not modelled)."""
-        c = self.config
-        mean_f = (Rtm_w - np.einsum('nji,j->ni', S_w, h)) / n_w[:, None]  # mean R_P_imu (m - h)
-        if E is not None:
-            S_mean = S_w / n_w[:, None, None]
-            # sum_jkl S_ji E_jk S_kl f_l per window, as two products (a four-operand einsum
-            # takes ten times longer).
-            mean_f -= np.einsum('nji,nj->ni', S_mean, (S_mean @ f) @ E.T)
-        # Headings about up in a basis fixed in the panorama frame, relative to f's.
-        e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
-        if float(e1 @ e1) < 1e-6:
-            e1 = np.array([0.0, 1.0, 0.0]) - up[1] * up
-        e1 /= float(np.linalg.norm(e1))
-        e2 = cross3(up, e1)
-        f_abs = math.atan2(float(f @ e2), float(f @ e1))
-        rel = (np.arctan2(mean_f @ e2, mean_f @ e1) - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-        centre, spread = shorth(rel, c.cluster_share)
-        spread = max(spread, math.radians(0.25))
-        width = c.cauchy_scale * spread
-        prev = None if self._heading_mode is None else (self._heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
-        centre, self._ambiguity_var = choose_cluster(rel, centre, prev, width, c)
-        w_psi = 1.0 / (1.0 + ((rel - centre) / width) ** 2)
-        # Past reject_widths the weight is zero, not a Cauchy tail: a tail still lets the hard
-        # iron drift towards a disturbance, which then looks like the clean field (with little
-        # rotation a field offset fixed in the phone and one fixed in the world look alike).
-        w_psi[np.abs(rel - centre) > c.reject_widths * width] = 0.0
-        # Most real disturbances also change the field's strength or dip: a window whose mean
-        # field departs in either is down-weighted too (a turn that keeps both is left to the
-        # heading test).
-        norm = np.linalg.norm(mean_f, axis=1)
-        dip = np.arcsin(np.clip(-(mean_f @ up) / np.maximum(norm, 1e-12), -1.0, 1.0))
-        w_norm, _ = cauchy_about_median(norm, 0.005, c.cauchy_scale)
-        w_dip, _ = cauchy_about_median(dip, math.radians(0.25), c.cauchy_scale)
-        return w_psi * w_norm * w_dip, spread
 
     def _up_estimate(self) -> Array:
         """Gravity direction in the panorama frame from the current sums (z before any)."""
@@ -544,25 +527,28 @@ class WorldAlignment:
         solve, with |g|, tan(dip) and the field's part of the heading variance (None when the
         field is vertical)."""
         c = self.config
-        g_P = gravity[0]
         f_P, _, f_sigma, _ = field
-        up = g_P / np.linalg.norm(g_P)
-        east = cross3(f_P, up)
-        f_h = float(np.linalg.norm(east))
+        # The 3-vectors as Python floats (this runs at every gravity and field solve).
+        g0, g1, g2 = gravity[0].tolist()
+        f0, f1, f2 = f_P.tolist()
+        g_norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        u0, u1, u2 = g0 / g_norm, g1 / g_norm, g2 / g_norm  # up
+        e0, e1, e2 = f1 * u2 - f2 * u1, f2 * u0 - f0 * u2, f0 * u1 - f1 * u0  # east = f x up
+        f_h = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
         if f_h < 1e-6:
             return None
-        east /= f_h
-        north = cross3(up, east)
-        R_pano_magenu = np.column_stack([east, north, up])
+        e0, e1, e2 = e0 / f_h, e1 / f_h, e2 / f_h
+        n0, n1, n2 = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0  # north = up x east
+        R_pano_magenu = np.array([[e0, n0, u0], [e1, n1, u1], [e2, n2, u2]])
         R_pano_enu = R_pano_magenu @ rot_z(-c.declination_rad).T if c.declination_rad else R_pano_magenu
-        self._field_enu_ref = R_pano_enu.T @ f_P
+        self._field_enu_ref = R_pano_enu.T.dot(f_P)
         # A tilt error turns east = f x up by up to tilt * tan(dip): it leaks into the heading.
-        tan_dip = abs(float(f_P @ up)) / f_h
+        tan_dip = abs(f0 * u0 + f1 * u1 + f2 * u2) / f_h
         assert self._field_error is not None  # set by every field solve
         prior_sigma = self._prior[1] if self._prior is not None else 0.0
-        field_var = field_heading_mse(self._field_error, f_sigma, east, f_h, c.hard_iron_prior_sigma,
+        field_var = field_heading_mse(self._field_error, f_sigma, R_pano_magenu[:, 0], f_h, c.hard_iron_prior_sigma,
                                       c.soft_iron_prior_sigma, prior_sigma)
-        return R_pano_enu, float(np.linalg.norm(g_P)), tan_dip, field_var
+        return R_pano_enu, g_norm, tan_dip, field_var
 
     def estimate(self) -> WorldAlignmentEstimate | None:
         """The current R_pano_enu with its covariance (None before any field sample)."""
@@ -575,14 +561,15 @@ class WorldAlignment:
         field = self._field
         assert field is not None  # ready
         key = (gravity, field, c.declination_rad)
-        if self._geometry is None or not all(a is b for a, b in zip(self._geometry[0], key)):
+        geometry = self._geometry
+        if geometry is None or not all(a is b for a, b in zip(geometry[0], key)):
             # Between solves only the session's span changes (the tilt variance): the rotation
             # and the field's part of the heading variance are computed once per solve pair.
-            geometry = self._solve_geometry(gravity, field)
-            if geometry is None:
+            solved = self._solve_geometry(gravity, field)
+            if solved is None:
                 return self._estimate
-            self._geometry = (key, *geometry)
-        _, R_pano_enu, g, tan_dip, field_var = self._geometry
+            geometry = self._geometry = (key, *solved)
+        _, R_pano_enu, g, tan_dip, field_var = geometry
         # Covariance (alignment_covariance): the hand's motion in the tilt; the windows' scatter
         # and the hard iron's bias through the field solve in the heading; plus floors.
         span_s = 0.0 if self._t_first_ns is None else (self._t_last_ns - self._t_first_ns) * 1e-9
@@ -592,7 +579,7 @@ class WorldAlignment:
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
         self._estimate = WorldAlignmentEstimate(
             R_pano_enu=R_pano_enu,
-            covariance_enu=np.array([[tilt_var, 0.0, 0.0], [0.0, tilt_var, 0.0], [0.0, 0.0, heading_var]]),
+            covariance_enu=np.array((tilt_var, 0.0, 0.0, 0.0, tilt_var, 0.0, 0.0, 0.0, heading_var)).reshape(3, 3),
             field_outlier_share=field[3], hard_iron=field[1], accel_bias=gravity[1], soft_iron=self._soft_iron,
             field_scale=self._field_scale)
         self._dirty = False

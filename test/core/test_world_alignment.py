@@ -5,7 +5,9 @@ import math
 
 import numpy as np
 
+from ar_tracking.core.field_clusters import episode_cost
 from ar_tracking.core.rotations import rot_z, so3_exp, so3_log
+from ar_tracking.core.soft_iron import soft_iron_jacobian, soft_iron_normal_equations
 from ar_tracking.core.world_alignment import WorldAlignment, WorldAlignmentConfig
 
 R0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # level camera looking north
@@ -290,3 +292,41 @@ def test_windows_carried_into_a_new_frame_weigh_what_the_gyro_knows_of_it():
     wa.reanchor(rot_z(0.6 + math.radians(3.0)), math.radians(5.0))
     est = _turned_session(wa, 30.0, 10.0, Q_true @ R_PE, np.zeros(3), 1)
     assert abs(float(np.degrees(so3_log(est.R_pano_enu.T @ Q_true @ R_PE))[2])) < 0.5
+
+
+def test_soft_iron_normal_equations_are_the_sums_of_the_per_window_jacobians():
+    """The soft-iron blocks formed from weighted moments equal the sums over windows of the
+    Jacobians J(v) (soft_iron_jacobian) they stand for."""
+    rng = np.random.default_rng(5)
+    n = 40
+    n_w = rng.integers(20, 60, n).astype(float)
+    S_w = np.array([sum(so3_exp(rng.normal(0.0, 0.2, 3) + [0.0, 0.0, 0.1 * i]).T for _ in range(int(k)))
+                    for i, k in enumerate(n_w)])
+    m_w = rng.normal(size=(n, 3)) * n_w[:, None]
+    w, f = rng.random(n), rng.normal(size=3)
+    A_fe, A_he, A_ee, rhs = soft_iron_normal_equations(w, n_w, S_w, m_w, f, 0.7)
+    J = soft_iron_jacobian(np.einsum('nij,j->ni', S_w, f) / n_w[:, None])
+    np.testing.assert_allclose(A_fe, np.einsum('n,nji,njp->ip', w, S_w, J), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(A_he, np.einsum('n,njp->jp', w * n_w, J), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(A_ee, np.einsum('n,njp,njq->pq', w * n_w, J, J) + 0.7 * np.eye(6), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(rhs, np.einsum('n,njp,nj->p', w, J, m_w), rtol=1e-12, atol=1e-9)
+
+
+def test_episode_cost_counts_the_runs_of_windows_off_a_candidate():
+    """Each maximal run of windows off the candidate, at least min_episode_windows long, is
+    one episode; every off window costs its length (a direct count of the runs)."""
+    rng = np.random.default_rng(2)
+    for m in range(0, 5):
+        c = WorldAlignmentConfig(min_episode_windows=m)
+        for _ in range(200):
+            rel = rng.choice([0.0, 1.0], size=int(rng.integers(1, 30)), p=[0.6, 0.4])
+            runs, length = [], 0
+            for off in (rel > 0.5).tolist() + [False]:
+                if off:
+                    length += 1
+                elif length:
+                    runs.append(length)
+                    length = 0
+            expected = (sum(r >= m for r in runs) * c.disturbance_onset_nats
+                        + sum(runs) * c.window_s / c.disturbance_duration_s) if runs else 0.0
+            assert math.isclose(episode_cost(rel, 0.0, 0.1, c), expected, rel_tol=1e-15), (m, rel)
