@@ -101,9 +101,6 @@ class TrackResult:
     intensity_offset_se: float = float('inf')
     #: The inliers of the fit, for the readout's estimate (:mod:`.readout`); None on failure.
     row_fit: RowFit | None = None
-    #: On a failure that had ``min_inliers`` inliers (only the ratio tests failed: parallax from
-    #: near objects, or a partly occluded view), the rotation they agree on; otherwise None.
-    R_consensus: Array | None = None
 
 
 def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
@@ -341,9 +338,8 @@ class ActiveSearchTracker:
         if ok:
             rays = b[inl] @ R.T
             fit = RowFit(rays, d[inl] - rays, (my[inl] + 0.5) / h, idx[k][inl])
-        consensus = R if not ok and n_in >= cfg.min_inliers else None
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
-                           log_gain, log_se, pairs_used, offset_se, fit, consensus)
+                           log_gain, log_se, pairs_used, offset_se, fit)
 
     def _weak_agreements(self, o: NDArray[np.int64], dirs: Array, R: Array, K: Array, peak_x: Array,
                          peak_y: Array, row_motion: tuple[Array, float] | None, h: int) -> int:
