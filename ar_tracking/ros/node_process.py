@@ -51,12 +51,28 @@ class _Durations:
     durations_ms: list[float] = field(default_factory=list)
 
 
+def _parent_log_level() -> int | None:
+    """The default rcutils log level of this process (``ar-tracking -q`` raises it to ERROR),
+    for the node processes to take over; None without rclpy."""
+    try:
+        import rclpy.logging
+
+        return int(rclpy.logging.get_logger_effective_level(''))
+    except Exception:  # noqa: BLE001 - no rclpy or no logging: the child keeps its default
+        return None
+
+
 def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, transforms: list[Any],
-                conn: Any, stop: Any) -> None:
-    """Entry point of the child process (spawned: nothing of the parent's DDS state is inherited)."""
+                conn: Any, stop: Any, log_level: int | None = None) -> None:
+    """Entry point of the child process (spawned: nothing of the parent's DDS state is inherited,
+    so the parent's log level comes as ``log_level``)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the runner, which stops us
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     import rclpy
+    import rclpy.logging
+
+    if log_level is not None:
+        rclpy.logging.set_logger_level('', log_level)
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import ReliabilityPolicy
 
@@ -136,7 +152,7 @@ class NodeProcess:
         self._conn, child_conn = mp.Pipe()
         self.process = mp.Process(
             target=_child_main, name=f'ar_tracking_{name}', daemon=True,
-            args=(name, spec, params, domain_id, list(transforms or []), child_conn, self._stop))
+            args=(name, spec, params, domain_id, list(transforms or []), child_conn, self._stop, _parent_log_level()))
         self.subscription_topics: list[str] = []
         self.publisher_topics: list[str] = []
         #: Output topics the child's node publishes best effort (a reliable reader never matches).
