@@ -83,8 +83,9 @@ class FieldWindows:
         width = c.cauchy_scale * spread
         prev = None if heading_mode is None else (heading_mode - f_abs + math.pi) % (2.0 * math.pi) - math.pi
         centre, self.ambiguity_var = choose_cluster(rel, centre, prev, width, c)
-        dev = np.abs(rel - centre)
-        w_psi = 1.0 / (1.0 + ((rel - centre) / width) ** 2)
+        off = rel - centre
+        dev = np.abs(off)
+        w_psi = 1.0 / (1.0 + (off / width) ** 2)
         # Past reject_widths the weight is zero, not a Cauchy tail: a tail still lets the hard
         # iron drift towards a disturbance, which then looks like the clean field (with little
         # rotation a field offset fixed in the phone and one fixed in the world look alike).
@@ -93,7 +94,10 @@ class FieldWindows:
         # field departs in either is down-weighted too (a turn that keeps both is left to the
         # heading test).
         norm_dip = np.empty((2, len(rel)))
-        norm = np.sqrt(np.add.reduce(mean_f * mean_f, axis=1), out=norm_dip[0])
+        # |mean_f| per window: the columns' squares added in the order np.add.reduce(axis=1)
+        # adds them (the same values; a reduction over rows of three costs ~10 us at 400 windows).
+        sq = mean_f * mean_f
+        norm = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2], out=norm_dip[0])
         sin_dip = -along[:, 2] / np.maximum(norm, 1e-12)
         np.arcsin(np.minimum(np.maximum(sin_dip, -1.0), 1.0), out=norm_dip[1])  # clipped to [-1, 1]
         w_norm, w_dip = cauchy_about_medians(norm_dip, (0.005, _DIP_FLOOR), c.cauchy_scale)

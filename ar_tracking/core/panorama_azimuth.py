@@ -39,7 +39,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.blas import dger
 
-from .rotations import matrix_to_quat_wxyz
 
 Array = NDArray[np.float64]
 Quat = tuple[float, float, float, float]  # unit quaternion (w, x, y, z) as Python floats
@@ -72,6 +71,30 @@ def _qlog_along(q: Quat, u: Sequence[float]) -> float:
     n = math.sqrt(x * x + y * y + z * z)
     k = 2.0 if n < 1e-12 else 2.0 * math.atan2(n, w) / n
     return k * (x * u[0] + y * u[1] + z * u[2])
+
+
+def _quat_of_rows(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float, m20: float,
+                  m21: float, m22: float) -> list[float]:
+    """Unit quaternion [w, x, y, z], w >= 0, of a rotation matrix given row-major as floats: the
+    arithmetic of :func:`.rotations.matrix_to_quat_wxyz` without its array in and out (two
+    numpy calls, per frame)."""
+    tr = m00 + m11 + m22
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        w, x, y, z = 0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s
+    elif m00 > m11 and m00 > m22:
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        w, x, y, z = (m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s
+    elif m11 > m22:
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        w, x, y, z = (m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+        w, x, y, z = (m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if w < 0:
+        n = -n
+    return [w / n, x / n, y / n, z / n]
 
 
 @dataclass(frozen=True)
@@ -117,6 +140,9 @@ class AzimuthDistortion:
     def __init__(self, R_imu_cam: Array, config: AzimuthDistortionConfig | None = None) -> None:
         self.config = config or AzimuthDistortionConfig()
         self.R_imu_cam = np.asarray(R_imu_cam, dtype=float)
+        # R_imu_cam's rows as floats, for the frame's product in Python (redone when the
+        # attribute is replaced: the node sets a new mount).
+        self._mount: tuple[Array, list[list[float]]] | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -227,15 +253,24 @@ class AzimuthDistortion:
         C = self._gyro_at(t_ns)
         if C is None:  # before the gyro's chain (it restarted after a gap)
             return
-        # The IMU's orientation in the panorama frame by the tracker, R_pano_cam R_cam_imu.
-        q_pano_imu: list[float] = matrix_to_quat_wxyz(R.dot(self.R_imu_cam.T)).tolist()
+        # The IMU's orientation in the panorama frame by the tracker, R_pano_cam R_cam_imu (on
+        # Python floats: three numpy calls on 3x3 matrices cost more than the arithmetic).
+        mount = self._mount
+        if mount is None or mount[0] is not self.R_imu_cam:
+            mount = self._mount = (self.R_imu_cam, np.asarray(self.R_imu_cam, dtype=float).tolist())
+        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = mount[1]
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.ravel().tolist()
+        q_pano_imu = _quat_of_rows(
+            r00 * a0 + r01 * a1 + r02 * a2, r00 * b0 + r01 * b1 + r02 * b2, r00 * c0 + r01 * c1 + r02 * c2,
+            r10 * a0 + r11 * a1 + r12 * a2, r10 * b0 + r11 * b1 + r12 * b2, r10 * c0 + r11 * c1 + r12 * c2,
+            r20 * a0 + r21 * a1 + r22 * a2, r20 * b0 + r21 * b1 + r22 * b2, r20 * c0 + r21 * c1 + r22 * c2)
         if self.e1 is None and up_pano is not None:
             self.e1 = self._horizontal(R[:, 2], up_pano)
             if self.e1 is not None:  # c = 0 where the panorama starts (a firm pseudo-observation)
                 h = np.zeros(self.x.size)
                 h[:self.config.knots] = self._basis(0.0)
                 self._update(h, 0.0 - float(h @ self.x), 1e-5)
-        forward: list[float] = R[:, 2].tolist()
+        forward = [r02, r12, r22]
         if up_pano is not None and self.e1 is not None:
             self._compare(t_ns, forward, q_pano_imu, C, up_pano)
         self._frames.append((t_ns, forward, q_pano_imu, C, self._chain))
@@ -247,7 +282,11 @@ class AzimuthDistortion:
     def distortion(self, R_pano_cam: Array, up_pano: Array | None) -> float:
         """c (rad) where R_pano_cam looks: 0 before the panorama's azimuth is known or when it
         looks too steeply up or down."""
-        psi = self._azimuth(np.asarray(R_pano_cam, dtype=float)[:, 2].tolist(), up_pano)
+        return self._distortion_at(np.asarray(R_pano_cam, dtype=float)[:, 2].tolist(), up_pano)
+
+    def _distortion_at(self, forward: list[float], up_pano: Array | None) -> float:
+        """:meth:`distortion` of the camera's forward axis (floats, panorama frame)."""
+        psi = self._azimuth(forward, up_pano)
         if psi is None:
             return 0.0
         k0, k1, f = self._knots_of(psi)
@@ -256,17 +295,23 @@ class AzimuthDistortion:
     def correct(self, R_pano_cam: Array, up_pano: Array | None) -> Array:
         """R_pano_cam turned back by the distortion about up: the orientation in the panorama's
         frame as an undistorted panorama would have given it."""
-        c = self.distortion(R_pano_cam, up_pano)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = np.asarray(R_pano_cam, dtype=float).ravel().tolist()
+        c = self._distortion_at([r02, r12, r22], up_pano)
         if c == 0.0 or self._axes is None:
             return np.asarray(R_pano_cam, dtype=float)
-        # The rotation by -c about the unit up axis (Rodrigues), as floats.
+        # The rotation T by -c about the unit up axis (Rodrigues) and T R_pano_cam, as floats
+        # (one numpy call instead of three).
         ux, uy, uz = self._axes[0]
         sn, cs = math.sin(-c), math.cos(-c)
         v = 1.0 - cs
-        turn = np.array([[cs + v * ux * ux, v * ux * uy - sn * uz, v * ux * uz + sn * uy],
-                         [v * uy * ux + sn * uz, cs + v * uy * uy, v * uy * uz - sn * ux],
-                         [v * uz * ux - sn * uy, v * uz * uy + sn * ux, cs + v * uz * uz]])
-        return turn @ R_pano_cam
+        t00, t01, t02 = cs + v * ux * ux, v * ux * uy - sn * uz, v * ux * uz + sn * uy
+        t10, t11, t12 = v * uy * ux + sn * uz, cs + v * uy * uy, v * uy * uz - sn * ux
+        t20, t21, t22 = v * uz * ux - sn * uy, v * uz * uy + sn * ux, cs + v * uz * uz
+        return np.array((
+            t00 * r00 + t01 * r10 + t02 * r20, t00 * r01 + t01 * r11 + t02 * r21, t00 * r02 + t01 * r12 + t02 * r22,
+            t10 * r00 + t11 * r10 + t12 * r20, t10 * r01 + t11 * r11 + t12 * r21, t10 * r02 + t11 * r12 + t12 * r22,
+            t20 * r00 + t21 * r10 + t22 * r20, t20 * r01 + t21 * r11 + t22 * r21,
+            t20 * r02 + t21 * r12 + t22 * r22)).reshape(3, 3)
 
     @property
     def scale_error(self) -> float:
