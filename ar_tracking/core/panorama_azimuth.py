@@ -381,7 +381,11 @@ class AzimuthDistortion:
         panorama axes A_i G A_i^T; their components about up are d and dpsi_gyro."""
         cfg = self.config
         t_old = t_ns - int(cfg.pair_s * 1e9)
-        older = next((f for f in reversed(self._frames) if f[0] <= t_old), None)
+        older = None
+        for f in reversed(self._frames):  # (a loop: a generator's next() cost more)
+            if f[0] <= t_old:
+                older = f
+                break
         if older is None:
             return
         t_i, fwd_i, qa_i, c_i_kept, chain_i = older
@@ -401,15 +405,18 @@ class AzimuthDistortion:
         dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), qa_i_inv), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
-        h = np.zeros(K + 2)
+        # h built as Python floats and made an array once (item assignments into an array
+        # cost a numpy call each).
+        hl = [0.0] * (K + 2)
         j0, j1, fj = self._knots_of(psi_j)
         i0, i1, fi = self._knots_of(psi_i)
-        h[j0] += 1.0 - fj
-        h[j1] += fj
-        h[i0] -= 1.0 - fi
-        h[i1] -= fi
-        h[K] = -dt
-        h[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
+        hl[j0] += 1.0 - fj
+        hl[j1] += fj
+        hl[i0] -= 1.0 - fi
+        hl[i1] -= fi
+        hl[K] = -dt
+        hl[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
+        h = np.array(hl)
         self._predict(t_ns)
         r = d - float(h.dot(self.x))
         if abs(r) > cfg.max_residual_rad:
