@@ -32,69 +32,17 @@ from __future__ import annotations
 import bisect
 import math
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.blas import dger
 
+from .rotations import (QuatFloats, quat_wxyz_conj_floats, quat_wxyz_log_along, quat_wxyz_mul_floats,
+                        quat_wxyz_of_rows)
+
 
 Array = NDArray[np.float64]
-Quat = tuple[float, float, float, float]  # unit quaternion (w, x, y, z) as Python floats
-
-
-# The frame comparison's quaternion algebra on Python floats: :mod:`.rotations`' quat_wxyz_mul /
-# conj / log take and return arrays, and numpy's per-call cost on 4-vectors made the
-# comparison's four products and two logarithms about half of a frame's cost (42 of ~80 us,
-# 2026-11-28). The same arithmetic (test_panorama_azimuth checks them against rotations').
-
-def _qmul(a: Sequence[float], b: Sequence[float]) -> Quat:
-    """Hamilton product a * b in (w, x, y, z) order, as :func:`.rotations.quat_wxyz_mul`."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
-
-
-def _qconj(q: Sequence[float]) -> Quat:
-    """The conjugate (inverse of a unit quaternion), as :func:`.rotations.quat_wxyz_conj`."""
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def _qlog_along(q: Quat, u: Sequence[float]) -> float:
-    """The component along u of q's rotation vector (the shorter way round), as
-    ``quat_wxyz_log(q) @ u`` of :mod:`.rotations`."""
-    w, x, y, z = q
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    n = math.sqrt(x * x + y * y + z * z)
-    k = 2.0 if n < 1e-12 else 2.0 * math.atan2(n, w) / n
-    return k * (x * u[0] + y * u[1] + z * u[2])
-
-
-def _quat_of_rows(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float, m20: float,
-                  m21: float, m22: float) -> list[float]:
-    """Unit quaternion [w, x, y, z], w >= 0, of a rotation matrix given row-major as floats: the
-    arithmetic of :func:`.rotations.matrix_to_quat_wxyz` without its array in and out (two
-    numpy calls, per frame)."""
-    tr = m00 + m11 + m22
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        w, x, y, z = 0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s
-    elif m00 > m11 and m00 > m22:
-        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
-        w, x, y, z = (m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s
-    elif m11 > m22:
-        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
-        w, x, y, z = (m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s
-    else:
-        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
-        w, x, y, z = (m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    if w < 0:
-        n = -n
-    return [w / n, x / n, y / n, z / n]
 
 
 @dataclass(frozen=True)
@@ -168,7 +116,7 @@ class AzimuthDistortion:
         # Gyro chain R_0_imu(t) of recent samples: stamps and unit quaternions (w, x, y, z) as
         # Python floats (per IMU sample, numpy's per-call overhead was most of the cost).
         self._gyro_t: list[int] = []
-        self._gyro_q: list[Quat] = []
+        self._gyro_q: list[QuatFloats] = []
         self._chain = 0  # counts the chain's restarts: a kept R_0_imu belongs to one chain
         self._omega: tuple[float, float, float] | None = None
         self._axes_key: tuple[float, float, float] | None = None
@@ -176,7 +124,7 @@ class AzimuthDistortion:
         #: Recent frames: (stamp, the camera's forward axis (R_pano_cam's third column) and
         #: R_pano_imu as a quaternion, both as Python floats; the gyro chain's R_0_imu at the
         #: stamp and the chain it is of, kept for the frame's later comparison).
-        self._frames: deque[tuple[int, list[float], list[float], Quat, int]] = deque()
+        self._frames: deque[tuple[int, list[float], QuatFloats, QuatFloats, int]] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -220,9 +168,9 @@ class AzimuthDistortion:
         while self._waiting and self._waiting[0][0] <= t_ns:
             self._frame(*self._waiting.popleft())
 
-    def _gyro_at(self, t_ns: int) -> Quat | None:
+    def _gyro_at(self, t_ns: int) -> QuatFloats | None:
         """The gyro chain's R_0_imu at t_ns (interpolated between samples), None outside it; as
-        Python floats, for the comparison's quaternion algebra (:func:`_qmul`)."""
+        Python floats, for the comparison's quaternion algebra (:func:`.rotations.quat_wxyz_mul_floats`)."""
         ts = self._gyro_t
         if not ts or t_ns < ts[0] or t_ns > ts[-1]:
             return None
@@ -260,7 +208,7 @@ class AzimuthDistortion:
             mount = self._mount = (self.R_imu_cam, np.asarray(self.R_imu_cam, dtype=float).tolist())
         (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = mount[1]
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.ravel().tolist()
-        q_pano_imu = _quat_of_rows(
+        q_pano_imu = quat_wxyz_of_rows(
             r00 * a0 + r01 * a1 + r02 * a2, r00 * b0 + r01 * b1 + r02 * b2, r00 * c0 + r01 * c1 + r02 * c2,
             r10 * a0 + r11 * a1 + r12 * a2, r10 * b0 + r11 * b1 + r12 * b2, r10 * c0 + r11 * c1 + r12 * c2,
             r20 * a0 + r21 * a1 + r22 * a2, r20 * b0 + r21 * b1 + r22 * b2, r20 * c0 + r21 * c1 + r22 * c2)
@@ -374,7 +322,7 @@ class AzimuthDistortion:
         b[k1] += f
         return b
 
-    def _compare(self, t_ns: int, fwd_j: list[float], qa_j: list[float], c_j: Quat, up: Array) -> None:
+    def _compare(self, t_ns: int, fwd_j: list[float], qa_j: QuatFloats, c_j: QuatFloats, up: Array) -> None:
         """The comparison of this frame with the last frame at least pair_s before it.
         With A = R_pano_imu by the tracker and G = C_i^T C_j the gyro's turn from i to j (imu
         axes), the tracker's turn beyond the gyro's is A_j G^T A_i^T, and the gyro's turn in
@@ -399,10 +347,10 @@ class AzimuthDistortion:
         if c_i is None or psi_i is None or psi_j is None or self._axes is None:
             return
         u = self._axes[0]
-        g = _qmul(_qconj(c_i), c_j)
-        qa_i_inv = _qconj(qa_i)
-        d = _qlog_along(_qmul(_qmul(qa_j, _qconj(g)), qa_i_inv), u)
-        dpsi_gyro = _qlog_along(_qmul(_qmul(qa_i, g), qa_i_inv), u)
+        g = quat_wxyz_mul_floats(quat_wxyz_conj_floats(c_i), c_j)
+        qa_i_inv = quat_wxyz_conj_floats(qa_i)
+        d = quat_wxyz_log_along(quat_wxyz_mul_floats(quat_wxyz_mul_floats(qa_j, quat_wxyz_conj_floats(g)), qa_i_inv), u)
+        dpsi_gyro = quat_wxyz_log_along(quat_wxyz_mul_floats(quat_wxyz_mul_floats(qa_i, g), qa_i_inv), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
         # h built as Python floats and made an array once (item assignments into an array

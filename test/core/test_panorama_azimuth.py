@@ -6,9 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from ar_tracking.core.panorama_azimuth import AzimuthDistortion, AzimuthDistortionConfig, _qconj, _qlog_along, _qmul
-from ar_tracking.core.rotations import (quat_wxyz_conj, quat_wxyz_exp, quat_wxyz_log, quat_wxyz_mul, rot_x, rot_z, so3_exp,
-                                        so3_log)
+from ar_tracking.core.panorama_azimuth import AzimuthDistortion, AzimuthDistortionConfig
+from ar_tracking.core.rotations import (quat_wxyz_conj, quat_wxyz_conj_floats, quat_wxyz_exp, quat_wxyz_log,
+                                        quat_wxyz_log_along, quat_wxyz_mul, quat_wxyz_mul_floats, rot_x, rot_z,
+                                        so3_exp, so3_log)
 
 #: The phone's mount (imu -> camera_optical): diag(1, -1, -1).
 R_IMU_CAM = np.diag([1.0, -1.0, -1.0])
@@ -124,17 +125,17 @@ def test_no_up_axis_no_correction() -> None:
 
 
 def test_the_float_quaternion_helpers_are_rotations_arithmetic() -> None:
-    """The frame comparison's float quaternion algebra (kept off numpy for speed) agrees with
-    rotations' quat_wxyz_mul / conj / log, near the identity and near a half turn too."""
+    """The frame comparison's float quaternion algebra (rotations' *_floats and log_along, kept
+    off numpy for speed) agrees with rotations' quat_wxyz_mul / conj / log, near the identity and near a half turn too."""
     rng = np.random.default_rng(3)
     u = rng.normal(size=3)
     u /= np.linalg.norm(u)
     for v in [*rng.normal(0.0, 1.0, (20, 3)), np.zeros(3), np.array([0.0, 0.0, math.pi - 1e-9])]:
         a, b = quat_wxyz_exp(v), quat_wxyz_exp(rng.normal(0.0, 1.0, 3))
-        assert np.allclose(_qmul(a.tolist(), b.tolist()), quat_wxyz_mul(a, b), rtol=0.0, atol=1e-15)
-        assert np.array_equal(_qconj(a.tolist()), quat_wxyz_conj(a))
+        assert np.allclose(quat_wxyz_mul_floats(a.tolist(), b.tolist()), quat_wxyz_mul(a, b), rtol=0.0, atol=1e-15)
+        assert np.array_equal(quat_wxyz_conj_floats(a.tolist()), quat_wxyz_conj(a))
         for q in (a, -a):
-            assert math.isclose(_qlog_along(tuple(q.tolist()), u), float(quat_wxyz_log(q) @ u),
+            assert math.isclose(quat_wxyz_log_along(tuple(q.tolist()), u), float(quat_wxyz_log(q) @ u),
                                 rel_tol=1e-13, abs_tol=1e-15)
 
 
