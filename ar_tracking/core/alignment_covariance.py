@@ -27,6 +27,15 @@ Array = NDArray[np.float64]
 _FIRST3 = np.eye(12)[:, :3]  # identity columns for up to 12 unknowns
 
 
+def solve_regular(A: Array, b: Array) -> Array:
+    """x of A x = b by LAPACK's dgesv, as np.linalg.solve, without its wrapper's checks (~10 us
+    of a small solve). For the alignment's square, regular normal equations (with ridges)."""
+    _, _, x, info = dgesv(A, b)
+    if info != 0:
+        raise np.linalg.LinAlgError('Singular matrix')
+    return np.asarray(x, dtype=np.float64)
+
+
 def hand_tilt_variance(hand_velocity_m_s: float, hand_period_s: float, ramp_s: float, span_s: float,
                        g: float) -> float:
     """Variance (rad^2) of the gravity direction left by the hand's motion (module docstring)."""
@@ -57,12 +66,9 @@ def field_error_parts(A_solved: Array, A_data: Array, hard_iron_ridge: float, so
     ``A_solved`` the samples give (no ridge, no prior); ``hard_iron_ridge`` / ``soft_iron_ridge``:
     the weights on h = 0 (unknowns 3-5) and E = 0 (6-11); ``prior_weight``: the weight on f =
     the carried prior (0 without one)."""
-    # The first three rows of A^-1, as A^-T's first three columns (LAPACK dgesv: the rows
-    # needed, without np.linalg.inv's wrapper).
-    _, _, X, info = dgesv(A_solved.T, _FIRST3[:len(A_solved)])
-    if info != 0:
-        raise np.linalg.LinAlgError('Singular matrix')
-    B_f = np.asarray(X, dtype=np.float64).T
+    # The first three rows of A^-1, as A^-T's first three columns (the rows needed, without
+    # np.linalg.inv's wrapper).
+    B_f = solve_regular(A_solved.T, _FIRST3[:len(A_solved)]).T
     bias_h = hard_iron_ridge * B_f[:, 3:6]
     bias_e = soft_iron_ridge * B_f[:, 6:]
     bias_p = prior_weight * B_f[:, :3]

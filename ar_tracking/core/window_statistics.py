@@ -3,7 +3,7 @@
 :class:`WindowSums` keeps the per-window sums of the normal equations of a least-squares
 problem, so that a robust solve (per-window weights) costs O(windows), not O(samples); samples
 kept as flat rows of Python floats are added to them as matrix products (:func:`add_rotated_rows`);
-:func:`shorth` and :func:`cauchy_about_median` give the robust centre, spread and weights of
+:func:`shorth` and :func:`cauchy_about_medians` give the robust centre, spread and weights of
 per-window values. Used by :mod:`.world_alignment` (Langlotz 2011 sec. 5, the panorama's place
 in the world).
 """
@@ -19,38 +19,28 @@ from scipy.special import erfinv
 Array = NDArray[np.float64]
 
 
-def median(x: Array) -> float:
-    """The median of a 1-D array, as ``np.median`` computes it (the mean of the two middle
-    values), without its per-call overhead (~130 -> ~15 us for a few hundred values; the
-    partition of a copy in place, as np.partition does, without its wrapper)."""
-    n = len(x)
+def row_medians(x: Array) -> Array:
+    """The median of each row of x (k, n), as ``np.median(x, axis=1)`` computes it (the mean of
+    the two middle values), without its per-call overhead (~130 -> ~15 us for a few hundred
+    values; the partition of a copy in place, as np.partition does, without its wrapper)."""
+    n = x.shape[1]
     lo, hi = (n - 1) // 2, n // 2
     part = x.copy()
-    part.partition([lo, hi] if hi != lo else lo)
-    return (part.item(lo) + part.item(hi)) / 2.0
+    part.partition([lo, hi] if hi != lo else lo, axis=1)
+    return (part[:, lo] + part[:, hi]) / 2.0
 
 
-def cauchy_about_median(x: Array, floor: float, scale: float) -> tuple[Array, float]:
-    """Cauchy weights of values about their median, with the robust sigma (1.4826 MAD, at
-    least ``floor``) times ``scale`` as the Cauchy width; returns (weights, sigma)."""
-    dev = np.abs(x - median(x))
-    sigma = max(1.4826 * median(dev), floor)
-    return 1.0 / (1.0 + (dev / (scale * sigma)) ** 2), sigma
+def median(x: Array) -> float:
+    """The median of a 1-D array (:func:`row_medians` of its one row)."""
+    return float(row_medians(x[None, :])[0])
 
 
 def cauchy_about_medians(x: Array, floors: tuple[float, ...], scale: float) -> Array:
-    """Each row's :func:`cauchy_about_median` weights for the rows of x (k, n) (floor
-    ``floors[i]`` for row i), all rows at once: the same values, without a median and a weight
-    formula per row (numpy's per-call cost is most of the cost at a few hundred values)."""
-    n = x.shape[1]
-    lo, hi = (n - 1) // 2, n // 2
-    kth = [lo, hi] if hi != lo else lo
-    part = x.copy()
-    part.partition(kth, axis=1)
-    dev = np.abs(x - ((part[:, lo] + part[:, hi]) / 2.0)[:, None])
-    part = dev.copy()
-    part.partition(kth, axis=1)
-    mad = ((part[:, lo] + part[:, hi]) / 2.0).tolist()
+    """Cauchy weights of each row of x (k, n) about its median, with the row's robust sigma
+    (1.4826 MAD, at least ``floors[i]`` for row i) times ``scale`` as the Cauchy width; all
+    rows at once (numpy's per-call cost is most of the cost at a few hundred values)."""
+    dev = np.abs(x - row_medians(x)[:, None])
+    mad = row_medians(dev).tolist()
     width = np.array([scale * max(1.4826 * m, f) for m, f in zip(mad, floors)])
     return 1.0 / (1.0 + (dev / width[:, None]) ** 2)
 

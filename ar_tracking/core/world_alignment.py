@@ -48,11 +48,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg.lapack import dgesv
 
-from .alignment_covariance import FieldErrorParts, field_error_parts, field_heading_mse, hand_tilt_variance
-from .rotations import rot_z
+from .alignment_covariance import (FieldErrorParts, field_error_parts, field_heading_mse, hand_tilt_variance,
+                                   solve_regular)
 from .field_windows import FieldWindows
+from .rotations import rot_z
 from .soft_iron import soft_iron_normal_equations, symmetric_from_params
 from .window_statistics import WindowSums, add_rotated_rows, flat_rows, median, weighted_sum
 from .world_alignment_config import WorldAlignmentConfig
@@ -82,15 +82,6 @@ class WorldAlignmentEstimate:
 
 
 _D3, _D6 = np.arange(3), np.arange(6)  # diagonal indices
-
-
-def _solve(A: Array, b: Array) -> Array:
-    """x of A x = b by LAPACK's dgesv, as np.linalg.solve, without its wrapper's checks (~10 us
-    of a small solve). A is square and regular here (normal equations with ridges)."""
-    _, _, x, info = dgesv(A, b)
-    if info != 0:
-        raise np.linalg.LinAlgError('Singular matrix')
-    return np.asarray(x, dtype=np.float64)
 
 
 # The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
@@ -403,7 +394,7 @@ class WorldAlignment:
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
             A[_D3, _D3] += wp
             rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
-        x = _solve(A, rhs)
+        x = solve_regular(A, rhs)
         g, b = x[:3], x[3:6]
         if lever:
             self._lever_arm = x[6:]
@@ -494,7 +485,7 @@ class WorldAlignment:
                 A[_D3, _D3] += wp
                 rhs[:3] += wp * prior
             error_parts = (A, A_data, sw * lam, sw * lam_e, wp, sw / max(float(w_win.sum()), 1e-12))
-            x = _solve(A, rhs)
+            x = solve_regular(A, rhs)
             f, h = x[:3], x[3:6]
             if dim == 12:
                 E = symmetric_from_params(x[6:])
