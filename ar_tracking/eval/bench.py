@@ -33,8 +33,13 @@ def percentiles_ms(values: list[float]) -> dict[str, float]:
             'p95_ms': round(float(np.percentile(arr, 95)), 4), 'n': int(arr.size)}
 
 
+#: The graph area's realtime passes: every node its own process (``graph.live``), then in one
+#: process on threads (``graph.live_threads``).
+LIVE_EXECUTORS = ('processes', 'threads')
+
+
 def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
-                live_executors: tuple[str, ...] = ('processes', 'threads')) -> dict[str, Any]:
+                live_executors: tuple[str, ...] = LIVE_EXECUTORS) -> dict[str, Any]:
     """realtime_factor of the lockstep graph, the transport floor, per-node processing times;
     and with ``live_rate`` > 0 a realtime pass at that rate per executor in ``live_executors``
     (inputs dropped per node, ``orientation/global`` latency p50/p95 in ms). The first is
@@ -112,7 +117,7 @@ def machine() -> dict[str, Any]:
 
 
 def run_bench(workdir: Path, duration_s: float = 60.0, areas: list[str] | None = None,
-              live_executors: tuple[str, ...] = ('processes', 'threads')) -> dict[str, Any]:
+              live_executors: tuple[str, ...] = LIVE_EXECUTORS) -> dict[str, Any]:
     """All benchmark areas (or the chosen ones) as one nested dict (``live_executors``: the
     graph area's realtime passes, see :func:`bench_graph`)."""
     workdir.mkdir(parents=True, exist_ok=True)

@@ -45,35 +45,28 @@ def bench_core_rates(samples: int = 20000, seed: int = 0) -> dict[str, float]:
     level = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # optical axis along +y
     turn_imu = R_imu_cam @ level.T @ (0.5 * up)
     frames = [so3_exp(0.5 * 0.01 * k * up) @ level for k in range(0, samples, 3)]
-    align = WorldAlignment()
+    def hybrid(align: WorldAlignment | None, stretch: AzimuthDistortion | None) -> float:
+        """Samples per second of the workload for the given cores (None: left out)."""
+        start = time.perf_counter()
+        for k in range(samples):
+            t_ns = k * 10_000_000 + 1
+            if align is not None:
+                align.add(t_ns, R[k], accel[k], mag[k], gyro[k])
+            if stretch is not None:
+                stretch.add_gyro(t_ns, turn_imu + 0.01 * gyro[k])
+            if k % 3 == 0:
+                if align is not None:
+                    align.estimate()
+                if stretch is not None:
+                    stretch.add_visual(t_ns, frames[k // 3], up)
+                    stretch.correct(frames[k // 3], up)
+        return samples / (time.perf_counter() - start)
+
     stretch = AzimuthDistortion(R_imu_cam)
-    start = time.perf_counter()
-    for k in range(samples):
-        t_ns = k * 10_000_000 + 1
-        align.add(t_ns, R[k], accel[k], mag[k], gyro[k])
-        stretch.add_gyro(t_ns, turn_imu + 0.01 * gyro[k])
-        if k % 3 == 0:
-            align.estimate()
-            stretch.add_visual(t_ns, frames[k // 3], up)
-            stretch.correct(frames[k // 3], up)
-    hybrid_rate = samples / (time.perf_counter() - start)
+    hybrid_rate = hybrid(WorldAlignment(), stretch)
     # The breakdown: the same workload for each core alone (the loop's own cost in both).
-    align = WorldAlignment()
-    start = time.perf_counter()
-    for k in range(samples):
-        align.add(k * 10_000_000 + 1, R[k], accel[k], mag[k], gyro[k])
-        if k % 3 == 0:
-            align.estimate()
-    align_rate = samples / (time.perf_counter() - start)
-    stretch = AzimuthDistortion(R_imu_cam)
-    start = time.perf_counter()
-    for k in range(samples):
-        t_ns = k * 10_000_000 + 1
-        stretch.add_gyro(t_ns, turn_imu + 0.01 * gyro[k])
-        if k % 3 == 0:
-            stretch.add_visual(t_ns, frames[k // 3], up)
-            stretch.correct(frames[k // 3], up)
-    stretch_rate = samples / (time.perf_counter() - start)
+    align_rate = hybrid(WorldAlignment(), None)
+    stretch_rate = hybrid(None, AzimuthDistortion(R_imu_cam))
     return {'ahrs_updates_per_s': round(ahrs_rate, 1), 'imu_magnetometer_compass_updates_per_s': round(compass_rate, 1),
             'hybrid_updates_per_s': round(hybrid_rate, 1), 'hybrid_azimuth_pairs': stretch.pairs, 'samples': samples,
             'hybrid_alignment_updates_per_s': round(align_rate, 1),

@@ -168,8 +168,10 @@ def tracking_errors(est_stamps: NDArray[np.int64], R_est: Array, truth_stamps: N
     t = (truth_stamps - truth_stamps[0]) * 1e-9
     q = (st - truth_stamps[0]) * 1e-9
     Rt, _ = interpolate_rotations(t, R_truth, q)
-    starts = np.flatnonzero(np.all(np.abs(Re - np.eye(3)) < 1e-12, axis=(1, 2)))
-    first = np.maximum.accumulate(np.where(np.isin(np.arange(len(st)), starts), np.arange(len(st)), 0))
+    # Each frame's panorama start: the index of the last identity at or before it (frame 0 if none).
+    index = np.arange(len(st))
+    is_start = np.all(np.abs(Re - np.eye(3)) < 1e-12, axis=(1, 2))
+    first = np.maximum.accumulate(np.where(is_start, index, 0))
     rel_true = np.einsum('nji,njk->nik', Rt[first], Rt)
     rel_est = np.einsum('nji,njk->nik', Re[first], Re)
     E = np.einsum('nji,njk->nik', rel_est, rel_true)

@@ -402,8 +402,8 @@ class HybridOrientationFilterNode(TrackingNode):
                 # clusters and gravity keep their history), weighted as the backup is known.
                 self.align.reanchor(R_pe @ estimate.R_pano_enu.T, sigma)
                 self.pending.clear()
-                if self.distortion is not None:  # a new panorama has its own distortion
-                    self.distortion.reset()
+                if self.distortion is not None and not first_of_new:  # (a first frame reset it above)
+                    self.distortion.reset()  # a new panorama has its own distortion
             self.visual.clear()
             self.backup.visual.clear()
             self.clock.forget_kept()
