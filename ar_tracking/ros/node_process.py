@@ -73,9 +73,9 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
 
     if log_level is not None:
         rclpy.logging.set_logger_level('', log_level)
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import ReliabilityPolicy
 
+    from .node_base import node_executor
     from .params import to_overrides
 
     context = rclpy.Context()
@@ -87,7 +87,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         node.lockstep_hooks = None
         if transforms and callable(getattr(node, 'on_static_transforms', None)):
             node.on_static_transforms(transforms)
-        executor = SingleThreadedExecutor(context=context)
+        executor = node_executor(context)
         executor.add_node(node)
         conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers],
                    [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]))

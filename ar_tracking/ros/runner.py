@@ -12,7 +12,7 @@ Two clocks (DESIGN sec. 4):
   input that caused them, in a fixed order, so two runs give byte-identical output bags.
 * **realtime** (``rate > 0``): the bag is played at ``rate`` times its speed with ``/clock``;
   nodes use sim time and whatever they cannot keep up with is dropped, like on a device. Each
-  node spins on its own thread (its own SingleThreadedExecutor), so a slow node (SLAM, the
+  node spins on its own thread (its own executor), so a slow node (SLAM, the
   panorama) cannot stall the IMU path, and the player thread publishes on schedule whatever
   the nodes do. The run counts, per node, the inputs published to it against those its
   callbacks processed (:attr:`RunResult.live_dropped`), measures the end-to-end latency of
@@ -352,10 +352,10 @@ class GraphRunner:
         # Realtime with per-node threads: each processing node gets its own executor; the
         # feeder and the recorder stay on the main executor.
         if s.realtime and self._live_kind() == 'threads':
-            from rclpy.executors import SingleThreadedExecutor
+            from .node_base import node_executor
 
             for n in s.nodes[:-2]:
-                s.node_executors[n.get_name()] = own = SingleThreadedExecutor(context=context)
+                s.node_executors[n.get_name()] = own = node_executor(context)
                 own.add_node(n)
         for n in s.nodes:
             if n.get_name() not in s.node_executors and not hasattr(n, 'node_class'):
@@ -462,39 +462,35 @@ class GraphRunner:
     def _make_executor(self, context: Any, realtime: bool) -> Any:
         from rclpy.executors import SingleThreadedExecutor
 
-        # 'auto': the EventsExecutor in lockstep. The SingleThreadedExecutor rebuilds its wait
-        # set (every subscription, publisher event and parameter service of every node) for
-        # each callback: on the sample bag's orientation graph that was half of the profiled
-        # time (cProfile: 16 of 32 s in _wait_for_ready_callbacks), the EventsExecutor spends
-        # ~1.5 s outside the nodes' callbacks; outputs are byte-identical. Realtime runs keep
-        # the SingleThreadedExecutor (the player thread publishes concurrently; a
-        # MultiThreadedExecutor's per-callback overhead drops messages at IMU rates). With
-        # 'auto' or 'threads' in realtime this executor carries only the feeder and the
-        # recorder; each processing node has its own (see _live_kind).
+        from .node_base import node_executor
+
+        # 'auto': the EventsExecutor (node_base.node_executor). The SingleThreadedExecutor
+        # rebuilds its wait set (every subscription, publisher event and parameter service of
+        # every node) for each callback: on the sample bag's orientation graph that was half of
+        # the profiled time in lockstep (cProfile: 16 of 32 s in _wait_for_ready_callbacks);
+        # the EventsExecutor spends ~1.5 s outside the nodes' callbacks, outputs byte-identical.
+        # In realtime the same holds for the feeder and the recorder on this executor and for
+        # each node's own (threads) or its process's (processes), while the player thread
+        # publishes concurrently. A MultiThreadedExecutor's per-callback overhead drops
+        # messages at IMU rates; 'single' keeps rclpy's default for comparison.
         kind = self.executor_kind
         if kind not in EXECUTOR_CHOICES:
             raise RunError(f'unknown executor {kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
-        if kind == 'auto':
-            kind = 'single' if realtime else 'events'
         if kind in ('multi', 'processes') and not realtime:
             raise RunError(f'--executor {kind} is for realtime runs (--rate R); lockstep spins one node at a time')
-        if kind == 'processes':
-            kind = 'single'  # the feeder and the recorder; each node has its own process
+        if kind in ('auto', 'threads', 'processes', 'events'):
+            return node_executor(context)  # realtime: the feeder and the recorder (nodes have their own)
         if kind == 'multi':
             from rclpy.executors import MultiThreadedExecutor
 
             # every rclpy Node has its own MutuallyExclusiveCallbackGroup as default group: a
             # node's callbacks never overlap, different nodes run in parallel
             return MultiThreadedExecutor(num_threads=max(2, len(self.graph) + 1), context=context)
-        if kind == 'events':
-            from rclpy.experimental import EventsExecutor
-
-            return EventsExecutor(context=context)
         return SingleThreadedExecutor(context=context)
 
     def _live_kind(self) -> str:
-        """Realtime executor layout: 'threads' (each node on its own thread and
-        SingleThreadedExecutor; the default) or 'shared' (every node on one executor of the
+        """Realtime executor layout: 'threads' (each node on its own thread and executor,
+        :func:`~ar_tracking.ros.node_base.node_executor`; the default) or 'shared' (every node on one executor of the
         kind asked for: single, events or multi)."""
         return 'threads' if self.executor_kind in ('auto', 'threads') else 'shared'
 
