@@ -41,7 +41,7 @@ from ..ros.conversions import (
     stamp_ns,
     to_stamp,
 )
-from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
+from ..ros.node_base import CAMERA_QOS, LATCHED_QOS, RELIABLE_QOS, TrackingNode, run_node
 from ..ros.param_table import ParamSpec, declare_params, one_of
 from ..ros.stamp_guard import StampGuard, StampVerdict
 
@@ -105,6 +105,11 @@ PARAMS = (
               'Lost this long with nothing in the map to relocalise against (the camera turned on into azimuths '
               'the map never saw), a new panorama starts from the current frame, s; 0 (default): wait for the old map',
               min_value=0.0, max_value=3600.0, read_only=True),
+    ParamSpec('hold_parallax_frames', 30,
+              'A lost frame whose view was found but rejected by the ratio tests (near objects: parallax) is tried '
+              'at that place first, and lost without a full relocalisation when it is rejected the same way again, '
+              'at most this many frames in a row (a lost frame costs ~8 instead of ~36 ms); 0: relocalise every lost '
+              'frame', min_value=0, max_value=100000, read_only=True),
     ParamSpec('readout_s', 0.0,
               'Rolling-shutter readout of the camera, s (0: a global shutter); the tracker and the map turn each row '
               'by the camera\'s rate, and panorama/orientation is the orientation at the frame\'s stamp',
@@ -190,6 +195,7 @@ class PanoramaMapperNode(TrackingNode):
                                   weak_ncc=v['weak_ncc'], inlier_px=v['inlier_px'], min_ncc=v['min_ncc']),
             wide_radius_px=v['wide_radius_px'], background_tiles=v['background_tiles'], readout_s=v['readout_s'],
             estimate_readout=v['estimate_readout'], repaint_max_mb=v['repaint_max_mb'], restart_lost_s=v['restart_lost_s'],
+            hold_parallax_frames=v['hold_parallax_frames'],
             offset_exposure=replace(OFFSET_EXPOSURE, smooth=v['edr_smooth']), edr_correction=v['edr_correction'],
         )
         self.core = PanoramaMapper(self.config)
@@ -210,9 +216,9 @@ class PanoramaMapperNode(TrackingNode):
         self.pub_image = self.advertise(Image, 'panorama/image', LATCHED_QOS)
         self.pub_tiles = self.advertise(Image, 'panorama/tiles', LATCHED_QOS)
         # read in place from the received bytes (ros.cdr_views), not copied into a message
-        self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS, view=image_view)
-        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
-        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, SENSOR_QOS)
+        self.subscribe(Image, 'camera/image_raw', self.on_image, CAMERA_QOS, view=image_view)
+        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, CAMERA_QOS)
+        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, CAMERA_QOS)
         self.get_logger().info(f'panorama_mapper: {"EDR" if edr else "8-bit"} {"colour" if color else "grey"} map 2048x512, tiles {tile} px')
 
     # -- inputs ----------------------------------------------------------------------------

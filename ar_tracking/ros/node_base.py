@@ -38,6 +38,11 @@ from .signals import StopOnSignal
 
 #: Sensor subscriptions: best effort, keep last 5 (a reliable publisher still reaches them).
 SENSOR_QOS = qos_profile_sensor_data
+#: A camera a node tracks every frame of (panorama_mapper): best effort like SENSOR_QOS, keep
+#: last 10 (a third of a second at 30 Hz), so that a run of frames costlier than the frame
+#: interval (a lost camera relocalising, ~36 ms a frame here) is caught up by the frames after
+#: it (~8 ms) instead of dropped.
+CAMERA_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST)
 #: High-rate sensor streams a filter needs every sample of (IMU and field at 100-400 Hz, the
 #: visual orientation per frame): best effort like SENSOR_QOS - a driver's sensor-data
 #: publisher matches - but keep last 200, so that a stall of the node's process of up to half a

@@ -172,6 +172,31 @@ def test_translating_camera_is_reported_lost():
     assert statuses[-5:] == ['lost'] * 5  # parallax: no rotation explains the matches
 
 
+def test_a_camera_lost_to_parallax_is_held_without_relocalising_every_frame():
+    """A translating camera's frames are found in the map but rejected by the ratio tests: the
+    first lost frame relocalises, the next ones are tried where its view was found and lost
+    without a relocalisation (hold_parallax_frames); every status, and the rotation when the
+    camera is back where the map was made, is what relocalising every frame gives."""
+    def run_hold(hold: int) -> tuple[list[str], int, np.ndarray]:
+        mapper = PanoramaMapper(MapperConfig(hold_parallax_frames=hold))
+        calls = []
+        hypotheses = mapper.relocaliser.hypotheses
+        mapper.relocaliser.hypotheses = lambda *a, **k: calls.append(1) or hypotheses(*a, **k)  # type: ignore[method-assign]
+        statuses = []
+        for i, tx in enumerate([*np.linspace(0.0, 0.3, 20), 0.0, 0.0]):
+            res = mapper.process(two_plane_frame(tx), K, (i + 1) * DT)
+            mapper.background()
+            statuses.append(res.status)
+        return statuses, len(calls), res.R_pano_cam
+
+    held, held_calls, R_held = run_hold(30)
+    every, every_calls, R_every = run_hold(0)
+    assert held[1:20] == ['lost'] * 19 and held[20:] == ['relocalised', 'tracked']
+    assert held == every
+    assert (held_calls, every_calls) == (2, 20)  # the loss's first frame and the one that came back
+    assert np.allclose(R_held, R_every, atol=1e-6) and angle_deg(R_held, np.eye(3)) < 0.1
+
+
 def _weaken(img: np.ndarray, k: int, share: float = 0.45, sigma: float = 3.5) -> np.ndarray:
     """The frame with its detail blurred in a random ``share`` of 32 px cells (motion blur over
     fine branches or grass: the content is there, weaker)."""

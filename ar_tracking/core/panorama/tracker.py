@@ -101,6 +101,9 @@ class TrackResult:
     intensity_offset_se: float = float('inf')
     #: The inliers of the fit, for the readout's estimate (:mod:`.readout`); None on failure.
     row_fit: RowFit | None = None
+    #: The rotation fitted to the inliers, also when the ratios rejected it (where a lost
+    #: camera's view was found); None when nothing was fitted.
+    R_fit: Array | None = None
 
 
 def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
@@ -339,7 +342,7 @@ class ActiveSearchTracker:
             rays = b[inl] @ R.T
             fit = RowFit(rays, d[inl] - rays, (my[inl] + 0.5) / h, idx[k][inl])
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
-                           log_gain, log_se, pairs_used, offset_se, fit)
+                           log_gain, log_se, pairs_used, offset_se, fit, R)
 
     def _weak_agreements(self, o: NDArray[np.int64], dirs: Array, R: Array, K: Array, peak_x: Array,
                          peak_y: Array, row_motion: tuple[Array, float] | None, h: int) -> int:
