@@ -42,8 +42,9 @@ GRAPH_CHOICES = ('auto', *NAMED_GRAPHS)
 ROTATION_IN_PLACE_TOPIC = '/imu/mag'
 
 #: ``--executor``: auto (events in lockstep, one thread per node with --rate), threads (one
-#: SingleThreadedExecutor per node on its own thread; realtime only, lockstep uses single),
-#: single, events, multi (one MultiThreadedExecutor, a callback group per node).
+#: EventsExecutor per node on its own thread; realtime only), processes (one process per node;
+#: realtime only), single (rclpy's SingleThreadedExecutor for every node), events, multi (one
+#: MultiThreadedExecutor, a callback group per node).
 EXECUTOR_CHOICES = ('auto', 'threads', 'processes', 'single', 'events', 'multi')
 
 
