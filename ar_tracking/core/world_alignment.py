@@ -200,16 +200,17 @@ class WorldAlignment:
         rows += np.asarray(mag, dtype=float).tolist()
         self._field_samples += 1
         # Solve every min(solve_period, max(0.1 s, share x span)) of stamps: at once past the
-        # full period, never before 0.1 s (when the period is longer), in between by the span.
+        # full period, never before 0.1 s (when the period is longer), in between by the span;
+        # late in a long session every long_share x span once that is longer than the period.
         solve_t = self._solve_t_ns
         solve = solve_t is None or self._field_samples < 8
         if solve_t is not None and not solve:
             elapsed = t_ns - solve_t
-            solve = elapsed >= self._solve_period_ns
-            if not solve and elapsed >= 100_000_000:
+            if elapsed >= 100_000_000:
                 span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
-                solve = elapsed >= min(self._solve_period_ns,
-                                       max(100_000_000, int(self.config.solve_period_share * span_ns)))
+                c = self.config
+                period = min(self._solve_period_ns, max(100_000_000, int(c.solve_period_share * span_ns)))
+                solve = elapsed >= max(period, int(c.solve_period_long_share * span_ns))
         if solve:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()

@@ -44,6 +44,11 @@ class WorldAlignmentConfig:
     #: first seconds are when each new degree of rotation tells the hard iron apart most, and
     #: a solve over a few windows is cheap.
     solve_period_share: float = 0.1
+    #: ... and late in a long session every this share of its span when that is longer than
+    #: ``solve_period_s`` (from 50 s on at 0.02): a solve reads every window of the session, so
+    #: at a fixed period the cost per sample grows with the session (1.5 ms per solve at 400
+    #: windows, 200 s); a period in proportion keeps it constant. 0: always ``solve_period_s``.
+    solve_period_long_share: float = 0.02
     #: IRLS iterations per solve.
     irls_iterations: int = 2
     #: Cauchy scale in robust sigmas of the residual norm.
