@@ -118,6 +118,8 @@ class RealtimePlayback:
             self.s.result.failed_nodes[name] = f'{type(exc).__name__}: {exc}'
             logger.error('%s died: %s: %s', name, type(exc).__name__, exc)
             self.finished.set()
+        finally:
+            self.s.result.live_cpu_s[name] = time.thread_time()
 
     # -- the calling thread -----------------------------------------------------------------
 
@@ -201,6 +203,9 @@ def live_report(nodes: list[Any], result: RunResult) -> None:
             fq = '/' + topic.lstrip('/')
             inputs[fq] = (published.get(fq, 0), len(stats.durations_ms))
         result.live_inputs[n.get_name()] = inputs
+        cpu_s = getattr(n, 'cpu_s', None)  # a node process's own report
+        if cpu_s is not None:
+            result.live_cpu_s[n.get_name()] = cpu_s
     for node, missed in sorted(result.live_dropped.items()):
         if missed:
             detail = ', '.join(f'{done} of {pub} on {t}' for t, (pub, done) in sorted(result.live_inputs[node].items())

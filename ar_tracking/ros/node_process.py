@@ -103,7 +103,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
             executor.spin_once(timeout_sec=0.05)
         _take_the_rest(node, executor, conn.recv()[1] if conn.poll() else {})
         conn.send(('counts', {t: list(s.durations_ms) for t, s in node.callback_stats.items()},
-                   dict(node.publish_counts)))
+                   dict(node.publish_counts), time.process_time()))
     except BaseException as exc:  # reported to the runner, which ends the run with the node's name
         try:
             conn.send(('error', f'{type(exc).__name__}: {exc}'))
@@ -161,6 +161,8 @@ class NodeProcess:
         self.callback_stats: dict[str, _Durations] = {}
         self.publish_counts: dict[str, int] = {}
         self.failure: str | None = None
+        #: CPU seconds of the child process (all its threads), from its counts report
+        self.cpu_s: float | None = None
         self._counted = False
 
     def get_name(self) -> str:
@@ -225,14 +227,16 @@ class NodeProcess:
             except EOFError:
                 break
             if msg[0] == 'counts':
-                self._take_counts(msg[1], msg[2])
+                self._take_counts(*msg[1:])
             elif msg[0] == 'error':
                 self.failure = msg[1]
         return self._counted or self.failure is not None
 
-    def _take_counts(self, durations: dict[str, list[float]], published: dict[str, int]) -> None:
+    def _take_counts(self, durations: dict[str, list[float]], published: dict[str, int],
+                     cpu_s: float | None = None) -> None:
         self.callback_stats = {t: _Durations(list(d)) for t, d in durations.items()}
         self.publish_counts = dict(published)
+        self.cpu_s = cpu_s
         self._counted = True
 
     def request_stop(self, expected: dict[str, int] | None = None) -> None:
@@ -252,11 +256,11 @@ class NodeProcess:
         self._stop.set()
         if not self.reported() and self.process.is_alive():
             try:
-                durations, published = self._receive('counts', STOP_TIMEOUT_S)
+                report = self._receive('counts', STOP_TIMEOUT_S)
             except NodeProcessError as exc:
                 logger.warning('%s', exc)
             else:
-                self._take_counts(durations, published)
+                self._take_counts(*report)
         self.process.join(STOP_TIMEOUT_S)
         if self.process.is_alive():
             self.process.kill()

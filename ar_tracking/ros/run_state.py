@@ -72,6 +72,9 @@ class RunResult:
     #: realtime only: how late the player published inputs against the bag schedule, ms (p95);
     #: large values mean the player itself was starved, not the nodes
     live_player_late_ms_p95: float = 0.0
+    #: realtime only: CPU seconds of each node's process (``--executor processes``: all its
+    #: threads, DDS's included) or of the thread that spun it (threads); where the live time goes
+    live_cpu_s: dict[str, float] = field(default_factory=dict)
     #: node name -> why it stopped working (its thread died); the run ends non-zero
     failed_nodes: dict[str, str] = field(default_factory=dict)
 
@@ -106,7 +109,8 @@ class RunResult:
 
     def live_summary(self) -> dict[str, Any]:
         """The realtime figures as one JSON-ready dict (``live`` of the CLI summary and bench):
-        dropped per node, published/processed per node and topic, latency p50/p95 in ms."""
+        dropped per node, published/processed per node and topic, latency p50/p95 in ms, CPU
+        seconds per node."""
         p50 = self.live_latency_percentile(50)
         p95 = self.live_latency_percentile(95)
         return {
@@ -117,6 +121,7 @@ class RunResult:
             'latency_ms_p95': None if p95 is None else round(p95, 3),
             'latency_n': len(self.live_latency_ms),
             'player_late_ms_p95': round(self.live_player_late_ms_p95, 3),
+            'cpu_s': {node: round(cpu, 3) for node, cpu in sorted(self.live_cpu_s.items())},
         }
 
 

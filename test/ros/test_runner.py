@@ -99,6 +99,8 @@ def test_realtime_mode_paces_and_records(tmp_path):
         # Live pacing drops what it cannot keep up with (a busy machine); most must get through.
         assert out.message_count(['/imu/data']) >= 50
         assert out.message_count(['/ground_truth/orientation']) == 100
+    # the CPU of each node's own thread (it spun that node's callbacks)
+    assert set(result.live_cpu_s) == set(result.live_inputs) and all(cpu > 0 for cpu in result.live_cpu_s.values())
 
 
 def run_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
@@ -602,6 +604,9 @@ def test_node_processes_stop_upstream_first(tmp_path):
     assert n >= 9
     assert result.live_inputs['relay']['/imu/data_raw'] == (n, n)
     assert result.live_inputs['counter']['/relay/imu'] == (n, n)
+    # each process's CPU (its imports and DDS included), reported with its counts
+    assert set(result.live_cpu_s) == {'relay', 'counter'} and all(cpu > 0.1 for cpu in result.live_cpu_s.values())
+    assert result.live_summary()['cpu_s'].keys() == {'relay', 'counter'}
 
 
 @pytest.mark.parametrize('executor', ['processes', 'single'])
