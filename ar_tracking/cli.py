@@ -448,9 +448,9 @@ def build_parser() -> argparse.ArgumentParser:
                         'the overlay images, files ~1.6x larger; rosbags, mcap and Foxglove read all three)')
     p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
     p.add_argument('--executor', default='auto', choices=['auto', 'threads', 'processes', 'single', 'events', 'multi'],
-                   help='rclpy executor (default auto: events in lockstep; with --rate, threads: each node on its '
-                        'own thread and executor, so a slow node cannot stall the others; processes: each node in its own '
-                        'process, as ros2 launch starts them); single/events/multi '
+                   help='rclpy executor (default auto: events in lockstep; with --rate, processes: each node in its '
+                        'own process, as ros2 launch starts them, so a slow node cannot stall the others; threads: each '
+                        'node on its own thread and executor in this process); single/events/multi '
                         'with --rate put every node on one executor (multi: MultiThreadedExecutor, realtime only)')
     p.add_argument('--json', action='store_true', help='print the run summary as JSON')
     p.add_argument('--foxglove', type=int, nargs='?', const=8765, default=None, metavar='PORT',

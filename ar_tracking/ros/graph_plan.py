@@ -41,7 +41,8 @@ GRAPH_CHOICES = ('auto', *NAMED_GRAPHS)
 #: :func:`choose_nodes`).
 ROTATION_IN_PLACE_TOPIC = '/imu/mag'
 
-#: ``--executor``: auto (events in lockstep, one thread per node with --rate), threads (one
+#: ``--executor``: auto (events in lockstep; with --rate one process per node, or one thread per
+#: node for node classes given as classes, not "module:Class" specs), threads (one
 #: EventsExecutor per node on its own thread; realtime only), processes (one process per node;
 #: realtime only), single (rclpy's SingleThreadedExecutor for every node), events, multi (one
 #: MultiThreadedExecutor, a callback group per node).
