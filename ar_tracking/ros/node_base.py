@@ -371,7 +371,6 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-
 def node_executor(context: Any) -> Any:
     """The executor one node spins on: rclpy's EventsExecutor (``rclpy.experimental``, Jazzy
     on), else the SingleThreadedExecutor.
