@@ -15,7 +15,8 @@ from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMap, Pano
 from ar_tracking.core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
 from ar_tracking.core.panorama.tracker import TrackerConfig
 from ar_tracking.core.panorama.tracker import kabsch
-from panorama_synth import DT, H, K, W, CylinderWorld, angle_deg, rot, run, sweep, two_plane_frame
+from panorama_synth import (DT, H, K, W, CylinderWorld, angle_deg, render_all, rot, run, run_frames, sweep,
+                            two_plane_frame)
 
 
 @pytest.fixture(scope='module')
@@ -231,16 +232,37 @@ def test_detail_weakened_by_blur_keeps_tracking(world):
     assert statuses['inliers only'][30:].count('lost') >= 5, statuses
 
 
+@pytest.fixture(scope='module')
+def exposure_step(world):
+    """400 degrees about the vertical (sweep(200, 2.0, seed=5)) with an exposure jump (gain 1.35)
+    half-way, rendered once, and ``mapped(edr, correction)``: (gains, mapper, results) of a
+    PanoramaMapper of that EDR setting run over it, once per module. The two tests below ask for
+    six runs, four of them different: the EDR 'offset' run is both tests', and the 8-bit map
+    takes no EDR correction (PanoramaMapper._correction: (0, 1) without edr), so its run is one
+    whatever the correction asked for."""
+    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
+    frames = render_all(world, sweep(200, 2.0, seed=5), gains=gains)
+    runs: dict[tuple[bool, str | None], tuple[PanoramaMapper, list]] = {}
+
+    def mapped(edr: bool, correction: str) -> tuple[list[float], PanoramaMapper, list]:
+        key = (edr, correction if edr else None)
+        if key not in runs:
+            cfg = MapperConfig(map=MapConfig(edr=edr), edr_correction=correction) if edr \
+                else MapperConfig(map=MapConfig(edr=False))
+            mapper = PanoramaMapper(cfg)
+            runs[key] = mapper, run_frames(mapper, frames)
+        return (gains, *runs[key])
+
+    return mapped
+
+
 @pytest.mark.parametrize('correction', ['overlap', 'offset'])
-def test_edr_corrects_exposure_steps(world, correction):
+def test_edr_corrects_exposure_steps(exposure_step, correction):
     # 360+ degrees with an exposure jump (gain 1.35) half-way: the revisited part of the map
     # meets the first frames' contribution, where the 8-bit map shows the step.
-    Rs = sweep(200, 2.0, seed=5)
-    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
     results = {}
     for edr in (True, False):
-        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), edr_correction=correction))
-        res = run(mapper, world, Rs, gains=gains)
+        gains, mapper, res = exposure_step(edr, correction)
         assert all(r.R_pano_cam is not None for r in res)
         results[edr] = mapper.seam_error(min_gap=30, flat_max=np.inf)['step']
         if edr and correction == 'offset':
@@ -277,17 +299,14 @@ def test_exposure_filter_smooths_noise_and_follows_jumps():
     assert filt.update(float('nan'), float('inf'), 1 / 30) == est[-1]  # no information: kept
 
 
-def test_gain_model_corrects_multiplicative_exposure_better_than_offset(world):
+def test_gain_model_corrects_multiplicative_exposure_better_than_offset(exposure_step):
     # A gain of 1.35 (an exposure change) half-way round the turn: the log-domain estimate
     # recovers 1 / 1.35; a single offset fits only the keypoints' mean brightness. Compared by
     # the pixel-wise difference at the revisit boundaries (same texture in both maps): the step
     # measure has only ~14 short segments there on this busy texture, too noisy to rank them.
-    Rs = sweep(200, 2.0, seed=5)
-    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
     seams = {}
     for model in ('gain', 'offset'):
-        mapper = PanoramaMapper(MapperConfig(edr_correction=model))
-        res = run(mapper, world, Rs, gains=gains)
+        gains, mapper, res = exposure_step(True, model)  # the default EDR map
         assert all(r.R_pano_cam is not None for r in res)
         seams[model] = mapper.seam_error(min_gap=30)['pixelwise']
         if model == 'gain':
