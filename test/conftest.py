@@ -183,7 +183,6 @@ LONG_TESTS = (
     'test/eval/test_bench_hybrid.py::test_sim_bench_runs_on_a_short_bag',
     'test/eval/test_bench_annotations.py::test_make_bag_lighting_argument',
     'test/core/slam/test_slam_robustness.py::test_relocalises_after_a_long_gap_in_another_place',
-    'test/eval/test_panorama_metrics.py::test_seam_errors_on_the_sample_bag_prefer_edr',
     'test/eval/test_bench.py::test_quiet_bench_prints_its_json_and_no_node_logs',
     'test/ros/test_ros_citizen.py::test_graph_as_separate_processes_tf_at_camera_rate_and_live_parameter',
 )
