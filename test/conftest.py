@@ -170,6 +170,8 @@ XDIST_GROUPS = {
     'test/core/test_panorama_core.py': 'panorama_core',
     'test/core/test_panorama_overlap.py': 'panorama_overlap',
     'test/core/test_time_offset.py': 'time_offset',  # _camera_track, cached per process
+    'test/eval/test_bench.py': 'bench',  # the benches' seed-1 bag: its simulated view built once
+    'test/eval/test_bench_hybrid.py': 'bench',
     'test/eval/test_report.py': 'report',
     'test/io/test_replay.py': 'replay',
     'test/ros/test_panorama_mapper_node.py': 'panorama_mapper_node',
