@@ -132,10 +132,10 @@ def test_deterministic(world):
     assert all(np.array_equal(x.R_pano_cam, y.R_pano_cam) for x, y in zip(a, b))
 
 
-def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world):
-    Rs = sweep(120, 2.0, seed=4)
+def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world, pan_of_120):
+    Rs, frames = pan_of_120
     mapper = PanoramaMapper()
-    run(mapper, world, Rs)
+    run_frames(mapper, frames)
     t = 200 * DT
     white = np.full((H, W), 230, np.uint8)
     lost = mapper.process(white, K, t)
@@ -147,14 +147,14 @@ def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world):
 
 
 @pytest.mark.parametrize('roll_deg', [4.0, -8.0])
-def test_relocalises_after_a_fast_pan_that_also_rolled_and_tilted_the_phone(world, roll_deg):
+def test_relocalises_after_a_fast_pan_that_also_rolled_and_tilted_the_phone(world, pan_of_120, roll_deg):
     """After a fast pan the hand has also rolled and tilted the phone by a few degrees: at the
     frame's edges that is more than the wide search, so a hypothesis that only shifts the last
     orientation (yaw and tilt) fails to verify; one fitted on every tile match (a full rotation)
     does."""
-    Rs = sweep(120, 2.0, seed=4)
+    Rs, frames = pan_of_120
     mapper = PanoramaMapper()
-    run(mapper, world, Rs)
+    run_frames(mapper, frames)
     t = 200 * DT
     assert mapper.process(np.full((H, W), 230, np.uint8), K, t).status == 'lost'
     R_new = Rs[0] @ rot('y', 60.0) @ rot('x', 4.0) @ rot('z', roll_deg)
@@ -230,6 +230,14 @@ def test_detail_weakened_by_blur_keeps_tracking(world):
                 assert res.R_pano_cam is not None and angle_deg(res.R_pano_cam, Rs[0].T @ R) < 0.2, k
     assert 'lost' not in statuses['weak agreements'] and statuses['weak agreements'][30:].count('tracked') >= 58, statuses
     assert statuses['inliers only'][30:].count('lost') >= 5, statuses
+
+
+@pytest.fixture(scope='module')
+def pan_of_120(world) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """sweep(120, 2.0, seed=4) and its frames (render_all), rendered once for the three
+    relocalisation tests that map it before their jump."""
+    Rs = sweep(120, 2.0, seed=4)
+    return Rs, render_all(world, Rs)
 
 
 @pytest.fixture(scope='module')
@@ -361,15 +369,15 @@ def test_relocaliser_consensus_finds_the_rotation_most_tile_matches_agree_on():
     assert _consensus_rotations(rays[17:], d[17:], 6.0 / f, 3, 3) == []  # nothing agrees
 
 
-def test_the_coarse_to_fine_tile_search_finds_what_the_whole_warp_search_finds(world):
+def test_the_coarse_to_fine_tile_search_finds_what_the_whole_warp_search_finds(world, pan_of_120):
     """After a 60 deg jump with tilt and roll, the relocaliser's coarse-to-fine tile search
     (half resolution over the whole warp, then full resolution around the peak) gives the
     hypothesis the exhaustive search gives, near the truth."""
     from ar_tracking.core.panorama.relocalise import Relocaliser, RelocaliserConfig
 
-    Rs = sweep(120, 2.0, seed=4)
+    Rs, frames = pan_of_120
     mapper = PanoramaMapper()
-    run(mapper, world, Rs)
+    run_frames(mapper, frames)
     R_new = Rs[0] @ rot('y', 60.0) @ rot('x', 4.0) @ rot('z', 4.0)
     frame, hint = world.render(R_new), Rs[0].T @ Rs[-1]
     fast = Relocaliser(RelocaliserConfig()).hypotheses(frame, K, hint, mapper.map)
@@ -379,19 +387,27 @@ def test_the_coarse_to_fine_tile_search_finds_what_the_whole_warp_search_finds(w
     assert angle_deg(fast[0], Rs[0].T @ R_new) < 0.5
 
 
+@pytest.fixture(scope='module')
+def unseen_scene(world) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """30 frames of a 30 deg pan, then the views Rs of a scene the map never saw (another
+    texture): (first frames, Rs, their frames), rendered once for both restart settings."""
+    elsewhere = CylinderWorld(7)
+    Rs = [rot('y', 0.3 * k) @ rot('x', 2 * math.sin(0.1 * k)) for k in range(100)]
+    return render_all(world, sweep(30, 1.0, seed=2)), Rs, render_all(elsewhere, Rs)
+
+
 @pytest.mark.parametrize('restart_lost_s', [0.0, 2.0])
-def test_a_new_panorama_starts_when_the_camera_stays_where_the_map_never_was(world, restart_lost_s):
+def test_a_new_panorama_starts_when_the_camera_stays_where_the_map_never_was(unseen_scene, restart_lost_s):
     """After 30 deg mapped, the camera looks at a scene the map never saw (another texture) and
     stays there: with ``restart_lost_s`` a new panorama starts from the frame 2 s into the loss
     and the frames after it track in it (their rotations from that frame exact); with 0 the
     mapper waits for its old map and every one of them is lost."""
+    first, Rs, frames = unseen_scene
     mapper = PanoramaMapper(MapperConfig(restart_lost_s=restart_lost_s))
-    run(mapper, world, sweep(30, 1.0, seed=2))
-    elsewhere = CylinderWorld(7)
-    Rs = [rot('y', 0.3 * k) @ rot('x', 2 * math.sin(0.1 * k)) for k in range(100)]
+    run_frames(mapper, first)
     results = []
-    for k, R in enumerate(Rs):
-        results.append(mapper.process(elsewhere.render(R, rng=np.random.default_rng(k)), K, (40 + k) * DT))
+    for k, img in enumerate(frames):
+        results.append(mapper.process(img, K, (40 + k) * DT))
         mapper.background()
     statuses = [r.status for r in results]
     if restart_lost_s == 0.0:
