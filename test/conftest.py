@@ -169,6 +169,9 @@ XDIST_GROUPS = {
     'test/core/test_panorama_rolling_shutter.py': 'panorama_rolling_shutter',
     'test/core/test_panorama_core.py': 'panorama_core',
     'test/core/test_panorama_overlap.py': 'panorama_overlap',
+    'test/core/test_time_offset.py': 'time_offset',  # _camera_track, cached per process
+    'test/eval/test_bench.py': 'bench',  # the benches' seed-1 bag: its simulated view built once
+    'test/eval/test_bench_hybrid.py': 'bench',
     'test/eval/test_report.py': 'report',
     'test/io/test_replay.py': 'replay',
     'test/ros/test_panorama_mapper_node.py': 'panorama_mapper_node',
@@ -183,7 +186,6 @@ LONG_TESTS = (
     'test/eval/test_bench_hybrid.py::test_sim_bench_runs_on_a_short_bag',
     'test/eval/test_bench_annotations.py::test_make_bag_lighting_argument',
     'test/core/slam/test_slam_robustness.py::test_relocalises_after_a_long_gap_in_another_place',
-    'test/eval/test_panorama_metrics.py::test_seam_errors_on_the_sample_bag_prefer_edr',
     'test/eval/test_bench.py::test_quiet_bench_prints_its_json_and_no_node_logs',
     'test/ros/test_ros_citizen.py::test_graph_as_separate_processes_tf_at_camera_rate_and_live_parameter',
 )

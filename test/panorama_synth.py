@@ -63,16 +63,26 @@ class CylinderWorld:
 DT = 33_333_333
 
 
-def run(mapper, world: CylinderWorld, Rs: list[np.ndarray], gains=None, offsets=None) -> list:
-    """Feed the views Rs of ``world`` (frame k with ``gains[k]``, ``offsets[k]`` and noise seeded
-    by k) through a PanoramaMapper at 30 Hz, background step after each; its FrameResults."""
+def render_all(world: CylinderWorld, Rs: list[np.ndarray], gains=None, offsets=None) -> list[np.ndarray]:
+    """The views Rs of ``world``: frame k with ``gains[k]``, ``offsets[k]`` and noise seeded by k."""
+    return [world.render(R, gain=1.0 if gains is None else float(gains[k]),
+                         offset=0.0 if offsets is None else float(offsets[k]), rng=np.random.default_rng(k))
+            for k, R in enumerate(Rs)]
+
+
+def run_frames(mapper, frames: list[np.ndarray]) -> list:
+    """Feed frames through a PanoramaMapper at 30 Hz, background step after each; its FrameResults."""
     out = []
-    for k, R in enumerate(Rs):
-        img = world.render(R, gain=1.0 if gains is None else float(gains[k]),
-                           offset=0.0 if offsets is None else float(offsets[k]), rng=np.random.default_rng(k))
+    for k, img in enumerate(frames):
         out.append(mapper.process(img, K, (k + 1) * DT))
         mapper.background()
     return out
+
+
+def run(mapper, world: CylinderWorld, Rs: list[np.ndarray], gains=None, offsets=None) -> list:
+    """Feed the views Rs of ``world`` (frame k with ``gains[k]``, ``offsets[k]`` and noise seeded
+    by k) through a PanoramaMapper at 30 Hz, background step after each; its FrameResults."""
+    return run_frames(mapper, render_all(world, Rs, gains, offsets))
 
 
 def sweep(n: int, step_deg: float, seed: int = 0) -> list[np.ndarray]:

@@ -140,10 +140,18 @@ def test_make_bag_unknown_scenario_is_one_line(tmp_path):
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
-def test_demo_on_the_sample_bag(tmp_path):
+@pytest.fixture(scope='module')
+def demo(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """One ``ar-tracking demo -q`` (the orientation graph on the sample bag, evaluate, report):
+    its workdir and process, for the demo test and the sample bag's seam measures."""
     if not (REPO / 'bags' / 'rotation_sweep_authoring.mcap').is_file():
         pytest.fail('the sample bag bags/rotation_sweep_authoring.mcap is missing from the repository')
-    proc = cli('demo', '--workdir', str(tmp_path), '-q')
+    workdir = tmp_path_factory.mktemp('demo')
+    return workdir, cli('demo', '--workdir', str(workdir), '-q')
+
+
+def test_demo_on_the_sample_bag(demo):
+    tmp_path, proc = demo
     assert proc.returncode == 0, proc.stderr
     # exactly the nodes the README names (no SLAM on this rotate-in-place bag)
     assert 'nodes: imu_magnetometer, panorama_mapper, hybrid_orientation_filter\n' in proc.stderr
@@ -152,6 +160,21 @@ def test_demo_on_the_sample_bag(tmp_path):
     assert (tmp_path / 'report.png').stat().st_size > 10_000
     metrics = json.loads((tmp_path / 'metrics.json').read_text())
     assert metrics['orientation']['imu/data']['n'] > 1000
+
+
+def test_seam_errors_on_the_sample_bag_prefer_edr(demo):
+    """The seam measures of the sample bag (panorama_metrics.seam_errors, all 600 frames), as
+    the demo's evaluate scored them from the run's source bag (it replays the mapper core
+    with each map variant; a second replay here would only repeat it)."""
+    tmp_path, proc = demo
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads((tmp_path / 'metrics.json').read_text())['panorama']['seam_error']
+    assert s['edr_revisit'] < 0.5 * s['8bit_revisit']
+    for name in ('edr', '8bit', 'edr_paper'):  # the step, its mean |step| and the naive figure
+        assert {name, f'mean_abs_{name}', f'pixelwise_{name}', f'{name}_revisit'} <= s.keys()
+    assert s['ratio'] == pytest.approx(s['edr'] / s['8bit'], abs=1e-3)
+    assert s['edr'] < s['edr_paper']  # smoothed offsets add fewer steps than per-frame ones
+    assert s['pixelwise_8bit'] > 5 * s['8bit']  # texture dominates the naive figure
 
 
 def test_estimates_do_not_depend_on_the_ground_truth(sweep, sweep_run, tmp_path):

@@ -3,8 +3,10 @@ tests, mypy (setup.cfg) on the algorithm cores, and the cores import no ROS."""
 from __future__ import annotations
 
 import ast
+import hashlib
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,7 +22,12 @@ def test_ruff_finds_nothing() -> None:
 
 
 def test_mypy_on_the_cores_finds_nothing() -> None:
-    result = _run('mypy', '--no-incremental', 'ar_tracking/core')
+    """mypy incremental, its cache outside the checkout (one per checkout path, in the temp
+    directory): a repeated run re-checks what changed and what depends on it, and reports the
+    errors of unchanged modules again (~0.4 s instead of ~25 s here); the first run is a full
+    check."""
+    cache = Path(tempfile.gettempdir()) / f'ar_tracking-mypy-{hashlib.sha1(str(ROOT).encode()).hexdigest()[:12]}'
+    result = _run('mypy', '--cache-dir', str(cache), 'ar_tracking/core')
     assert result.returncode == 0, result.stdout[-5000:] + result.stderr
 
 

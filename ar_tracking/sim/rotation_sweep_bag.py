@@ -95,14 +95,21 @@ def with_parallax(req: BagRequest) -> bool:
     return req.profile == 'hard' if req.parallax is None else bool(req.parallax)
 
 
-@functools.lru_cache(maxsize=2)
 def session_view(seed: int, session: str, lighting: str | None = None
                  ) -> tuple[World, Lighting, Panorama]:
     """World, lighting and the panorama from the session's standing spot (cached: ~3 s each).
 
-    ``lighting``: the session whose sun lights the spot (default ``session``)."""
+    ``lighting``: the session whose sun lights the spot (default ``session``). Cached by
+    (seed, session, lighting or session): ``session_view(1, 'browsing')``,
+    ``session_view(1, 'browsing', None)`` and ``session_view(1, 'browsing', 'browsing')`` are
+    one view, built once (``functools.lru_cache`` keys them apart)."""
+    return _session_view(seed, session, lighting or session)
+
+
+@functools.lru_cache(maxsize=2)
+def _session_view(seed: int, session: str, lighting: str) -> tuple[World, Lighting, Panorama]:
     world = _world(seed)
-    light = make_lighting(seed, lighting or session, world)
+    light = make_lighting(seed, lighting, world)
     pano = render_panorama(world, light, rs.session_offset(seed, session))
     return world, light, pano
 

@@ -15,7 +15,8 @@ from ar_tracking.core.panorama import MapConfig, MapperConfig, PanoramaMap, Pano
 from ar_tracking.core.panorama.cylinder import CylinderGeometry, rotation_about_axis_y
 from ar_tracking.core.panorama.tracker import TrackerConfig
 from ar_tracking.core.panorama.tracker import kabsch
-from panorama_synth import DT, H, K, W, CylinderWorld, angle_deg, rot, run, sweep, two_plane_frame
+from panorama_synth import (DT, H, K, W, CylinderWorld, angle_deg, render_all, rot, run, run_frames, sweep,
+                            two_plane_frame)
 
 
 @pytest.fixture(scope='module')
@@ -131,10 +132,10 @@ def test_deterministic(world):
     assert all(np.array_equal(x.R_pano_cam, y.R_pano_cam) for x, y in zip(a, b))
 
 
-def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world):
-    Rs = sweep(120, 2.0, seed=4)
+def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world, pan_of_120):
+    Rs, frames = pan_of_120
     mapper = PanoramaMapper()
-    run(mapper, world, Rs)
+    run_frames(mapper, frames)
     t = 200 * DT
     white = np.full((H, W), 230, np.uint8)
     lost = mapper.process(white, K, t)
@@ -146,14 +147,14 @@ def test_relocalises_after_a_jump_and_loses_on_a_white_wall(world):
 
 
 @pytest.mark.parametrize('roll_deg', [4.0, -8.0])
-def test_relocalises_after_a_fast_pan_that_also_rolled_and_tilted_the_phone(world, roll_deg):
+def test_relocalises_after_a_fast_pan_that_also_rolled_and_tilted_the_phone(world, pan_of_120, roll_deg):
     """After a fast pan the hand has also rolled and tilted the phone by a few degrees: at the
     frame's edges that is more than the wide search, so a hypothesis that only shifts the last
     orientation (yaw and tilt) fails to verify; one fitted on every tile match (a full rotation)
     does."""
-    Rs = sweep(120, 2.0, seed=4)
+    Rs, frames = pan_of_120
     mapper = PanoramaMapper()
-    run(mapper, world, Rs)
+    run_frames(mapper, frames)
     t = 200 * DT
     assert mapper.process(np.full((H, W), 230, np.uint8), K, t).status == 'lost'
     R_new = Rs[0] @ rot('y', 60.0) @ rot('x', 4.0) @ rot('z', roll_deg)
@@ -231,16 +232,45 @@ def test_detail_weakened_by_blur_keeps_tracking(world):
     assert statuses['inliers only'][30:].count('lost') >= 5, statuses
 
 
+@pytest.fixture(scope='module')
+def pan_of_120(world) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """sweep(120, 2.0, seed=4) and its frames (render_all), rendered once for the three
+    relocalisation tests that map it before their jump."""
+    Rs = sweep(120, 2.0, seed=4)
+    return Rs, render_all(world, Rs)
+
+
+@pytest.fixture(scope='module')
+def exposure_step(world):
+    """400 degrees about the vertical (sweep(200, 2.0, seed=5)) with an exposure jump (gain 1.35)
+    half-way, rendered once, and ``mapped(edr, correction)``: (gains, mapper, results) of a
+    PanoramaMapper of that EDR setting run over it, once per module. The two tests below ask for
+    six runs, four of them different: the EDR 'offset' run is both tests', and the 8-bit map
+    takes no EDR correction (PanoramaMapper._correction: (0, 1) without edr), so its run is one
+    whatever the correction asked for."""
+    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
+    frames = render_all(world, sweep(200, 2.0, seed=5), gains=gains)
+    runs: dict[tuple[bool, str | None], tuple[PanoramaMapper, list]] = {}
+
+    def mapped(edr: bool, correction: str) -> tuple[list[float], PanoramaMapper, list]:
+        key = (edr, correction if edr else None)
+        if key not in runs:
+            cfg = MapperConfig(map=MapConfig(edr=edr), edr_correction=correction) if edr \
+                else MapperConfig(map=MapConfig(edr=False))
+            mapper = PanoramaMapper(cfg)
+            runs[key] = mapper, run_frames(mapper, frames)
+        return (gains, *runs[key])
+
+    return mapped
+
+
 @pytest.mark.parametrize('correction', ['overlap', 'offset'])
-def test_edr_corrects_exposure_steps(world, correction):
+def test_edr_corrects_exposure_steps(exposure_step, correction):
     # 360+ degrees with an exposure jump (gain 1.35) half-way: the revisited part of the map
     # meets the first frames' contribution, where the 8-bit map shows the step.
-    Rs = sweep(200, 2.0, seed=5)
-    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
     results = {}
     for edr in (True, False):
-        mapper = PanoramaMapper(MapperConfig(map=MapConfig(edr=edr), edr_correction=correction))
-        res = run(mapper, world, Rs, gains=gains)
+        gains, mapper, res = exposure_step(edr, correction)
         assert all(r.R_pano_cam is not None for r in res)
         results[edr] = mapper.seam_error(min_gap=30, flat_max=np.inf)['step']
         if edr and correction == 'offset':
@@ -277,17 +307,14 @@ def test_exposure_filter_smooths_noise_and_follows_jumps():
     assert filt.update(float('nan'), float('inf'), 1 / 30) == est[-1]  # no information: kept
 
 
-def test_gain_model_corrects_multiplicative_exposure_better_than_offset(world):
+def test_gain_model_corrects_multiplicative_exposure_better_than_offset(exposure_step):
     # A gain of 1.35 (an exposure change) half-way round the turn: the log-domain estimate
     # recovers 1 / 1.35; a single offset fits only the keypoints' mean brightness. Compared by
     # the pixel-wise difference at the revisit boundaries (same texture in both maps): the step
     # measure has only ~14 short segments there on this busy texture, too noisy to rank them.
-    Rs = sweep(200, 2.0, seed=5)
-    gains = [1.0 if k < 100 else 1.35 for k in range(200)]
     seams = {}
     for model in ('gain', 'offset'):
-        mapper = PanoramaMapper(MapperConfig(edr_correction=model))
-        res = run(mapper, world, Rs, gains=gains)
+        gains, mapper, res = exposure_step(True, model)  # the default EDR map
         assert all(r.R_pano_cam is not None for r in res)
         seams[model] = mapper.seam_error(min_gap=30)['pixelwise']
         if model == 'gain':
@@ -342,15 +369,15 @@ def test_relocaliser_consensus_finds_the_rotation_most_tile_matches_agree_on():
     assert _consensus_rotations(rays[17:], d[17:], 6.0 / f, 3, 3) == []  # nothing agrees
 
 
-def test_the_coarse_to_fine_tile_search_finds_what_the_whole_warp_search_finds(world):
+def test_the_coarse_to_fine_tile_search_finds_what_the_whole_warp_search_finds(world, pan_of_120):
     """After a 60 deg jump with tilt and roll, the relocaliser's coarse-to-fine tile search
     (half resolution over the whole warp, then full resolution around the peak) gives the
     hypothesis the exhaustive search gives, near the truth."""
     from ar_tracking.core.panorama.relocalise import Relocaliser, RelocaliserConfig
 
-    Rs = sweep(120, 2.0, seed=4)
+    Rs, frames = pan_of_120
     mapper = PanoramaMapper()
-    run(mapper, world, Rs)
+    run_frames(mapper, frames)
     R_new = Rs[0] @ rot('y', 60.0) @ rot('x', 4.0) @ rot('z', 4.0)
     frame, hint = world.render(R_new), Rs[0].T @ Rs[-1]
     fast = Relocaliser(RelocaliserConfig()).hypotheses(frame, K, hint, mapper.map)
@@ -360,19 +387,27 @@ def test_the_coarse_to_fine_tile_search_finds_what_the_whole_warp_search_finds(w
     assert angle_deg(fast[0], Rs[0].T @ R_new) < 0.5
 
 
+@pytest.fixture(scope='module')
+def unseen_scene(world) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """30 frames of a 30 deg pan, then the views Rs of a scene the map never saw (another
+    texture): (first frames, Rs, their frames), rendered once for both restart settings."""
+    elsewhere = CylinderWorld(7)
+    Rs = [rot('y', 0.3 * k) @ rot('x', 2 * math.sin(0.1 * k)) for k in range(100)]
+    return render_all(world, sweep(30, 1.0, seed=2)), Rs, render_all(elsewhere, Rs)
+
+
 @pytest.mark.parametrize('restart_lost_s', [0.0, 2.0])
-def test_a_new_panorama_starts_when_the_camera_stays_where_the_map_never_was(world, restart_lost_s):
+def test_a_new_panorama_starts_when_the_camera_stays_where_the_map_never_was(unseen_scene, restart_lost_s):
     """After 30 deg mapped, the camera looks at a scene the map never saw (another texture) and
     stays there: with ``restart_lost_s`` a new panorama starts from the frame 2 s into the loss
     and the frames after it track in it (their rotations from that frame exact); with 0 the
     mapper waits for its old map and every one of them is lost."""
+    first, Rs, frames = unseen_scene
     mapper = PanoramaMapper(MapperConfig(restart_lost_s=restart_lost_s))
-    run(mapper, world, sweep(30, 1.0, seed=2))
-    elsewhere = CylinderWorld(7)
-    Rs = [rot('y', 0.3 * k) @ rot('x', 2 * math.sin(0.1 * k)) for k in range(100)]
+    run_frames(mapper, first)
     results = []
-    for k, R in enumerate(Rs):
-        results.append(mapper.process(elsewhere.render(R, rng=np.random.default_rng(k)), K, (40 + k) * DT))
+    for k, img in enumerate(frames):
+        results.append(mapper.process(img, K, (40 + k) * DT))
         mapper.background()
     statuses = [r.status for r in results]
     if restart_lost_s == 0.0:

@@ -11,7 +11,7 @@ import pytest
 
 from ar_tracking.core.panorama import (MapConfig, MapperConfig, OverlapExposureConfig, PanoramaMap,
                                        PanoramaMapper, fit_overlap_exposure)
-from panorama_synth import K, CylinderWorld, rot, run, sweep
+from panorama_synth import K, CylinderWorld, render_all, rot, run_frames, sweep
 
 
 @pytest.fixture(scope='module')
@@ -111,12 +111,13 @@ def test_overlap_correction_follows_gain_and_offset_changes(world):
     Rs = sweep(200, 2.0, seed=5)
     gains = np.where(np.arange(200) < 70, 1.0, np.where(np.arange(200) < 140, 1.3, 0.8))
     offsets = np.where(np.arange(200) < 100, 0.0, 12.0)
+    frames = render_all(world, Rs, gains, offsets)  # once: the same frames for the three maps
     steps = {}
     for name, cfg in (('overlap', MapperConfig(edr_correction='overlap')),
                       ('offset', MapperConfig(edr_correction='offset')),
                       ('8bit', MapperConfig(map=MapConfig(edr=False)))):
         mapper = PanoramaMapper(cfg)
-        res = run(mapper, world, Rs, gains, offsets)
+        res = run_frames(mapper, frames)
         if name != '8bit':
             assert all(r.R_pano_cam is not None for r in res)
         steps[name] = mapper.seam_error(flat_max=np.inf)['step']

@@ -14,9 +14,8 @@ import pytest
 
 from ar_tracking.core.panorama import ExposureConfig, ExposureFilter, MapperConfig, PanoramaMapper, seam_error
 from ar_tracking.core.panorama.exposure import OFFSET_EXPOSURE
-from panorama_synth import K, CylinderWorld, sweep
+from panorama_synth import CylinderWorld, render_all, run_frames, sweep
 
-DT = 33_333_333
 STRIP = 24
 
 
@@ -113,15 +112,14 @@ def test_smoothed_offset_leaves_smaller_seams_than_the_paper_version():
     world = CylinderWorld(1)
     Rs = sweep(200, 2.0, seed=5)
     gains = [1.0 if k < 100 else 1.35 for k in range(200)]
+    frames = render_all(world, Rs, gains)  # once: the same frames for both versions
     steps, diffs, offs = {}, {}, {}
     for smooth in (True, False):
         cfg = MapperConfig(edr_correction='offset',
                            offset_exposure=ExposureConfig(**{**OFFSET_EXPOSURE.__dict__, 'smooth': smooth}))
         mapper = PanoramaMapper(cfg)
         o = []
-        for k, R in enumerate(Rs):
-            res = mapper.process(world.render(R, gain=gains[k], rng=np.random.default_rng(k)), K, (k + 1) * DT)
-            mapper.background()
+        for res in run_frames(mapper, frames):
             assert res.R_pano_cam is not None
             o.append(res.intensity_offset)
         steps[smooth] = mapper.seam_error(flat_max=np.inf)['step']  # dominated by the jump's seam

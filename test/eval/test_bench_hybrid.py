@@ -82,8 +82,10 @@ def test_a_bench_reuses_a_simulated_bag_only_from_this_simulator_revision(tmp_pa
     from ar_tracking.sim.rotation_sweep_bag import SIM_METADATA
 
     assert not reusable_sweep_bag(tmp_path / 'none.mcap')
-    hard = make_bag('rotation_sweep', tmp_path / 'hard.mcap', seed=3, duration_s=1.0)
-    kind = make_bag('rotation_sweep', tmp_path / 'kind.mcap', seed=3, duration_s=1.0, profile='kind')
+    # seed 1, the benches' seed: the simulator's view of it is cached from the bench tests of
+    # this xdist group (conftest XDIST_GROUPS 'bench'), not built again
+    hard = make_bag('rotation_sweep', tmp_path / 'hard.mcap', seed=1, duration_s=1.0)
+    kind = make_bag('rotation_sweep', tmp_path / 'kind.mcap', seed=1, duration_s=1.0, profile='kind')
     assert reusable_sweep_bag(hard) and reusable_sweep_bag(kind)  # kind bags are frozen
     (tmp_path / 'empty.mcap').touch()  # a bench killed as it started making the bag
     cut = tmp_path / 'cut.mcap'  # ... or while it wrote it
@@ -91,7 +93,7 @@ def test_a_bench_reuses_a_simulated_bag_only_from_this_simulator_revision(tmp_pa
     assert not reusable_sweep_bag(tmp_path / 'empty.mcap') and not reusable_sweep_bag(cut)
     old = tmp_path / 'old.mcap'  # the hard bag as the simulator before revisions wrote it
     with BagReader(hard) as src, BagWriter(old) as dst:
-        dst.add_metadata(SIM_METADATA, {'scenario': 'rotation_sweep', 'profile': 'hard', 'seed': '3',
+        dst.add_metadata(SIM_METADATA, {'scenario': 'rotation_sweep', 'profile': 'hard', 'seed': '1',
                                         'session': 'authoring'})
         for m in src.messages(['/imu/data_raw']):
             dst.write(m.topic, m.log_time_ns, src.deserialize(m))

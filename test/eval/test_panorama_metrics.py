@@ -61,13 +61,15 @@ def test_lockstep_run_is_reproducible_and_tracks_the_sample_bag(tmp_path):
 
 
 @pytest.mark.skipif(not BAG.exists(), reason='sample bag missing')
-def test_seam_errors_on_the_sample_bag_prefer_edr():
-    from ar_tracking.eval.panorama_metrics import seam_errors
+def test_camera_frames_pair_images_with_their_camera_info_and_stop_at_max_frames():
+    """The frames seam_errors replays (its measures on the sample bag: test_end_to_end's
+    test_seam_errors_on_the_sample_bag_prefer_edr, from the demo's evaluate)."""
+    from ar_tracking.eval.panorama_metrics import camera_frames
 
-    s = seam_errors(BAG, max_frames=400)
-    assert s['edr_revisit'] < 0.5 * s['8bit_revisit']
-    for name in ('edr', '8bit', 'edr_paper'):  # the step, its mean |step| and the naive figure
-        assert {name, f'mean_abs_{name}', f'pixelwise_{name}', f'{name}_revisit'} <= s.keys()
-    assert s['ratio'] == pytest.approx(s['edr'] / s['8bit'], abs=1e-3)
-    assert s['edr'] < s['edr_paper']  # smoothed offsets add fewer steps than per-frame ones
-    assert s['pixelwise_8bit'] > 5 * s['8bit']  # texture dominates the naive figure
+    frames = list(camera_frames(BAG, max_frames=5))
+    assert len(frames) == 5
+    stamps = [s for s, _, _ in frames]
+    assert stamps == sorted(set(stamps))
+    for _, img, K in frames:
+        assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
+        assert K.shape == (3, 3) and K[2, 2] == 1.0 and K[0, 0] > 0

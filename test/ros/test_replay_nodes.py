@@ -1,6 +1,9 @@
 """bag_replay and camera_replay in-process: what they publish, remapping, /clock, bad bags."""
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
@@ -69,8 +72,6 @@ def test_bag_replay_loops(ros_context, tmp_path):
 
 
 def test_camera_replay_plays_the_sample_bag(ros_context):
-    from pathlib import Path
-
     bag = Path(__file__).resolve().parents[2] / 'bags' / 'rotation_sweep_authoring.mcap'
     if not bag.is_file():
         pytest.fail('sample bag missing from bags/')
@@ -111,16 +112,37 @@ def test_replay_cli_bad_bag_is_one_line(tmp_path):
 
 
 def test_camera_replay_node_publishes_raw_images(ros_context, tmp_path):
-    """A raw-image bag: Image messages decode to the recorded pixels."""
-    from ar_tracking.sim.bagmaker import make_bag
+    """A raw-image bag (the first second of the sample bag's frames, decoded and written as
+    rgb8 Image messages with their camera_info, as make_bag's raw format writes them; simulating
+    a raw bag took ~5 s for its panorama): Image messages decode to the recorded pixels."""
+    import cv2
 
-    bag = make_bag('rotation_sweep', tmp_path / 'raw.mcap', seed=2, duration_s=1.0)
+    from ar_tracking.io.bags import BagReader, BagWriter
+    from ar_tracking.sim.messages import Msgs
+
+    sample = Path(__file__).resolve().parents[2] / 'bags' / 'rotation_sweep_authoring.mcap'
+    if not sample.is_file():
+        pytest.fail('sample bag missing from bags/')
+    bag, msgs, recorded = tmp_path / 'raw.mcap', Msgs(), {}
+    with BagReader(sample) as src, BagWriter(bag) as dst:
+        for m in src.messages(['/camera/image_raw/compressed', '/camera/camera_info']):
+            if len(recorded) == 30:
+                break
+            msg = src.deserialize(m)
+            if m.topic == '/camera/camera_info':
+                dst.write(m.topic, m.log_time_ns, m.rawdata, m.msgtype)
+                continue
+            rgb = cv2.cvtColor(cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            recorded[stamp_ns(msg.header)] = rgb
+            dst.write('/camera/image_raw', m.log_time_ns, msgs.image(stamp_ns(msg.header), rgb))
     listener, got = collect(ros_context, [('camera/image_raw', Image)])
     node, ex = start(ros_context, CameraReplayNode, listener, {'bag_path': str(bag), 'rate': 1.0})
     try:
         assert spin_until(ex, lambda: len(got['camera/image_raw']) >= 10, 15)
-        arr = image_to_array(got['camera/image_raw'][0])
-        assert arr.shape == (240, 320, 3) and arr.std() > 5
+        for img in got['camera/image_raw']:
+            arr = image_to_array(img)
+            assert arr.shape == (240, 320, 3) and arr.std() > 5
+            assert np.array_equal(arr, recorded[stamp_ns(img.header)])
     finally:
         node.close()
         node.destroy_node()
