@@ -479,20 +479,12 @@ class GraphRunner:
 
         from .node_base import node_executor
 
-        # 'auto': the EventsExecutor (node_base.node_executor). The SingleThreadedExecutor
-        # rebuilds its wait set (every subscription, publisher event and parameter service of
-        # every node) for each callback: on the sample bag's orientation graph that was half of
-        # the profiled time in lockstep (cProfile: 16 of 32 s in _wait_for_ready_callbacks);
-        # the EventsExecutor spends ~1.5 s outside the nodes' callbacks, outputs byte-identical.
-        # In realtime the same holds for the feeder and the recorder on this executor and for
-        # each node's own (threads) or its process's (processes), while the player thread
-        # publishes concurrently. A MultiThreadedExecutor's per-callback overhead drops
-        # messages at IMU rates; 'single' keeps rclpy's default for comparison.
+        # The EventsExecutor (node_base.node_executor) unless asked otherwise: rclpy's
+        # SingleThreadedExecutor rebuilds its wait set for each callback (lockstep on the sample
+        # bag's orientation graph: 16 of 32 s in _wait_for_ready_callbacks; outputs byte-identical).
+        # A MultiThreadedExecutor's per-callback overhead drops messages at IMU rates; 'single'
+        # keeps rclpy's default for comparison. (run() has checked the kind against the clock.)
         kind = self._executor
-        if kind not in EXECUTOR_CHOICES:
-            raise RunError(f'unknown executor {kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
-        if kind in ('multi', 'processes') and not realtime:
-            raise RunError(f'--executor {kind} is for realtime runs (--rate R); lockstep spins one node at a time')
         if kind in ('auto', 'threads', 'processes', 'events'):
             return node_executor(context)  # realtime: the feeder and the recorder (nodes have their own)
         if kind == 'multi':
