@@ -205,12 +205,10 @@ class WorldAlignment:
         solve_t = self._solve_t_ns
         solve = solve_t is None or self._field_samples < 8
         if solve_t is not None and not solve:
-            elapsed = t_ns - solve_t
-            if elapsed >= 100_000_000:
-                span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
-                c = self.config
-                period = min(self._solve_period_ns, max(100_000_000, int(c.solve_period_share * span_ns)))
-                solve = elapsed >= max(period, int(c.solve_period_long_share * span_ns))
+            span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
+            c = self.config
+            period = min(self._solve_period_ns, max(100_000_000, int(c.solve_period_share * span_ns)))
+            solve = t_ns - solve_t >= max(period, int(c.solve_period_long_share * span_ns))
         if solve:
             self._solve_t_ns = t_ns
             self._field = self._solve_field()
