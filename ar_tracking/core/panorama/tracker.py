@@ -226,7 +226,9 @@ class ActiveSearchTracker:
             u, v = pano.geometry.project((rays.reshape(-1, 3) @ R_pred.T).reshape(rays.shape))
         else:  # each template turned by its row's rotation
             R_rows = R_pred @ row_rotations(row_motion, py, h)
-            u, v = pano.geometry.project(np.einsum('nij,npqj->npqi', R_rows, rays))
+            # (n, P P, 3) x (n, 3, 3)^T as one batched product: a tenth of an einsum's time
+            u, v = pano.geometry.project(np.matmul(rays.reshape(n, P * P, 3), R_rows.transpose(0, 2, 1)
+                                                   ).reshape(rays.shape))
         # Each sample depends only on its own map coordinates, so the layout of the maps is
         # free: one row (cv2.remap's per-row cost, ~30 % of the call with n P rows of P) unless
         # it would pass remap's 32767 limit on a side.
