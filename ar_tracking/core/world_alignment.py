@@ -90,6 +90,17 @@ _SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
 _SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
+def solve_due_after_ns(config: WorldAlignmentConfig, period_ns: int, t_ns: int, t_first_ns: int | None) -> int:
+    """Stamps after the last field solve at which the next one is due, for a sample at t_ns of
+    a session that began at t_first_ns: min(solve_period, max(0.1 s, share x span)) - at once
+    past the full period, never before 0.1 s (when the period is longer), in between by the
+    span - and late in a long session long_share x span once that is longer. It never
+    decreases as t_ns grows."""
+    span_ns = t_ns - (t_ns if t_first_ns is None else t_first_ns)
+    period = min(period_ns, max(100_000_000, int(config.solve_period_share * span_ns)))
+    return max(period, int(config.solve_period_long_share * span_ns))
+
+
 class WorldAlignment:
     """Accumulates (R_pano_imu, accel, field) samples and estimates R_pano_enu (module doc)."""
 
@@ -135,6 +146,8 @@ class WorldAlignment:
         self._fw = WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rtm': (3,), 'm': (3,), 'norm': ()})
         self._field_samples = 0
         self._solve_t_ns: int | None = None
+        # Stamps [from, until) at which no solve is due (see _add_field); empty at first.
+        self._no_solve_from_ns, self._no_solve_until_ns = 1, 0
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
         self._prior = prior
         self._h_last: Array | None = None
@@ -199,18 +212,18 @@ class WorldAlignment:
         rows += r
         rows += np.asarray(mag, dtype=float).tolist()
         self._field_samples += 1
-        # Solve every min(solve_period, max(0.1 s, share x span)) of stamps: at once past the
-        # full period, never before 0.1 s (when the period is longer), in between by the span;
-        # late in a long session every long_share x span once that is longer than the period.
         solve_t = self._solve_t_ns
         solve = solve_t is None or self._field_samples < 8
-        if solve_t is not None and not solve:
-            span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
-            c = self.config
-            period = min(self._solve_period_ns, max(100_000_000, int(c.solve_period_share * span_ns)))
-            solve = t_ns - solve_t >= max(period, int(c.solve_period_long_share * span_ns))
+        if solve_t is not None and not solve and not self._no_solve_from_ns <= t_ns < self._no_solve_until_ns:
+            due_ns = solve_due_after_ns(self.config, self._solve_period_ns, t_ns, self._t_first_ns)
+            solve = t_ns - solve_t >= due_ns
+            if not solve:
+                # The period only grows with the stamp (the span does), so no solve is due
+                # before solve_t + this period: the stamps up to there skip the test.
+                self._no_solve_from_ns, self._no_solve_until_ns = t_ns, solve_t + due_ns
         if solve:
             self._solve_t_ns = t_ns
+            self._no_solve_from_ns, self._no_solve_until_ns = 1, 0
             self._field = self._solve_field()
 
     def _add_lever_arm(self, t_ns: int, row: list[float], omega: list[float], ax: float, ay: float,
@@ -550,9 +563,10 @@ class WorldAlignment:
         gravity = self._solve_gravity()
         field = self._field
         assert field is not None  # ready
-        key = (gravity, field, c.declination_rad)
         geometry = self._geometry
-        if geometry is None or not all(a is b for a, b in zip(geometry[0], key)):
+        key = geometry[0] if geometry is not None else None
+        if key is None or not (key[0] is gravity and key[1] is field and key[2] is c.declination_rad):
+            key = (gravity, field, c.declination_rad)
             # Between solves only the session's span changes (the tilt variance): the rotation
             # and the field's part of the heading variance are computed once per solve pair.
             solved = self._solve_geometry(gravity, field)
