@@ -81,7 +81,6 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
-_D3, _D6 = np.arange(3), np.arange(6)  # diagonal indices
 
 
 # The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
@@ -385,10 +384,11 @@ class WorldAlignment:
         lever = c.lever_arm_sigma_m > 0
         dim = 9 if lever else 6
         A = np.zeros((dim, dim))
-        A[_D3, _D3] = n
+        diag = A.reshape(-1)[::dim + 1]  # a view of A's diagonal (basic slices cost less than index arrays)
+        diag[:3] = n
         A[:3, 3:6] = sum_R.T
         A[3:6, :3] = sum_R
-        A[_D3 + 3, _D3 + 3] = n + lam_b
+        diag[3:6] = n + lam_b
         rhs = np.zeros(dim)
         rhs[:3], rhs[3:6] = sum_Rta, sum_a
         if lever:
@@ -399,12 +399,12 @@ class WorldAlignment:
             A[3:6, 6:] = K
             A[6:, 3:6] = K.T
             A[6:, 6:] = weighted_sum(w, sums['KtK'])
-            A[_D3 + 6, _D3 + 6] += var / c.lever_arm_sigma_m ** 2
+            diag[6:9] += var / c.lever_arm_sigma_m ** 2
             rhs[6:] = w.dot(sums['Kta'])
         if self._prior is not None:
             R_pe, sigma = self._prior
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
-            A[_D3, _D3] += wp
+            diag[:3] += wp
             rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
         x = solve_regular(A, rhs)
         g, b = x[:3], x[3:6]
@@ -474,9 +474,11 @@ class WorldAlignment:
             sw = float(wn.sum())
             WS = weighted_sum(w_win, S_w)  # sum w R_imu_P
             dim = 6 if f_lin is None or not soft else 12
-            # (Diagonals set through index arrays: np.eye per block costs more than the solve.)
+            # (Diagonals set through a view of A's diagonal: np.eye per block costs more than
+            # the solve, index arrays more than basic slices.)
             A = np.zeros((dim, dim))
-            A[_D6, _D6] = sw
+            diag = A.reshape(-1)[::dim + 1]
+            diag[:6] = sw
             A[:3, 3:6] = WS.T
             A[3:6, :3] = WS
             rhs = np.zeros(dim)
@@ -488,13 +490,13 @@ class WorldAlignment:
                 A[6:, :3], A[6:, 3:6] = A_fe.T, A_he.T
                 rhs[6:] = rhs_e
             A_data = A.copy()  # what the samples give; the ridges and the prior follow
-            A[_D3 + 3, _D3 + 3] += sw * lam
+            diag[3:6] += sw * lam
             if dim == 12:
-                A[_D6 + 6, _D6 + 6] += sw * lam_e
+                diag[6:] += sw * lam_e
             wp = 0.0
             if prior is not None:
                 wp = self._prior_weight(self._prior[1], c.field_model_sigma, 1.0)  # type: ignore[index]
-                A[_D3, _D3] += wp
+                diag[:3] += wp
                 rhs[:3] += wp * prior
             error_parts = (A, A_data, sw * lam, sw * lam_e, wp, sw / max(float(w_win.sum()), 1e-12))
             x = solve_regular(A, rhs)
