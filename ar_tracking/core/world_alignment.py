@@ -566,8 +566,8 @@ class WorldAlignment:
         field = self._field
         assert field is not None  # ready
         geometry = self._geometry
-        key = geometry[0] if geometry is not None else None
-        if key is None or not (key[0] is gravity and key[1] is field and key[2] is c.declination_rad):
+        if geometry is None or not (geometry[0][0] is gravity and geometry[0][1] is field
+                                    and geometry[0][2] is c.declination_rad):
             key = (gravity, field, c.declination_rad)
             # Between solves only the session's span changes (the tilt variance): the rotation
             # and the field's part of the heading variance are computed once per solve pair.
