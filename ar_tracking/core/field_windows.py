@@ -77,7 +77,12 @@ class FieldWindows:
         along = mean_f.dot(self._basis)  # components along e1, e2 and up
         # Headings about up relative to f's.
         f_abs = self.heading(f)
-        rel = (np.arctan2(along[:, 1], along[:, 0]) - f_abs + math.pi) % (2.0 * math.pi) - math.pi
+        # ((psi - f_abs + pi) mod 2 pi) - pi, each step in place (one array instead of five).
+        rel = np.arctan2(along[:, 1], along[:, 0])
+        rel -= f_abs
+        rel += math.pi
+        np.remainder(rel, 2.0 * math.pi, out=rel)
+        rel -= math.pi
         centre, spread = shorth(rel, c.cluster_share)
         spread = max(spread, math.radians(0.25))
         width = c.cauchy_scale * spread
@@ -85,7 +90,10 @@ class FieldWindows:
         centre, self.ambiguity_var = choose_cluster(rel, centre, prev, width, c)
         off = rel - centre
         dev = np.abs(off)
-        w_psi = 1.0 / (1.0 + (off / width) ** 2)
+        w_psi = off / width  # 1 / (1 + (off / width)^2), in place
+        w_psi *= w_psi
+        w_psi += 1.0
+        np.divide(1.0, w_psi, out=w_psi)
         # Past reject_widths the weight is zero, not a Cauchy tail: a tail still lets the hard
         # iron drift towards a disturbance, which then looks like the clean field (with little
         # rotation a field offset fixed in the phone and one fixed in the world look alike).

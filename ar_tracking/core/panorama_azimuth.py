@@ -38,11 +38,15 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.blas import dger
 
-from .rotations import (QuatFloats, quat_wxyz_conj_floats, quat_wxyz_log_along, quat_wxyz_mul_floats,
+from .rotations import (QuatFloats, quat_wxyz_log_along, quat_wxyz_mul_floats,
                         quat_wxyz_of_rows)
 
 
 Array = NDArray[np.float64]
+#: (up, azimuth 0, azimuth 90 deg) unit vectors of the panorama frame, as Python floats.
+_Axes = tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
+#: The two knots about an azimuth and the weight of the second (:meth:`AzimuthDistortion._knots_of`).
+_Knots = tuple[int, int, float]
 
 
 @dataclass(frozen=True)
@@ -120,11 +124,15 @@ class AzimuthDistortion:
         self._chain = 0  # counts the chain's restarts: a kept R_0_imu belongs to one chain
         self._omega: tuple[float, float, float] | None = None
         self._axes_key: tuple[float, float, float] | None = None
-        self._axes: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None = None
+        self._axes: _Axes | None = None
         #: Recent frames: (stamp, the camera's forward axis (R_pano_cam's third column) and
         #: R_pano_imu as a quaternion, both as Python floats; the gyro chain's R_0_imu at the
-        #: stamp and the chain it is of, kept for the frame's later comparison).
-        self._frames: deque[tuple[int, list[float], QuatFloats, QuatFloats, int]] = deque()
+        #: stamp and the chain it is of, kept for the frame's later comparison; the azimuth axes
+        #: the frame's azimuth was taken about and its two knots there (:meth:`_knots_of`),
+        #: reused while the axes stay).
+        self._frames: deque[tuple[int, list[float], QuatFloats, QuatFloats, int, _Axes | None, _Knots | None]] = deque()
+        #: The frames' stamps (increasing), for a bisection to the frame pair_s back.
+        self._frame_t: deque[int] = deque()
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
@@ -219,11 +227,21 @@ class AzimuthDistortion:
                 h[:self.config.knots] = self._basis(0.0)
                 self._update(h, 0.0 - float(h @ self.x), 1e-5)
         forward = [r02, r12, r22]
+        axes, knots = None, None
         if up_pano is not None and self.e1 is not None:
-            self._compare(t_ns, forward, q_pano_imu, C, up_pano)
-        self._frames.append((t_ns, forward, q_pano_imu, C, self._chain))
-        while self._frames and t_ns - self._frames[0][0] > int(1e9 * self.config.max_pair_s):
-            self._frames.popleft()
+            # The axes about up once per frame, and this frame's azimuth's knots about them
+            # (kept with the frame: it is the older frame of a later comparison, about the
+            # same axes while up stays the same).
+            axes = self._axes_of(up_pano)
+            psi = None if axes is None else self._azimuth_about(forward, axes)
+            knots = None if psi is None else self._knots_of(psi)
+            self._compare(t_ns, forward, q_pano_imu, C, axes, knots)
+        frames, stamps = self._frames, self._frame_t
+        frames.append((t_ns, forward, q_pano_imu, C, self._chain, axes, knots))
+        stamps.append(t_ns)
+        while frames and t_ns - stamps[0] > int(1e9 * self.config.max_pair_s):
+            frames.popleft()
+            stamps.popleft()
 
     # -- output ----------------------------------------------------------------------------
 
@@ -276,7 +294,7 @@ class AzimuthDistortion:
             return None
         return h / norm
 
-    def _axes_of(self, up_pano: Array) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] | None:
+    def _axes_of(self, up_pano: Array) -> _Axes | None:
         """(up, azimuth 0, azimuth 90 deg) unit vectors for this up axis (kept while it stays)."""
         ux, uy, uz = np.asarray(up_pano, dtype=float).tolist()
         key = (ux, uy, uz)
@@ -302,6 +320,10 @@ class AzimuthDistortion:
         axes = self._axes_of(up_pano)
         if axes is None:
             return None
+        return self._azimuth_about(forward, axes)
+
+    def _azimuth_about(self, forward: list[float], axes: _Axes) -> float | None:
+        """:meth:`_azimuth` about the axes of :meth:`_axes_of` (not None)."""
         u, e1, e2 = axes
         fx, fy, fz = forward
         if abs(fx * u[0] + fy * u[1] + fz * u[2]) > math.sin(self.config.max_elevation_rad):
@@ -322,49 +344,75 @@ class AzimuthDistortion:
         b[k1] += f
         return b
 
-    def _compare(self, t_ns: int, fwd_j: list[float], qa_j: QuatFloats, c_j: QuatFloats, up: Array) -> None:
-        """The comparison of this frame with the last frame at least pair_s before it.
+    def _compare(self, t_ns: int, fwd_j: list[float], qa_j: QuatFloats, c_j: QuatFloats, axes: _Axes | None,
+                 knots_j: _Knots | None) -> None:
+        """The comparison of this frame (the knots of its azimuth about ``axes``, the current
+        :meth:`_axes_of`) with the last frame at least pair_s before it.
         With A = R_pano_imu by the tracker and G = C_i^T C_j the gyro's turn from i to j (imu
         axes), the tracker's turn beyond the gyro's is A_j G^T A_i^T, and the gyro's turn in
         panorama axes A_i G A_i^T; their components about up are d and dpsi_gyro."""
         cfg = self.config
         t_old = t_ns - int(cfg.pair_s * 1e9)
-        older = None
-        for f in reversed(self._frames):  # (a loop: a generator's next() cost more)
-            if f[0] <= t_old:
-                older = f
-                break
-        if older is None:
+        # The last frame at or before t_old (the stamps increase): a bisection, not a scan.
+        at = bisect.bisect_right(self._frame_t, t_old) - 1
+        if at < 0:
             return
-        t_i, fwd_i, qa_i, c_i_kept, chain_i = older
+        t_i, fwd_i, qa_i, c_i_kept, chain_i, axes_i, knots_kept = self._frames[at]
         if (t_ns - t_i) * 1e-9 > cfg.max_pair_s:
             return
         # The chain's R_0_imu at t_i as it was when frame i arrived, while the chain still
         # holds t_i (samples are only appended to it, and trimmed from its start).
         kept = chain_i == self._chain and self._gyro_t and t_i >= self._gyro_t[0]
         c_i = c_i_kept if kept else self._gyro_at(t_i)
-        psi_i, psi_j = self._azimuth(fwd_i, up), self._azimuth(fwd_j, up)
-        if c_i is None or psi_i is None or psi_j is None or self._axes is None:
+        if axes is None or knots_j is None:
             return
-        u = self._axes[0]
-        g = quat_wxyz_mul_floats(quat_wxyz_conj_floats(c_i), c_j)
-        qa_i_inv = quat_wxyz_conj_floats(qa_i)
-        d = quat_wxyz_log_along(quat_wxyz_mul_floats(quat_wxyz_mul_floats(qa_j, quat_wxyz_conj_floats(g)), qa_i_inv), u)
-        dpsi_gyro = quat_wxyz_log_along(quat_wxyz_mul_floats(quat_wxyz_mul_floats(qa_i, g), qa_i_inv), u)
+        # Frame i's azimuth's knots as taken when it arrived, if about the same axes (the same
+        # floats, so the same values); about the current ones otherwise.
+        if axes_i is axes:
+            knots_i = knots_kept
+        else:
+            psi_i = self._azimuth_about(fwd_i, axes)
+            knots_i = None if psi_i is None else self._knots_of(psi_i)
+        if c_i is None or knots_i is None:
+            return
+        u = axes[0]
+        # d = log(A_j G^T A_i^T) along up with G = C_i^T C_j, written out: the products and the
+        # logarithm of .rotations' quat_wxyz_mul_floats and quat_wxyz_log_along, the same
+        # operations in the same order (their calls were a fifth of a comparison's cost).
+        aw, ax, ay, az = c_i[0], -c_i[1], -c_i[2], -c_i[3]  # C_i^T
+        bw, bx, by, bz = c_j
+        g = (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+             aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+        aw, ax, ay, az = qa_j
+        bw, bx, by, bz = g[0], -g[1], -g[2], -g[3]  # G^T
+        pw, px, py, pz = (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                          aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+        qa_i_inv = (qa_i[0], -qa_i[1], -qa_i[2], -qa_i[3])
+        bw, bx, by, bz = qa_i_inv
+        w = pw * bw - px * bx - py * by - pz * bz
+        x = pw * bx + px * bw + py * bz - pz * by
+        y = pw * by - px * bz + py * bw + pz * bx
+        z = pw * bz + px * by - py * bx + pz * bw
+        if w < 0.0:
+            w, x, y, z = -w, -x, -y, -z
+        n = math.sqrt(x * x + y * y + z * z)
+        d = (2.0 if n < 1e-12 else 2.0 * math.atan2(n, w) / n) * (x * u[0] + y * u[1] + z * u[2])
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
-        # h built as Python floats and made an array once (item assignments into an array
-        # cost a numpy call each).
-        hl = [0.0] * (K + 2)
-        j0, j1, fj = self._knots_of(psi_j)
-        i0, i1, fi = self._knots_of(psi_i)
+        # h's four knot entries summed as Python floats (two may share a knot), then set in a
+        # zero array: np.array of the 38 floats cost three times that.
+        hl = [0.0] * K
+        j0, j1, fj = knots_j
+        i0, i1, fi = knots_i
         hl[j0] += 1.0 - fj
         hl[j1] += fj
         hl[i0] -= 1.0 - fi
         hl[i1] -= fi
-        hl[K] = -dt
-        hl[K + 1] = -dpsi_gyro if cfg.scale_sigma > 0 else 0.0
-        h = np.array(hl)
+        h = np.zeros(K + 2)
+        h[j0], h[j1], h[i0], h[i1] = hl[j0], hl[j1], hl[i0], hl[i1]
+        h[K] = -dt
+        if cfg.scale_sigma > 0:  # the gyro's turn about up, for its scale error (0: not estimated)
+            h[K + 1] = -quat_wxyz_log_along(quat_wxyz_mul_floats(quat_wxyz_mul_floats(qa_i, g), qa_i_inv), u)
         self._predict(t_ns)
         r = d - float(h.dot(self.x))
         if abs(r) > cfg.max_residual_rad:

@@ -73,6 +73,8 @@ def soft_iron_normal_equations(w_win: Array, n_w: Array, S_w: Array, m_w: Array,
     N = S_w.reshape(n, 9).T.dot(wv).reshape(3, 3, 3)
     A_fe = N.transpose(1, 0, 2).reshape(3, 9).dot(_T_FE)
     A_he = _T_HE.dot(n_w.dot(wv)).reshape(3, 6)
-    A_ee = _T_EE.dot(wnv.T.dot(v).reshape(9)).reshape(6, 6) + np.eye(6) * ridge
+    A_ee = _T_EE.dot(wnv.T.dot(v).reshape(9)).reshape(6, 6)
+    if ridge:
+        A_ee += np.eye(6) * ridge
     rhs = _T_RHS.dot(m_w.T.dot(wv).reshape(9))
     return A_fe, A_he, A_ee, rhs

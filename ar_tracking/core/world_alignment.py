@@ -81,13 +81,23 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
-_D3, _D6 = np.arange(3), np.arange(6)  # diagonal indices
 
 
 # The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
 _SKEW_AT = np.array([1, 2, 3, 5, 6, 7])
 _SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
 _SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+
+
+def solve_due_after_ns(config: WorldAlignmentConfig, period_ns: int, t_ns: int, t_first_ns: int | None) -> int:
+    """Stamps after the last field solve at which the next one is due, for a sample at t_ns of
+    a session that began at t_first_ns: min(solve_period, max(0.1 s, share x span)) - at once
+    past the full period, never before 0.1 s (when the period is longer), in between by the
+    span - and late in a long session long_share x span once that is longer. It never
+    decreases as t_ns grows."""
+    span_ns = t_ns - (t_ns if t_first_ns is None else t_first_ns)
+    period = min(period_ns, max(100_000_000, int(config.solve_period_share * span_ns)))
+    return max(period, int(config.solve_period_long_share * span_ns))
 
 
 class WorldAlignment:
@@ -135,6 +145,8 @@ class WorldAlignment:
         self._fw = WindowSums(win_ns, self.config.max_windows, {'S': (3, 3), 'Rtm': (3,), 'm': (3,), 'norm': ()})
         self._field_samples = 0
         self._solve_t_ns: int | None = None
+        # Stamps [from, until) at which no solve is due (see _add_field); empty at first.
+        self._no_solve_from_ns, self._no_solve_until_ns = 1, 0
         self._field: tuple[Array, Array, float, float] | None = None  # f_P, h (relative), sigma, outliers
         self._prior = prior
         self._h_last: Array | None = None
@@ -199,18 +211,18 @@ class WorldAlignment:
         rows += r
         rows += np.asarray(mag, dtype=float).tolist()
         self._field_samples += 1
-        # Solve every min(solve_period, max(0.1 s, share x span)) of stamps: at once past the
-        # full period, never before 0.1 s (when the period is longer), in between by the span;
-        # late in a long session every long_share x span once that is longer than the period.
         solve_t = self._solve_t_ns
         solve = solve_t is None or self._field_samples < 8
-        if solve_t is not None and not solve:
-            span_ns = t_ns - (t_ns if self._t_first_ns is None else self._t_first_ns)
-            c = self.config
-            period = min(self._solve_period_ns, max(100_000_000, int(c.solve_period_share * span_ns)))
-            solve = t_ns - solve_t >= max(period, int(c.solve_period_long_share * span_ns))
+        if solve_t is not None and not solve and not self._no_solve_from_ns <= t_ns < self._no_solve_until_ns:
+            due_ns = solve_due_after_ns(self.config, self._solve_period_ns, t_ns, self._t_first_ns)
+            solve = t_ns - solve_t >= due_ns
+            if not solve:
+                # The period only grows with the stamp (the span does), so no solve is due
+                # before solve_t + this period: the stamps up to there skip the test.
+                self._no_solve_from_ns, self._no_solve_until_ns = t_ns, solve_t + due_ns
         if solve:
             self._solve_t_ns = t_ns
+            self._no_solve_from_ns, self._no_solve_until_ns = 1, 0
             self._field = self._solve_field()
 
     def _add_lever_arm(self, t_ns: int, row: list[float], omega: list[float], ax: float, ay: float,
@@ -372,10 +384,11 @@ class WorldAlignment:
         lever = c.lever_arm_sigma_m > 0
         dim = 9 if lever else 6
         A = np.zeros((dim, dim))
-        A[_D3, _D3] = n
+        diag = A.reshape(-1)[::dim + 1]  # a view of A's diagonal (basic slices cost less than index arrays)
+        diag[:3] = n
         A[:3, 3:6] = sum_R.T
         A[3:6, :3] = sum_R
-        A[_D3 + 3, _D3 + 3] = n + lam_b
+        diag[3:6] = n + lam_b
         rhs = np.zeros(dim)
         rhs[:3], rhs[3:6] = sum_Rta, sum_a
         if lever:
@@ -386,12 +399,12 @@ class WorldAlignment:
             A[3:6, 6:] = K
             A[6:, 3:6] = K.T
             A[6:, 6:] = weighted_sum(w, sums['KtK'])
-            A[_D3 + 6, _D3 + 6] += var / c.lever_arm_sigma_m ** 2
+            diag[6:9] += var / c.lever_arm_sigma_m ** 2
             rhs[6:] = w.dot(sums['Kta'])
         if self._prior is not None:
             R_pe, sigma = self._prior
             wp = self._prior_weight(sigma, math.sqrt(var), g_mag)
-            A[_D3, _D3] += wp
+            diag[:3] += wp
             rhs[:3] += wp * (R_pe @ np.array([0.0, 0.0, g_mag]))
         x = solve_regular(A, rhs)
         g, b = x[:3], x[3:6]
@@ -461,9 +474,11 @@ class WorldAlignment:
             sw = float(wn.sum())
             WS = weighted_sum(w_win, S_w)  # sum w R_imu_P
             dim = 6 if f_lin is None or not soft else 12
-            # (Diagonals set through index arrays: np.eye per block costs more than the solve.)
+            # (Diagonals set through a view of A's diagonal: np.eye per block costs more than
+            # the solve, index arrays more than basic slices.)
             A = np.zeros((dim, dim))
-            A[_D6, _D6] = sw
+            diag = A.reshape(-1)[::dim + 1]
+            diag[:6] = sw
             A[:3, 3:6] = WS.T
             A[3:6, :3] = WS
             rhs = np.zeros(dim)
@@ -475,13 +490,13 @@ class WorldAlignment:
                 A[6:, :3], A[6:, 3:6] = A_fe.T, A_he.T
                 rhs[6:] = rhs_e
             A_data = A.copy()  # what the samples give; the ridges and the prior follow
-            A[_D3 + 3, _D3 + 3] += sw * lam
+            diag[3:6] += sw * lam
             if dim == 12:
-                A[_D6 + 6, _D6 + 6] += sw * lam_e
+                diag[6:] += sw * lam_e
             wp = 0.0
             if prior is not None:
                 wp = self._prior_weight(self._prior[1], c.field_model_sigma, 1.0)  # type: ignore[index]
-                A[_D3, _D3] += wp
+                diag[:3] += wp
                 rhs[:3] += wp * prior
             error_parts = (A, A_data, sw * lam, sw * lam_e, wp, sw / max(float(w_win.sum()), 1e-12))
             x = solve_regular(A, rhs)
@@ -550,9 +565,10 @@ class WorldAlignment:
         gravity = self._solve_gravity()
         field = self._field
         assert field is not None  # ready
-        key = (gravity, field, c.declination_rad)
         geometry = self._geometry
-        if geometry is None or not all(a is b for a, b in zip(geometry[0], key)):
+        if geometry is None or not (geometry[0][0] is gravity and geometry[0][1] is field
+                                    and geometry[0][2] is c.declination_rad):
+            key = (gravity, field, c.declination_rad)
             # Between solves only the session's span changes (the tilt variance): the rotation
             # and the field's part of the heading variance are computed once per solve pair.
             solved = self._solve_geometry(gravity, field)
@@ -567,10 +583,9 @@ class WorldAlignment:
             + c.tilt_floor_rad ** 2
         heading_var = (field_var + c.heading_floor_rad ** 2
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
+        # (Positional, in the fields' order: keywords cost a fifth more of the per-call time.)
         self._estimate = WorldAlignmentEstimate(
-            R_pano_enu=R_pano_enu,
-            covariance_enu=np.array((tilt_var, 0.0, 0.0, 0.0, tilt_var, 0.0, 0.0, 0.0, heading_var)).reshape(3, 3),
-            field_outlier_share=field[3], hard_iron=field[1], accel_bias=gravity[1], soft_iron=self._soft_iron,
-            field_scale=self._field_scale)
+            R_pano_enu, np.array((tilt_var, 0.0, 0.0, 0.0, tilt_var, 0.0, 0.0, 0.0, heading_var)).reshape(3, 3),
+            field[3], field[1], gravity[1], self._soft_iron, self._field_scale)
         self._dirty = False
         return self._estimate
