@@ -27,7 +27,7 @@ from ..io.replay import ReplayOptions, ScheduledMessage, parse_remaps
 from ..ros.conversions import ConversionError, message_class, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, TrackingNode, run_node
 from ..ros.param_table import ParamSpec, declare_params, with_defaults
-from ..ros.player import BagPlayer
+from ..ros.player import CLOCK_PERIOD_S, BagPlayer, ClockTicker
 
 #: Topics that keep their absolute name and are latched (late joiners get them).
 LATCHED_TOPICS = ('/tf_static', '/ground_truth/annotations')
@@ -48,6 +48,9 @@ PARAMS = (
     ParamSpec('topics', [''], 'Bag topics to play (empty: all)', read_only=True),
     ParamSpec('remap', [''], 'Remappings from:=to applied to bag topics', read_only=True),
     ParamSpec('publish_clock', True, 'Publish /clock from the bag time', read_only=True),
+    ParamSpec('clock_rate_hz', 1.0 / CLOCK_PERIOD_S,
+              '/clock at most this often in bag time, Hz (as ros2 bag play --clock; 0: before every message)',
+              min_value=0.0, max_value=1e6, read_only=True),
     ParamSpec('clock_topic', '/clock',
               'Topic of the bag clock: /clock, or clock (relative: /<namespace>/clock, one clock per robot; remap '
               "/clock to it in that namespace's nodes)",
@@ -107,6 +110,8 @@ class BagReplayNode(TrackingNode):
         options.latched = [t for t in options.topics if t in LATCHED_TOPICS or t in latched_in_bag]
         self.clock_pub = self.advertise(Clock, clock_topic, RELIABLE_QOS) if self.publish_clock else None
         self._clock_msg = Clock()  # not _clock: rclpy.Node keeps its clock there
+        rate_hz = float(v['clock_rate_hz'])
+        self._clock_ticker = ClockTicker(int(1e9 / rate_hz) if rate_hz > 0 else 0)
         self.player = BagPlayer(bag_path, options, self._publish, self._done)
         self.get_logger().info(
             f'playing {len(options.topics)} topics of {bag_path} at rate {options.rate:g}'
@@ -115,7 +120,8 @@ class BagReplayNode(TrackingNode):
         self.player.start()
 
     def _publish(self, item: ScheduledMessage) -> None:
-        if self.clock_pub is not None and not item.before_start:  # the clock starts at the offset
+        if (self.clock_pub is not None and not item.before_start  # the clock starts at the offset
+                and self._clock_ticker.due(item.message.log_time_ns)):
             to_stamp(item.message.log_time_ns, self._clock_msg.clock)
             self.clock_pub.publish(self._clock_msg)
         self.publishers_by_topic[item.message.topic].publish(item.message.rawdata)

@@ -14,6 +14,7 @@ from collections import defaultdict
 from typing import Any, Callable
 
 from .conversions import to_stamp
+from .player import ClockTicker
 from .node_process import NodeProcessError
 from .graph_plan import RunError
 from .run_state import DRAIN_MAX_S, DRAIN_QUIET_S, DeliveryLedger, Recorder, RunResult, RunSession, header_stamp_ns
@@ -60,6 +61,7 @@ class RealtimePlayback:
         #: the run's stop request (a signal): ends the playback without a drain
         self.stop = stop
         self.clock = Clock()
+        self.clock_ticker = ClockTicker()
         self.finished = threading.Event()
         self.stop_nodes = threading.Event()
         self.errors: list[BaseException] = []
@@ -69,10 +71,11 @@ class RealtimePlayback:
     # -- threads ----------------------------------------------------------------------------
 
     def _publish(self, msg: Any) -> None:
-        """Publish one bag message: /clock, the copy to the output bag, the feed."""
+        """Publish one bag message: /clock when due, the copy to the output bag, the feed."""
         s = self.s
-        s.clock_ns[0] = msg.log_time_ns
-        s.clock_pub.publish(to_stamp(msg.log_time_ns, self.clock.clock) and self.clock)
+        s.clock_ns[0] = msg.log_time_ns  # the recorder's log time: every message
+        if self.clock_ticker.due(msg.log_time_ns):  # /clock at most every CLOCK_PERIOD_S of bag time
+            s.clock_pub.publish(to_stamp(msg.log_time_ns, self.clock.clock) and self.clock)
         if msg.topic in s.copy_topics:
             assert s.recorder is not None and s.writer is not None
             with s.recorder.lock:

@@ -16,6 +16,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, MagneticFie
 from ar_tracking.nodes.bag_replay import BagReplayNode  # noqa: E402
 from ar_tracking.nodes.camera_replay import CameraReplayNode  # noqa: E402
 from ar_tracking.ros.conversions import image_to_array, stamp_ns  # noqa: E402
+from ar_tracking.ros.player import ClockTicker  # noqa: E402
 from bagfactory import write_turning_imu_bag  # noqa: E402
 from conftest import spin_until  # noqa: E402
 
@@ -50,6 +51,9 @@ def test_bag_replay_publishes_selected_topics_remapped_with_clock(ros_context, t
         stamps = [stamp_ns(m.header) for m in got['renamed/raw']]
         assert stamps == sorted(stamps)
         assert got['/clock'] and stamp_ns(got['/clock'][-1].clock) >= stamps[0]
+        # /clock at 100 Hz of bag time (clock_rate_hz), not before each of the 200 Hz of messages
+        ticks = [stamp_ns(m.clock) for m in got['/clock']]
+        assert all(b - a >= 10_000_000 for a, b in zip(ticks, ticks[1:])), ticks
     finally:
         node.close()
         node.destroy_node()
@@ -147,3 +151,11 @@ def test_camera_replay_node_publishes_raw_images(ros_context, tmp_path):
         node.close()
         node.destroy_node()
         listener.destroy_node()
+
+
+def test_clock_ticker_ticks_once_per_period_of_bag_time_and_when_time_goes_back():
+    ticker = ClockTicker(10_000_000)
+    stamps = (0, 4_000_000, 9_999_999, 10_000_000, 15_000_000, 25_000_000, 5_000_000, 6_000_000)
+    assert [ticker.due(t) for t in stamps] == [True, False, False, True, False, True, True, False]
+    every = ClockTicker(0)
+    assert all(every.due(t) for t in (0, 0, 1, 1))
