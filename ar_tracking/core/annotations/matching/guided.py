@@ -18,8 +18,20 @@ from .placement import Alignment, Placement, offset_from_prediction_px, place_an
 from .tiles import Candidate
 
 Array = NDArray[np.float64]
-#: NCC of a patch around a position: (ncc, column offsets, row offsets, inside mask)
-NccWindow = tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]]
+#: NCC of a patch around a position: (ncc, column offsets, row offsets, inside mask, distance of
+#: each position from the predicted one)
+NccWindow = tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_], Array]
+#: An NCC surface kept across :meth:`GuidedSearch._finish` calls: [the bytes of the map pixels
+#: and of the mapped mask it was computed on, the surface (read-only), the last finish that used it]
+_Surface = list
+
+#: A kept NCC surface not used in this many consecutive finishes is dropped.
+_SURFACE_KEEP_FINISHES = 3
+
+
+def _pixel_bytes(region: NDArray | None) -> bytes | None:
+    """A map region's values as bytes with its dtype (equal bytes: bit for bit the same pixels)."""
+    return None if region is None else region.dtype.str.encode() + region.tobytes()
 
 
 class GuidedSearch:
@@ -36,6 +48,12 @@ class GuidedSearch:
     #: :meth:`_window_ncc` results of the current :meth:`_finish` (the look-alike test asks for
     #: the window the guided search of the same placement has just computed)
     _ncc_windows: dict[tuple[int, float, float, float, float | None], NccWindow | None]
+    #: NCC surfaces by (index, x0, y0, r, rv) across finishes (:meth:`_ncc_surface`): each
+    #: ``result`` searches ~100 windows again after a new match, most of them on map pixels
+    #: that have not changed since the last one
+    _ncc_surfaces: dict[tuple[int, int, int, int, int], _Surface]
+    #: :meth:`_finish` calls so far (the age of a kept surface)
+    _finishes: int
 
     def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
                 v_tol: float | None = None, config: MatchConfig | None = None) -> None:
@@ -50,8 +68,7 @@ class GuidedSearch:
         win = self._window_ncc(p.index, cu, cv_, cfg.placement_px, v_tol)
         if win is None:
             return
-        res, xs, ys, inside = win
-        dist = np.hypot(xs[None, :], ys[:, None])
+        res, xs, ys, inside, dist = win
         score = np.where(inside, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
         y, x = np.unravel_index(int(np.argmax(score)), score.shape)
         if res[y, x] < cfg.guided_min_ncc:
@@ -67,7 +84,7 @@ class GuidedSearch:
         p.score = float(res[y, x])
 
     def _window_ncc(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
-                    ) -> tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]] | None:
+                    ) -> NccWindow | None:
         """:meth:`_ncc_window`, once per arguments within one :meth:`_finish` (the map does not
         change there; the callers do not modify the arrays)."""
         key = (index, cu, cv_, radius_px, v_tol)
@@ -76,11 +93,11 @@ class GuidedSearch:
         return self._ncc_windows[key]
 
     def _ncc_window(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
-                    ) -> tuple[NDArray[np.float32], Array, Array, NDArray[np.bool_]] | None:
+                    ) -> NccWindow | None:
         """NCC (TM_CCOEFF_NORMED) of patch ``index`` at every position within ``radius_px`` of
         (cu, cv_) (and ``v_tol`` above or below): (ncc, column offsets, row offsets from (cu, cv_),
-        inside mask); positions not fully mapped get -1. None without a map, outside the rows or
-        for an unknown index."""
+        inside mask, distance from (cu, cv_)); positions not fully mapped get -1. None without a
+        map, outside the rows or for an unknown index."""
         if self._map is None:
             return None
         gray, mapped = self._map
@@ -94,27 +111,49 @@ class GuidedSearch:
         y0 = int(round(cv_ - (P - 1) / 2)) - rv
         if y0 < 0 or y0 + P + 2 * rv > gray.shape[0]:
             return None
-        # The window's columns (wrapping at the map's seam: gathered, else a slice - same pixels).
-        cols: slice | Array = slice(x0, x0 + P + 2 * r)
-        if x0 < 0 or x0 + P + 2 * r > self.geometry.width:
-            cols = np.arange(x0, x0 + P + 2 * r) % self.geometry.width
-        reg = gray[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
-        if mapped is not None:
-            m = mapped[y0:y0 + P + 2 * rv][:, cols].astype(np.float32)
-            full = cv2.boxFilter(m, -1, (P, P), anchor=(0, 0), normalize=True,
-                                 borderType=cv2.BORDER_CONSTANT)[:2 * rv + 1, :2 * r + 1]
-        else:
-            full = np.ones((2 * rv + 1, 2 * r + 1), np.float32)
-        res: NDArray[np.float32] = np.asarray(
-            cv2.matchTemplate(reg, patch, cv2.TM_CCOEFF_NORMED), np.float32)
-        res[(full < 0.999) | ~np.isfinite(res)] = -1.0
+        res = self._ncc_surface(index, patch, x0, y0, r, rv)
         # Offsets from the predicted position (sub-pixel: x0, y0 were rounded).
         c = (P - 1) / 2.0
         xs: Array = x0 + c + np.arange(2 * r + 1, dtype=float) - cu
         ys: Array = y0 + c + np.arange(2 * rv + 1, dtype=float) - cv_
-        inside: NDArray[np.bool_] = (np.hypot(xs[None, :], ys[:, None]) <= radius_px) & (
+        dist: Array = np.hypot(xs[None, :], ys[:, None])
+        inside: NDArray[np.bool_] = (dist <= radius_px) & (
             np.abs(ys)[:, None] <= (v_tol if v_tol is not None else np.inf))
-        return res, xs, ys, inside
+        return res, xs, ys, inside, dist
+
+    def _ncc_surface(self, index: int, patch: NDArray[np.float32], x0: int, y0: int, r: int, rv: int
+                     ) -> NDArray[np.float32]:
+        """The NCC surface of patch ``index`` over the (2 rv + 1, 2 r + 1) positions whose
+        top-left pixel is at (x0, y0) or after it (columns wrap at the map's seam; rows inside the
+        map), -1 where not fully mapped; read-only. Kept across finishes and reused while the map
+        pixels and mapped mask under it are bit for bit those it was computed on (the surface
+        depends on nothing else), so a reused one equals a fresh one exactly."""
+        assert self._map is not None
+        gray, mapped = self._map
+        P = patch.shape[0]
+        # The window's columns (wrapping at the map's seam: gathered, else a slice - same pixels).
+        cols: slice | Array = slice(x0, x0 + P + 2 * r)
+        if x0 < 0 or x0 + P + 2 * r > self.geometry.width:
+            cols = np.arange(x0, x0 + P + 2 * r) % self.geometry.width
+        reg = gray[y0:y0 + P + 2 * rv][:, cols]
+        m = None if mapped is None else mapped[y0:y0 + P + 2 * rv][:, cols]
+        key = (index, x0, y0, r, rv)
+        pixels, mask = _pixel_bytes(reg), _pixel_bytes(m)
+        kept = self._ncc_surfaces.get(key)
+        if kept is not None and kept[0] == pixels and kept[1] == mask:
+            kept[3] = self._finishes
+            return kept[2]
+        if m is not None:
+            full = cv2.boxFilter(m.astype(np.float32), -1, (P, P), anchor=(0, 0), normalize=True,
+                                 borderType=cv2.BORDER_CONSTANT)[:2 * rv + 1, :2 * r + 1]
+        else:
+            full = np.ones((2 * rv + 1, 2 * r + 1), np.float32)
+        res: NDArray[np.float32] = np.asarray(
+            cv2.matchTemplate(reg.astype(np.float32), patch, cv2.TM_CCOEFF_NORMED), np.float32)
+        res[(full < 0.999) | ~np.isfinite(res)] = -1.0
+        res.flags.writeable = False
+        self._ncc_surfaces[key] = [pixels, mask, res, self._finishes]
+        return res
 
     def _lookalike(self, p: Placement, predicted: Array, v_tol: float | None, gate_px: float) -> None:
         """The look-alike test of a matched placement (:attr:`MatchConfig.lookalike_margin`):
@@ -129,7 +168,7 @@ class GuidedSearch:
         win = self._window_ncc(p.index, cu, cv_, gate_px, v_tol)
         if win is None:
             return
-        res, xs, ys, inside = win
+        res, xs, ys, inside, _ = win
         peak = (res >= cv2.dilate(res, np.ones((3, 3), np.uint8))) & inside & (res > -1.0)
         far = geo.map_distance(cu + xs[None, :], cv_ + ys[:, None], p.u, p.v) >= cfg.lookalike_sep_px
         rivals = res[peak & far]
@@ -148,10 +187,14 @@ class GuidedSearch:
         constrained alignment and enough matches, the parallax model: fitted on the matches,
         then every annotation placed and guided again around its corrected position."""
         self._ncc_windows = {}
+        self._finishes += 1
         try:
             self._finish_on_map(al, ids, cands)
         finally:
             self._ncc_windows = {}
+            old = self._finishes - _SURFACE_KEEP_FINISHES
+            for key in [k for k, v in self._ncc_surfaces.items() if v[3] <= old]:
+                del self._ncc_surfaces[key]
 
     def _finish_on_map(self, al: Alignment, ids: list[int], cands: list[list[Candidate]]) -> None:
         """:meth:`_finish` on the current map (its NCC windows memoised)."""

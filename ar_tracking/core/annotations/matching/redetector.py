@@ -84,6 +84,13 @@ class ReDetector(GuidedSearch, SupportTest):
         self.tiles_done = 0
         self._cache: tuple[str | None, Alignment] | None = None
         self._map: tuple[NDArray[np.float32], NDArray[np.bool_] | None] | None = None
+        self._ncc_surfaces = {}
+        self._finishes = 0
+
+    def _clear_kept(self) -> None:
+        """Forget what is kept from one :meth:`result` to the next (the NCC surfaces of the
+        guided search): the next result is computed from scratch, and is the same."""
+        self._ncc_surfaces.clear()
 
     @property
     def n(self) -> int:

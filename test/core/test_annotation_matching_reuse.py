@@ -1,0 +1,103 @@
+"""What the re-detector keeps between two ``result`` calls (NCC surfaces of the guided search,
+...) changes nothing: every result equals the one computed from scratch on the same state."""
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+
+from annotation_synth import M_ENU_PANO, UP, make_case, rotated_by, tiles_of
+from ar_tracking.core.annotations.matching import MatchConfig, ReDetector
+from ar_tracking.core.annotations.matching.placement import Alignment
+
+
+def _detector(case, n: int = 6) -> ReDetector:
+    det = ReDetector(case.patches, case.dirs, ['p'] * n, MatchConfig(),
+                     R_enu_source=[M_ENU_PANO @ rotated_by(case.R_target_source, 2.0, axis=-UP)] * n)
+    det.set_orientation(M_ENU_PANO)
+    return det
+
+
+def _from_scratch(det: ReDetector) -> Alignment:
+    """The result of a copy of ``det`` with nothing kept from earlier calls."""
+    ref = copy.deepcopy(det)
+    ref._clear_kept()
+    ref.dirty = True
+    return ref.result()[1]
+
+
+def _same(a: Alignment, b: Alignment) -> None:
+    def fields(al: Alignment):
+        return [(p.index, p.u, p.v, p.status, repr(p.score), p.supported, p.direction.tobytes(),
+                 None if p.predicted is None else np.asarray(p.predicted).tobytes())
+                for p in al.placements + al.landmarks]
+
+    assert (a.R_target_source is None) == (b.R_target_source is None)
+    if a.R_target_source is not None:
+        assert a.R_target_source.tobytes() == b.R_target_source.tobytes()
+    assert fields(a) == fields(b)
+    assert repr(a.parallax) == repr(b.parallax)
+    assert repr(a.parallax_gate_px) == repr(b.parallax_gate_px)
+    assert (a.supported, a.support, a.support_reason) == (b.supported, b.support, b.support_reason)
+
+
+def test_a_kept_ncc_surface_is_reused_only_on_the_same_map_pixels():
+    case = make_case(seed=7)
+    det = _detector(case)
+    det.step(case.target, case.mapped, 0)  # the map, no tile
+    tu, tv = case.truth_uv[2]
+    first = det._ncc_window(2, tu, tv, 25.0, 4.0)
+    assert first is not None
+    again = det._ncc_window(2, tu + 0.2, tv - 0.1, 25.0, 4.0)  # the same window, other offsets
+    assert again is not None and again[0] is first[0] and not np.array_equal(again[1], first[1])
+    # A few pixels under the window change (the map was painted again there): computed anew.
+    x, y = int(round(tu - 7.5)), int(round(tv - 7.5))
+    painted = case.target.copy()
+    painted[y:y + 16, x + 4:x + 20] = painted[y:y + 16, x + 4:x + 20] * 0.5 + 60.0
+    det.step(painted, case.mapped, 0)
+    fresh = _detector(case)
+    fresh.step(painted, case.mapped, 0)
+    now = det._ncc_window(2, tu, tv, 25.0, 4.0)
+    ref = fresh._ncc_window(2, tu, tv, 25.0, 4.0)
+    assert now is not None and ref is not None
+    assert now[0].tobytes() == ref[0].tobytes() and now[0].tobytes() != first[0].tobytes()
+    # The same pixels with part of them no longer mapped: computed anew too.
+    hole = case.mapped.copy()
+    hole[y:y + 3, x:x + 40] = False
+    det.step(painted, hole, 0)
+    fresh.step(painted, hole, 0)
+    now, ref = det._ncc_window(2, tu, tv, 25.0, 4.0), fresh._ncc_window(2, tu, tv, 25.0, 4.0)
+    assert now is not None and ref is not None
+    assert now[0].tobytes() == ref[0].tobytes() and (now[0] == -1.0).sum() > (first[0] == -1.0).sum()
+
+
+def test_results_with_what_is_kept_equal_results_from_scratch_while_the_map_grows():
+    """Tiles finished a few columns at a time, the map painted again in between under matched
+    annotations: after every step the result equals that of the same state from scratch."""
+    case = make_case(seed=11, n=10)
+    det = _detector(case, 10)
+    rng = np.random.default_rng(3)
+    all_tiles = tiles_of(case.mapped)
+    target = case.target.copy()
+    kept_any = False
+    for last_column in (8, 12, 16, 20, 24, 28, 32, 32, 32):
+        mapped = case.mapped.copy()
+        mapped[:, last_column * 64:] = False
+        if last_column == 32:  # painted again: a few annotations' surroundings change
+            for u, v in case.truth_uv[rng.choice(10, 3, replace=False)]:
+                x, y = int(round(u)) - 20, int(round(v)) - 6
+                target[y:y + 12, max(x, 0):x + 40] += rng.normal(0, 6.0, target[y:y + 12, max(x, 0):x + 40].shape)
+        gray = np.where(mapped, target, 0.0).astype(np.float32)
+        tiles = all_tiles.copy()
+        tiles[:, last_column:] = 0
+        det.add_finished_tiles(tiles)
+        det.step(gray, mapped)
+        det.dirty = True
+        expected = _from_scratch(det)
+        got = det.result()[1]
+        _same(got, expected)
+        kept_any = kept_any or bool(det._ncc_surfaces)
+    assert kept_any and got.parallax is not None and got.supported
+    assert sum(p.status == 'matched' for p in got.placements) >= 6
+    assert not math.isnan(got.parallax_gate_px)
