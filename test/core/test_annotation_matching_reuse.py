@@ -1,5 +1,6 @@
 """What the re-detector keeps between two ``result`` calls (NCC surfaces of the guided search,
-...) changes nothing: every result equals the one computed from scratch on the same state."""
+the candidates' directions) changes nothing: every result equals the one computed from scratch
+on the same state."""
 from __future__ import annotations
 
 import copy
@@ -7,9 +8,9 @@ import math
 
 import numpy as np
 
-from annotation_synth import M_ENU_PANO, UP, make_case, rotated_by, tiles_of
-from ar_tracking.core.annotations.matching import MatchConfig, ReDetector
-from ar_tracking.core.annotations.matching.placement import Alignment
+from annotation_synth import GEO, M_ENU_PANO, UP, make_case, rotated_by, tiles_of
+from ar_tracking.core.annotations.matching import Candidate, MatchConfig, ReDetector
+from ar_tracking.core.annotations.matching.placement import Alignment, CandidateDirections
 
 
 def _detector(case, n: int = 6) -> ReDetector:
@@ -101,3 +102,24 @@ def test_results_with_what_is_kept_equal_results_from_scratch_while_the_map_grow
     assert kept_any and got.parallax is not None and got.supported
     assert sum(p.status == 'matched' for p in got.placements) >= 6
     assert not math.isnan(got.parallax_gate_px)
+
+
+def test_kept_candidate_directions_are_those_unprojected_now():
+    dirs = CandidateDirections(GEO)
+    a, b, c = Candidate(100.25, 200.5, 0.9, 0.9), Candidate(1800.75, 300.0, 0.8, 0.8), Candidate(5.5, 99.0, 0.7, 0.7)
+
+    def check(cands):
+        got = dirs.of_list(cands)
+        want = GEO.unproject(np.array([x.u for x in cands]), np.array([x.v for x in cands])) if cands else np.zeros((0, 3))
+        assert got.tobytes() == want.tobytes() and not got.flags.writeable
+        for x in cands:
+            assert dirs.of(x).tobytes() == GEO.unproject(np.array(x.u), np.array(x.v)).tobytes()
+        return got
+
+    first = check([a, b])
+    dirs.next_round()
+    assert check([a, b]) is first  # kept from the round before
+    assert check([a, c]) is not first and check([]).shape == (0, 3)
+    dirs.next_round()
+    dirs.next_round()  # a round that used nothing: the kept ones are gone
+    assert check([a, b]) is not first

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from ...panorama.cylinder import CylinderGeometry
 from ..parallax import ParallaxModel, depth_scale_sigma, fit_depth_scale, fit_parallax, prediction_sigma
 from .config import MatchConfig
-from .placement import Alignment, Placement, offset_from_prediction_px, place_annotations
+from .placement import Alignment, CandidateDirections, Placement, offset_from_prediction_px, place_annotations
 from .tiles import Candidate
 
 Array = NDArray[np.float64]
@@ -54,6 +54,8 @@ class GuidedSearch:
     _ncc_surfaces: dict[tuple[int, int, int, int, int], _Surface]
     #: :meth:`_finish` calls so far (the age of a kept surface)
     _finishes: int
+    #: the candidates' directions, kept from one ``result`` to the next
+    _directions: CandidateDirections
 
     def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
                 v_tol: float | None = None, config: MatchConfig | None = None) -> None:
@@ -251,7 +253,8 @@ class GuidedSearch:
         if cfg.parallax_gate_sigmas > 0:
             al.parallax_gate_px = self._parallax_gate(corrected[matched], observed)
             post = replace(cfg, placement_px=al.parallax_gate_px)
-        al.placements = place_annotations(R, src, cands, post, geo, al.v_tol, predicted=corrected)
+        al.placements = place_annotations(R, src, cands, post, geo, al.v_tol, predicted=corrected,
+                                          directions=self._directions)
         al.parallax = model
         self._guide_all(al.placements, ids, corrected, al.v_tol, post)
         if cfg.lookalike_margin > 0:

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from ...panorama.cylinder import CylinderGeometry
 from .config import MatchConfig
-from .placement import Alignment, best_candidate_placements
+from .placement import Alignment, CandidateDirections, best_candidate_placements
 from .alignment import ransac_alignment
 from .guided import GuidedSearch
 from .support import SupportTest
@@ -86,11 +86,14 @@ class ReDetector(GuidedSearch, SupportTest):
         self._map: tuple[NDArray[np.float32], NDArray[np.bool_] | None] | None = None
         self._ncc_surfaces = {}
         self._finishes = 0
+        self._directions = CandidateDirections(geo)
 
     def _clear_kept(self) -> None:
         """Forget what is kept from one :meth:`result` to the next (the NCC surfaces of the
-        guided search): the next result is computed from scratch, and is the same."""
+        guided search, the candidates' directions): the next result is computed from scratch,
+        and is the same."""
         self._ncc_surfaces.clear()
+        self._directions = CandidateDirections(self.geometry)
 
     @property
     def n(self) -> int:
@@ -143,6 +146,7 @@ class ReDetector(GuidedSearch, SupportTest):
         if self._cache is not None and not self.dirty:
             return self._cache
         self.dirty = False
+        self._directions.next_round()
         best: tuple[float, str | None, Alignment] = (-1.0, None, Alignment(None))
         for g in dict.fromkeys(self.groups):
             ids = [i for i, gi in enumerate(self.groups) if gi == g]
@@ -155,7 +159,7 @@ class ReDetector(GuidedSearch, SupportTest):
                 continue
             if self.config.ransac:
                 al = ransac_alignment(self.source_dirs[ids], cands, self.config, self.geometry,
-                                      R_prior=self._prior_rotation(ids), up=self._up())
+                                      R_prior=self._prior_rotation(ids), up=self._up(), directions=self._directions)
                 if al.R_target_source is None:
                     al.placements = best_candidate_placements(cands, self.geometry)
             else:
