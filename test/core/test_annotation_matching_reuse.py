@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from annotation_synth import GEO, M_ENU_PANO, UP, make_case, rotated_by, tiles_of
+from annotation_synth import GEO, M_ENU_PANO, UP, displaced_spot_case, make_case, rotated_by, tiles_of
 from ar_tracking.core.annotations.matching import Candidate, MatchConfig, ReDetector
 from ar_tracking.core.annotations.matching.placement import Alignment, CandidateDirections
 
@@ -123,3 +123,47 @@ def test_kept_candidate_directions_are_those_unprojected_now():
     dirs.next_round()
     dirs.next_round()  # a round that used nothing: the kept ones are gone
     assert check([a, b]) is not first
+
+
+def test_a_kept_parallax_fit_is_reused_only_for_the_same_inputs():
+    """Each input of the fit changed alone (the rotation's predictions, the matches, where one
+    was found, the up direction) gives the fit from scratch; the same inputs give the kept one."""
+    t = np.array([1.2, -0.6, 0.0])
+    case, truth, _ = displaced_spot_case(34, t, np.array([35.0, 45.0, 40.0, 50.0, 42.0, 38.0]))
+    ids = list(range(6))
+    predicted = case.dirs @ case.R_target_source.T
+    det = _detector(case)
+
+    def fresh(*args):
+        return _detector(case)._parallax_fit(*args)
+
+    def same(a, b):
+        assert repr(a.model) == repr(b.model) and a.corrected.tobytes() == b.corrected.tobytes()
+        assert repr((a.depth_ratio_sigma, a.prediction_sigma, a.gate_px)) == repr(
+            (b.depth_ratio_sigma, b.prediction_sigma, b.gate_px))
+
+    matched = [0, 1, 2, 3, 4]
+    first = det._parallax_fit(ids, predicted, matched, truth[matched], UP)
+    assert det._parallax_fit(ids, predicted.copy(), list(matched), truth[matched].copy(), UP.copy()) is first
+    moved = truth[matched].copy()
+    moved[2] = truth[2] + np.array([0.004, 0.0, 0.0])
+    tilted = UP + np.array([0.0, 0.0, 0.01])
+    for args in ((ids, predicted, matched, moved, UP),
+                 (ids, predicted, [0, 1, 2, 3, 5], truth[matched], UP),  # other matches, same observations
+                 (ids, predicted @ rotated_by(np.eye(3), 0.3, axis=UP).T, matched, truth[matched], UP),
+                 (ids, predicted, matched, truth[matched], tilted / np.linalg.norm(tilted))):
+        got = det._parallax_fit(*args)
+        assert got is not first
+        same(got, fresh(*args))
+    same(first, fresh(ids, predicted, matched, truth[matched], UP))
+
+
+def test_the_parallax_fit_median_is_numpys():
+    from ar_tracking.core.annotations.parallax import _median
+
+    rng = np.random.default_rng(8)
+    for n in range(1, 60):
+        x = np.abs(rng.normal(size=n)) * 10.0 ** rng.uniform(-4, 1)
+        x[: n // 3] = np.round(x[: n // 3], 2)  # ties
+        assert _median(x) == float(np.median(x))
+    assert math.isnan(_median(np.array([1.0, np.nan, 2.0])))

@@ -5,7 +5,8 @@ spot 0.4-1.5 m from the authoring one), and the look-alike test of a match. A mi
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from collections import OrderedDict
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -27,6 +28,23 @@ _Surface = list
 
 #: A kept NCC surface not used in this many consecutive finishes is dropped.
 _SURFACE_KEEP_FINISHES = 3
+
+
+#: Parallax fits kept for the next ``result`` calls (the latest ones).
+_PARALLAX_FITS_KEPT = 4
+
+
+@dataclass(frozen=True)
+class _ParallaxFit:
+    """:meth:`GuidedSearch._parallax_fit`'s outcome: the model, the corrected predictions
+    (read-only; the group's order), the depth ratio's sigma (NaN: none fitted), the model's
+    heading sigma per annotation (None: not asked for) and the placement gate (NaN: none)."""
+
+    model: ParallaxModel
+    corrected: Array
+    depth_ratio_sigma: float
+    prediction_sigma: dict[int, float] | None
+    gate_px: float
 
 
 def _pixel_bytes(region: NDArray | None) -> bytes | None:
@@ -56,6 +74,8 @@ class GuidedSearch:
     _finishes: int
     #: the candidates' directions, kept from one ``result`` to the next
     _directions: CandidateDirections
+    #: :meth:`_parallax_fit` by its inputs, the latest last
+    _parallax_fits: OrderedDict[tuple[object, ...], _ParallaxFit]
 
     def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
                 v_tol: float | None = None, config: MatchConfig | None = None) -> None:
@@ -213,6 +233,39 @@ class GuidedSearch:
         assert predicted is not None  # R is set
         found = {p.index: p.direction for p in al.placements}
         observed = np.array([found[ids[k]] for k in matched])
+        fitted = self._parallax_fit(ids, predicted, matched, observed, up)
+        model, corrected = fitted.model, fitted.corrected.copy()
+        al.depth_ratio_sigma = fitted.depth_ratio_sigma
+        if fitted.prediction_sigma is not None:
+            al.prediction_sigma = dict(fitted.prediction_sigma)
+        post = cfg
+        if cfg.parallax_gate_sigmas > 0:
+            al.parallax_gate_px = fitted.gate_px
+            post = replace(cfg, placement_px=al.parallax_gate_px)
+        al.placements = place_annotations(R, src, cands, post, geo, al.v_tol, predicted=corrected,
+                                          directions=self._directions)
+        al.parallax = model
+        self._guide_all(al.placements, ids, corrected, al.v_tol, post)
+        if cfg.lookalike_margin > 0:
+            local = {i: k for k, i in enumerate(ids)}
+            for p in al.placements:
+                if p.status == 'matched' and not self.landmark[p.index]:
+                    self._lookalike(p, corrected[local[p.index]], al.v_tol, post.placement_px)
+
+    def _parallax_fit(self, ids: list[int], predicted: Array, matched: list[int], observed: Array,
+                      up: Array) -> _ParallaxFit:
+        """The parallax model fitted on the matches (``predicted`` where the rotation puts the
+        group's annotations, ``observed`` where the ``matched`` ones were found) and the corrected
+        predictions: every annotation's with the model (the annotations' scaled by their depth
+        ratio), a matched one's from the others only. Kept for the next ``result`` calls: while
+        the rotation, the up direction and the matches stay bit for bit the same (a tile that
+        added only candidates nothing was placed at), so does all of this."""
+        key = (tuple(ids), predicted.tobytes(), tuple(matched), observed.tobytes(), up.tobytes())
+        kept = self._parallax_fits.get(key)
+        if kept is not None:
+            self._parallax_fits.move_to_end(key)
+            return kept
+        cfg = self.config
 
         def fit(rows: Array | slice) -> ParallaxModel:
             return fit_parallax(predicted[matched][rows], observed[rows], up, cfg.parallax_sigma_match,
@@ -233,15 +286,17 @@ class GuidedSearch:
         every = np.ones(len(matched), bool)
         model = fit(slice(None))
         corrected = model.apply(predicted)
+        depth_ratio_sigma = float('nan')
         if cfg.parallax_scale_sigma > 0:
             corrected[shown] = scaled(model, every).apply(predicted[shown])
-            al.depth_ratio_sigma = depth_scale_sigma(model, predicted[matched][ann], cfg.parallax_sigma_match,
-                                                     cfg.parallax_scale_sigma)
+            depth_ratio_sigma = depth_scale_sigma(model, predicted[matched][ann], cfg.parallax_sigma_match,
+                                                  cfg.parallax_scale_sigma)
+        sigmas = None
         if cfg.prediction_support and cfg.depth_ratio_support_rad > 0:  # read by the support rule only
             rows = np.flatnonzero(shown)  # the support rule judges annotations only
             sig = prediction_sigma(model, predicted[matched], observed, predicted[rows], cfg.parallax_sigma_match,
                                    cfg.parallax_sigma)
-            al.prediction_sigma = {ids[k]: float(x) for k, x in zip(rows, sig)}
+            sigmas = {ids[k]: float(x) for k, x in zip(rows, sig)}
         # A matched annotation's own position comes from the others only (leave-one-out): a
         # look-alike match must not pull the prediction it is judged against towards itself.
         for r, k in enumerate(matched):
@@ -249,19 +304,13 @@ class GuidedSearch:
             others[r] = False
             loo = fit(others)
             corrected[k] = (scaled(loo, others) if shown[k] else loo).apply(predicted[k])[0]
-        post = cfg
-        if cfg.parallax_gate_sigmas > 0:
-            al.parallax_gate_px = self._parallax_gate(corrected[matched], observed)
-            post = replace(cfg, placement_px=al.parallax_gate_px)
-        al.placements = place_annotations(R, src, cands, post, geo, al.v_tol, predicted=corrected,
-                                          directions=self._directions)
-        al.parallax = model
-        self._guide_all(al.placements, ids, corrected, al.v_tol, post)
-        if cfg.lookalike_margin > 0:
-            local = {i: k for k, i in enumerate(ids)}
-            for p in al.placements:
-                if p.status == 'matched' and not self.landmark[p.index]:
-                    self._lookalike(p, corrected[local[p.index]], al.v_tol, post.placement_px)
+        gate = self._parallax_gate(corrected[matched], observed) if cfg.parallax_gate_sigmas > 0 else float('nan')
+        corrected.flags.writeable = False
+        fitted = _ParallaxFit(model, corrected, depth_ratio_sigma, sigmas, gate)
+        self._parallax_fits[key] = fitted
+        while len(self._parallax_fits) > _PARALLAX_FITS_KEPT:
+            self._parallax_fits.popitem(last=False)
+        return fitted
 
     def _parallax_gate(self, predicted: Array, observed: Array) -> float:
         """Placement gate after the parallax model (``parallax_gate_sigmas``): that many robust

@@ -5,7 +5,7 @@ follows an alignment is in :mod:`.guided` (guided search, parallax model, look-a
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import OrderedDict, deque
 from typing import Sequence
 
 import numpy as np
@@ -87,13 +87,15 @@ class ReDetector(GuidedSearch, SupportTest):
         self._ncc_surfaces = {}
         self._finishes = 0
         self._directions = CandidateDirections(geo)
+        self._parallax_fits = OrderedDict()
 
     def _clear_kept(self) -> None:
         """Forget what is kept from one :meth:`result` to the next (the NCC surfaces of the
-        guided search, the candidates' directions): the next result is computed from scratch,
+        guided search, the candidates' directions, the parallax fits): the next result is computed from scratch,
         and is the same."""
         self._ncc_surfaces.clear()
         self._directions = CandidateDirections(self.geometry)
+        self._parallax_fits.clear()
 
     @property
     def n(self) -> int:
