@@ -48,9 +48,9 @@ def test_a_kept_ncc_surface_is_reused_only_on_the_same_map_pixels():
     det = _detector(case)
     det.step(case.target, case.mapped, 0)  # the map, no tile
     tu, tv = case.truth_uv[2]
-    first = det._ncc_window(2, tu, tv, 25.0, 4.0)
+    first = det._ncc_window([(2, tu, tv)], 25.0, 4.0)[0]
     assert first is not None
-    again = det._ncc_window(2, tu + 0.2, tv - 0.1, 25.0, 4.0)  # the same window, other offsets
+    again = det._ncc_window([(2, tu + 0.2, tv - 0.1)], 25.0, 4.0)[0]  # the same window, other offsets
     assert again is not None and again[0] is first[0] and not np.array_equal(again[1], first[1])
     # A few pixels under the window change (the map was painted again there): computed anew.
     x, y = int(round(tu - 7.5)), int(round(tv - 7.5))
@@ -59,8 +59,8 @@ def test_a_kept_ncc_surface_is_reused_only_on_the_same_map_pixels():
     det.step(painted, case.mapped, 0)
     fresh = _detector(case)
     fresh.step(painted, case.mapped, 0)
-    now = det._ncc_window(2, tu, tv, 25.0, 4.0)
-    ref = fresh._ncc_window(2, tu, tv, 25.0, 4.0)
+    now = det._ncc_window([(2, tu, tv)], 25.0, 4.0)[0]
+    ref = fresh._ncc_window([(2, tu, tv)], 25.0, 4.0)[0]
     assert now is not None and ref is not None
     assert now[0].tobytes() == ref[0].tobytes() and now[0].tobytes() != first[0].tobytes()
     # The same pixels with part of them no longer mapped: computed anew too.
@@ -68,7 +68,7 @@ def test_a_kept_ncc_surface_is_reused_only_on_the_same_map_pixels():
     hole[y:y + 3, x:x + 40] = False
     det.step(painted, hole, 0)
     fresh.step(painted, hole, 0)
-    now, ref = det._ncc_window(2, tu, tv, 25.0, 4.0), fresh._ncc_window(2, tu, tv, 25.0, 4.0)
+    now, ref = det._ncc_window([(2, tu, tv)], 25.0, 4.0)[0], fresh._ncc_window([(2, tu, tv)], 25.0, 4.0)[0]
     assert now is not None and ref is not None
     assert now[0].tobytes() == ref[0].tobytes() and (now[0] == -1.0).sum() > (first[0] == -1.0).sum()
 
@@ -167,3 +167,24 @@ def test_the_parallax_fit_median_is_numpys():
         x[: n // 3] = np.round(x[: n // 3], 2)  # ties
         assert _median(x) == float(np.median(x))
     assert math.isnan(_median(np.array([1.0, np.nan, 2.0])))
+
+
+def test_windows_asked_for_together_equal_windows_asked_for_one_at_a_time():
+    case = make_case(seed=7)
+    det = _detector(case)
+    det.step(case.target, case.mapped, 0)
+    rng = np.random.default_rng(2)
+    at = [(int(i), float(u + rng.uniform(-3, 3)), float(v + rng.uniform(-3, 3)))
+          for i, (u, v) in enumerate(case.truth_uv)]
+    at.append((0, 5.3, 2.0))  # beyond the top row: no window
+    at.append((1, 2040.6, 200.2))  # across the map's seam
+    for radius, v_tol in ((25.0, 4.0), (13.5, None)):
+        together = det._ncc_window(at, radius, v_tol)
+        assert together[-2] is None and together[-1] is not None
+        for one, win in zip(at, together):
+            alone = _detector(case)
+            alone.step(case.target, case.mapped, 0)
+            ref = alone._ncc_window([one], radius, v_tol)[0]
+            assert (win is None) == (ref is None)
+            if win is not None and ref is not None:
+                assert [a.tobytes() for a in win] == [a.tobytes() for a in ref]

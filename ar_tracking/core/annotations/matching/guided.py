@@ -77,71 +77,90 @@ class GuidedSearch:
     #: :meth:`_parallax_fit` by its inputs, the latest last
     _parallax_fits: OrderedDict[tuple[object, ...], _ParallaxFit]
 
-    def _guided(self, p: Placement, predicted: tuple[float, float] | None = None,
-                v_tol: float | None = None, config: MatchConfig | None = None) -> None:
-        """Guided re-detection around where the alignment puts an annotation (``predicted``,
-        default the placement itself, i.e. an inferred one): NCC in a +-``placement_px``
-        window (+-``v_tol`` vertically after a gravity-constrained alignment), minus
-        ``guided_penalty`` x distance / ``placement_px``; the best position with an NCC of at
-        least ``guided_min_ncc`` becomes the placement when its penalised score beats that of
-        the current match (an inferred placement has none)."""
+    def _guided(self, todo: list[tuple[Placement, float, float]], v_tol: float | None = None,
+                config: MatchConfig | None = None) -> None:
+        """Guided re-detection of placements around where the alignment puts them ((placement,
+        u, v) each; an inferred one: the placement itself): NCC in a +-``placement_px`` window
+        (+-``v_tol`` vertically after a gravity-constrained alignment), minus ``guided_penalty``
+        x distance / ``placement_px``; the best position with an NCC of at least
+        ``guided_min_ncc`` becomes the placement when its penalised score beats that of the
+        current match (an inferred placement has none). The windows are scored as one stack
+        (each placement's own values: the same as one at a time)."""
         cfg, geo = config or self.config, self.geometry
-        cu, cv_ = predicted if predicted is not None else (p.u, p.v)
-        win = self._window_ncc(p.index, cu, cv_, cfg.placement_px, v_tol)
-        if win is None:
+        wins = self._window_ncc([(p.index, cu, cv_) for p, cu, cv_ in todo], cfg.placement_px, v_tol)
+        found = [(t, w) for t, w in zip(todo, wins) if w is not None]
+        if not found:
             return
-        res, xs, ys, inside, dist = win
+        res = np.stack([w[0] for _, w in found])
+        dist = np.stack([w[4] for _, w in found])
+        inside = np.stack([w[3] for _, w in found])
         score = np.where(inside, res - cfg.guided_penalty * dist / cfg.placement_px, -np.inf)
-        y, x = np.unravel_index(int(np.argmax(score)), score.shape)
-        if res[y, x] < cfg.guided_min_ncc:
-            return
-        if p.status == 'matched':
-            d_now = float(geo.map_distance(np.array(p.u), np.array(p.v), cu, cv_))
-            if score[y, x] <= p.score - cfg.guided_penalty * d_now / cfg.placement_px + 1e-6:
-                return
-        p.u = float((cu + xs[x]) % geo.width)
-        p.v = float(cv_ + ys[y])
-        p.direction = geo.unproject(np.array(p.u), np.array(p.v))
-        p.status = 'matched'
-        p.score = float(res[y, x])
+        best = score.reshape(len(found), -1).argmax(axis=1)
+        for j, ((p, cu, cv_), (_, xs, ys, _, _)) in enumerate(found):
+            y, x = divmod(int(best[j]), score.shape[2])
+            if res[j, y, x] < cfg.guided_min_ncc:
+                continue
+            if p.status == 'matched':
+                d_now = float(geo.map_distance(np.array(p.u), np.array(p.v), cu, cv_))
+                if score[j, y, x] <= p.score - cfg.guided_penalty * d_now / cfg.placement_px + 1e-6:
+                    continue
+            p.u = float((cu + xs[x]) % geo.width)
+            p.v = float(cv_ + ys[y])
+            p.direction = geo.unproject(np.array(p.u), np.array(p.v))
+            p.status = 'matched'
+            p.score = float(res[j, y, x])
 
-    def _window_ncc(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
-                    ) -> NccWindow | None:
-        """:meth:`_ncc_window`, once per arguments within one :meth:`_finish` (the map does not
-        change there; the callers do not modify the arrays)."""
-        key = (index, cu, cv_, radius_px, v_tol)
-        if key not in self._ncc_windows:
-            self._ncc_windows[key] = self._ncc_window(index, cu, cv_, radius_px, v_tol)
-        return self._ncc_windows[key]
+    def _window_ncc(self, at: list[tuple[int, float, float]], radius_px: float, v_tol: float | None
+                    ) -> list[NccWindow | None]:
+        """:meth:`_ncc_window` of each (index, u, v), once per arguments within one
+        :meth:`_finish` (the map does not change there; the callers do not modify the arrays)."""
+        keys = [(index, cu, cv_, radius_px, v_tol) for index, cu, cv_ in at]
+        new = [k for k, key in enumerate(keys) if key not in self._ncc_windows]
+        for k, win in zip(new, self._ncc_window([at[k] for k in new], radius_px, v_tol)):
+            self._ncc_windows[keys[k]] = win
+        return [self._ncc_windows[key] for key in keys]
 
-    def _ncc_window(self, index: int, cu: float, cv_: float, radius_px: float, v_tol: float | None
-                    ) -> NccWindow | None:
+    def _ncc_window(self, at: list[tuple[int, float, float]], radius_px: float, v_tol: float | None
+                    ) -> list[NccWindow | None]:
         """NCC (TM_CCOEFF_NORMED) of patch ``index`` at every position within ``radius_px`` of
-        (cu, cv_) (and ``v_tol`` above or below): (ncc, column offsets, row offsets from (cu, cv_),
-        inside mask, distance from (cu, cv_)); positions not fully mapped get -1. None without a
-        map, outside the rows or for an unknown index."""
+        (u, v) (and ``v_tol`` above or below), for each (index, u, v) of ``at``: (ncc, column
+        offsets, row offsets from (u, v), inside mask, distance from (u, v)); positions not fully
+        mapped get -1. None without a map, outside the rows or for an unknown index. The
+        offsets of all windows are computed as one array (each element as for one window)."""
+        out: list[NccWindow | None] = [None] * len(at)
         if self._map is None:
-            return None
-        gray, mapped = self._map
-        patch = self._patches.get(index)
-        if patch is None:
-            return None
-        P = patch.shape[0]
+            return out
+        height = self._map[0].shape[0]
         r = int(math.ceil(radius_px))
         rv = r if v_tol is None else int(math.ceil(min(v_tol, radius_px)))
-        x0 = int(round(cu - (P - 1) / 2)) - r
-        y0 = int(round(cv_ - (P - 1) / 2)) - rv
-        if y0 < 0 or y0 + P + 2 * rv > gray.shape[0]:
-            return None
-        res = self._ncc_surface(index, patch, x0, y0, r, rv)
-        # Offsets from the predicted position (sub-pixel: x0, y0 were rounded).
-        c = (P - 1) / 2.0
-        xs: Array = x0 + c + np.arange(2 * r + 1, dtype=float) - cu
-        ys: Array = y0 + c + np.arange(2 * rv + 1, dtype=float) - cv_
-        dist: Array = np.hypot(xs[None, :], ys[:, None])
+        rows, surfaces, corners, at_ok = [], [], [], []
+        for k, (index, cu, cv_) in enumerate(at):
+            patch = self._patches.get(index)
+            if patch is None:
+                continue
+            P = patch.shape[0]
+            x0 = int(round(cu - (P - 1) / 2)) - r
+            y0 = int(round(cv_ - (P - 1) / 2)) - rv
+            if y0 < 0 or y0 + P + 2 * rv > height:
+                continue
+            rows.append(k)
+            surfaces.append(self._ncc_surface(index, patch, x0, y0, r, rv))
+            c = (P - 1) / 2.0
+            corners.append((x0 + c, y0 + c))  # the window's first position's centre
+            at_ok.append((cu, cv_))
+        if not rows:
+            return out
+        # Offsets from the predicted positions (sub-pixel: x0, y0 were rounded).
+        first = np.array(corners, float)
+        centre = np.array(at_ok, float)
+        xs: Array = first[:, :1] + np.arange(2 * r + 1, dtype=float)[None] - centre[:, :1]
+        ys: Array = first[:, 1:] + np.arange(2 * rv + 1, dtype=float)[None] - centre[:, 1:]
+        dist: Array = np.hypot(xs[:, None, :], ys[:, :, None])
         inside: NDArray[np.bool_] = (dist <= radius_px) & (
-            np.abs(ys)[:, None] <= (v_tol if v_tol is not None else np.inf))
-        return res, xs, ys, inside, dist
+            np.abs(ys)[:, :, None] <= (v_tol if v_tol is not None else np.inf))
+        for j, k in enumerate(rows):
+            out[k] = (surfaces[j], xs[j], ys[j], inside[j], dist[j])
+        return out
 
     def _ncc_surface(self, index: int, patch: NDArray[np.float32], x0: int, y0: int, r: int, rv: int
                      ) -> NDArray[np.float32]:
@@ -187,7 +206,7 @@ class GuidedSearch:
         if offset_from_prediction_px(p, geo) <= cfg.matched_agreement_px:  # p.predicted is `predicted`
             return  # the match agrees with the other matches: a rival would change nothing shown
         cu, cv_ = (float(x) for x in geo.project(predicted))
-        win = self._window_ncc(p.index, cu, cv_, gate_px, v_tol)
+        win = self._window_ncc([(p.index, cu, cv_)], gate_px, v_tol)[0]
         if win is None:
             return
         res, xs, ys, inside, _ = win
@@ -328,16 +347,19 @@ class GuidedSearch:
         of matched ones around their ``predicted`` direction (local order); ``config`` (default
         the detector's) sets the window."""
         cfg = config or self.config
+        todo: list[tuple[Placement, float, float]] = []
         for p in placements:
             local = p.index
             p.index = ids[local]
             if not cfg.guided_search:
                 continue
             if p.status == 'inferred':
-                self._guided(p, v_tol=v_tol, config=cfg)
+                todo.append((p, p.u, p.v))
             elif cfg.guided_all and predicted is not None:
                 u, v = self.geometry.project(predicted[local])
-                self._guided(p, (float(u), float(v)), v_tol, cfg)
+                todo.append((p, float(u), float(v)))
+        if todo:
+            self._guided(todo, v_tol, cfg)
 
     def _up(self) -> Array | None:
         """The up direction (ENU z) in the browsing panorama's frame, None without its orientation."""
