@@ -188,3 +188,14 @@ def test_windows_asked_for_together_equal_windows_asked_for_one_at_a_time():
             assert (win is None) == (ref is None)
             if win is not None and ref is not None:
                 assert [a.tobytes() for a in win] == [a.tobytes() for a in ref]
+
+
+def test_the_nearest_candidate_distance_is_numpys_nanmin():
+    from ar_tracking.core.annotations.matching.alignment import _nearest
+
+    rng = np.random.default_rng(4)
+    for k in (1, 2, 3):
+        dd = rng.uniform(0, 40, (50, 12, k))
+        dd[rng.uniform(size=dd.shape) < 0.2] = np.inf  # beyond the vertical tolerance
+        dd[:, :, 1:][rng.uniform(size=dd[:, :, 1:].shape) < 0.3] = np.nan  # no such candidate
+        assert _nearest(dd).tobytes() == np.nanmin(dd, axis=2).tobytes()

@@ -95,13 +95,13 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     result.hypotheses = len(Rs)
     # Every hypothesis against every annotation's candidates at once.
     dd = cs.distances(Rs, src, geo)  # (H, n_c, k)
-    dist = np.nanmin(dd, axis=2)  # (H, n)
-    inl = dist < cfg.inlier_px
-    n_inl = inl.sum(axis=1)
+    dist = _nearest(dd)  # (H, n)
+    inl_h = dist < cfg.inlier_px  # (H, n) inliers of each hypothesis
+    n_inl = inl_h.sum(axis=1)
     valid = n_inl >= need
     if not valid.any():
         return fallback()
-    nerr = np.where(valid, np.where(inl, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
+    nerr = np.where(valid, np.where(inl_h, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
     if cfg.consensus_score:
         # Highest placement score wins; among equal scores, the lower normalised error.
         gain = np.where(valid, cs.placement_score(dd, cfg), -np.inf)
@@ -112,7 +112,7 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     else:
         # Lowest normalised error wins; among equal errors, more inliers.
         h = int(np.lexsort((-n_inl, np.round(nerr, 9)))[0])
-    best = (float(nerr[h]), Rs[h], [with_c[r] for r in np.flatnonzero(inl[h])])
+    best = (float(nerr[h]), Rs[h], [with_c[r] for r in np.flatnonzero(inl_h[h])])
     R = best[1]
     if cfg.consensus_score:
         R = _refine_on_placements(R, src, cs, cd, geo, cfg, need, fit)
@@ -134,9 +134,20 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     result.R_target_source = R
     result.inliers = inl
     result.normalised_error_px = err / len(inl)
-    result.placements = place_annotations(R, src, candidates, cfg, geo, v_tol, directions=dirs)
+    result.placements = place_annotations(R, src, candidates, cfg, geo, v_tol, directions=dirs, arrays=cs)
     result.v_tol = v_tol
     return result
+
+
+def _nearest(dd: Array) -> Array:
+    """(H, n) distance of each annotation's nearest candidate under each hypothesis from the
+    (H, n, k) distances: ``np.nanmin`` over the last axis (NaN: no candidate), as a chain of
+    ``np.fmin`` over the k slices - the same values (a minimum rounds nothing) without the
+    reduction's cost along an axis of 3."""
+    out = dd[..., 0].copy()
+    for j in range(1, dd.shape[-1]):
+        np.fmin(out, dd[..., j], out=out)
+    return out
 
 
 def _pair_hypotheses(src: Array, with_c: list[int], candidates: Sequence[Sequence[Candidate]],
@@ -207,7 +218,7 @@ def _prior_alignment(R_prior: Array | None, src: Array, candidates: Sequence[Seq
         R = _refine_on_placements(R_prior, src, cs, cd, geo, cfg, 2, fit)
         if float(trace_angle(R_prior.T @ R)) > cfg.prior_window_px / geo.f:
             R = R_prior
-    placements = place_annotations(R, src, candidates, cfg, geo, v_tol, directions=directions)
+    placements = place_annotations(R, src, candidates, cfg, geo, v_tol, directions=directions, arrays=cs)
     return Alignment(R, placements, [p.index for p in placements if p.status == 'matched'], v_tol=v_tol)
 
 def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[Array],

@@ -143,14 +143,17 @@ def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
 def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
                       config: MatchConfig | None = None, geometry: CylinderGeometry | None = None,
                       v_tol: float | None = None, predicted: Array | None = None,
-                      directions: CandidateDirections | None = None) -> list[Placement]:
+                      directions: CandidateDirections | None = None,
+                      arrays: _CandidateArrays | None = None) -> list[Placement]:
     """Every annotation placed by the rotation R (sec. 4.3): at its candidate within
     ``placement_px`` of where R puts it with the best NCC minus ``placement_penalty`` x
     distance / ``placement_px`` (matched; the NCC, not the prior-penalised score: the rotation
     supersedes the compass), or, with none there, at that position (inferred). ``v_tol``: a
     candidate further above or below than this is none (``gravity_v_px``). ``predicted`` (n, 3):
     the directions to use instead of R's (the rotation with the parallax model); ``directions``:
-    the candidates' directions kept from earlier calls (default: computed here)."""
+    the candidates' directions kept from earlier calls (default: computed here); ``arrays``: the
+    same candidates with the same ``v_tol`` as :class:`_CandidateArrays`, when the caller has
+    them (RANSAC)."""
     cfg = config or MatchConfig()
     geo = geometry or CylinderGeometry()
     dirs = directions if directions is not None else CandidateDirections(geo)
@@ -159,7 +162,8 @@ def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequenc
     with_c = [i for i in range(len(src)) if candidates[i]]
     best: dict[int, int] = {}
     if with_c:
-        cs = _CandidateArrays(candidates, with_c, v_tol)
+        cs = arrays if arrays is not None else _CandidateArrays(candidates, with_c, v_tol)
+        assert cs.with_c == with_c and cs.v_tol == v_tol
         value = cs.values(cs.distances_from(pred[with_c][None], geo)[0], cfg)
         best = {i: int(np.argmax(value[r])) for r, i in enumerate(with_c) if np.isfinite(value[r]).any()}
     out = []
