@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from ...rotations import align_about_axis, align_directions, rotations_about_axis, trace_angle
 from ...panorama.cylinder import CylinderGeometry
 from .config import MatchConfig
-from .placement import Alignment, _CandidateArrays, place_annotations
+from .placement import Alignment, CandidateDirections, _CandidateArrays, place_annotations
 from .tiles import Candidate
 
 Array = NDArray[np.float64]
@@ -28,7 +28,7 @@ def absolute_orientation(a: Array, b: Array, weights: Array | None = None) -> Ar
 def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
                      config: MatchConfig | None = None, geometry: CylinderGeometry | None = None,
                      rng: np.random.Generator | None = None, R_prior: Array | None = None,
-                     up: Array | None = None) -> Alignment:
+                     up: Array | None = None, directions: CandidateDirections | None = None) -> Alignment:
     """Global rotation between the source and the target panorama (sec. 4.3; module docstring).
 
     ``source_dirs`` (n, 3): unit vectors of the annotations in the source panorama;
@@ -44,16 +44,18 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     the annotations are placed by ``R_prior`` itself (refined on the matches it explains).
     ``up`` (unit up direction in the target panorama, with ``gravity_alignment``): the rotations
     are ``R_prior`` followed by a rotation about ``up`` only, hypotheses come from single
-    matches and pairs (:func:`_heading_hypotheses`) and refinements fit the heading alone."""
+    matches and pairs (:func:`_heading_hypotheses`) and refinements fit the heading alone.
+    ``directions``: the candidates' directions kept from earlier calls (default: computed here)."""
     cfg = config or MatchConfig()
     geo = geometry or CylinderGeometry()
+    dirs = directions if directions is not None else CandidateDirections(geo)
     src = np.asarray(source_dirs, float).reshape(-1, 3)
     n = len(src)
     with_c = [i for i in range(n) if candidates[i]]
     # Candidate directions and positions, per annotation.
     cu = [np.array([c.u for c in candidates[i]]) for i in range(n)]
     cv_ = [np.array([c.v for c in candidates[i]]) for i in range(n)]
-    cd = [geo.unproject(cu[i], cv_[i]) if len(cu[i]) else np.zeros((0, 3)) for i in range(n)]
+    cd = [dirs.of_list(candidates[i]) for i in range(n)]
     if R_prior is not None and cfg.prior_alignment:
         R_prior = np.asarray(R_prior, float)
     else:
@@ -72,7 +74,7 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
         return rotations_about_axis(k_up, align_about_axis(a @ R_prior.T, b, k_up))[0] @ R_prior
 
     def fallback() -> Alignment:
-        return _prior_alignment(R_prior, src, candidates, cs, cd, cfg, geo, fit, v_tol)
+        return _prior_alignment(R_prior, src, candidates, cs, cd, cfg, geo, fit, v_tol, dirs)
 
     result = Alignment(None)
     if len(with_c) < max(2, cfg.min_inliers):
@@ -93,13 +95,13 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     result.hypotheses = len(Rs)
     # Every hypothesis against every annotation's candidates at once.
     dd = cs.distances(Rs, src, geo)  # (H, n_c, k)
-    dist = np.nanmin(dd, axis=2)  # (H, n)
-    inl = dist < cfg.inlier_px
-    n_inl = inl.sum(axis=1)
+    dist = _nearest(dd)  # (H, n)
+    inl_h = dist < cfg.inlier_px  # (H, n) inliers of each hypothesis
+    n_inl = inl_h.sum(axis=1)
     valid = n_inl >= need
     if not valid.any():
         return fallback()
-    nerr = np.where(valid, np.where(inl, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
+    nerr = np.where(valid, np.where(inl_h, dist, 0.0).sum(axis=1) / np.maximum(n_inl, 1), np.inf)
     if cfg.consensus_score:
         # Highest placement score wins; among equal scores, the lower normalised error.
         gain = np.where(valid, cs.placement_score(dd, cfg), -np.inf)
@@ -110,7 +112,7 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     else:
         # Lowest normalised error wins; among equal errors, more inliers.
         h = int(np.lexsort((-n_inl, np.round(nerr, 9)))[0])
-    best = (float(nerr[h]), Rs[h], [with_c[r] for r in np.flatnonzero(inl[h])])
+    best = (float(nerr[h]), Rs[h], [with_c[r] for r in np.flatnonzero(inl_h[h])])
     R = best[1]
     if cfg.consensus_score:
         R = _refine_on_placements(R, src, cs, cd, geo, cfg, need, fit)
@@ -132,9 +134,20 @@ def ransac_alignment(source_dirs: Array, candidates: Sequence[Sequence[Candidate
     result.R_target_source = R
     result.inliers = inl
     result.normalised_error_px = err / len(inl)
-    result.placements = place_annotations(R, src, candidates, cfg, geo, v_tol)
+    result.placements = place_annotations(R, src, candidates, cfg, geo, v_tol, directions=dirs, arrays=cs)
     result.v_tol = v_tol
     return result
+
+
+def _nearest(dd: Array) -> Array:
+    """(H, n) distance of each annotation's nearest candidate under each hypothesis from the
+    (H, n, k) distances: ``np.nanmin`` over the last axis (NaN: no candidate), as a chain of
+    ``np.fmin`` over the k slices - the same values (a minimum rounds nothing) without the
+    reduction's cost along an axis of 3."""
+    out = dd[..., 0].copy()
+    for j in range(1, dd.shape[-1]):
+        np.fmin(out, dd[..., j], out=out)
+    return out
 
 
 def _pair_hypotheses(src: Array, with_c: list[int], candidates: Sequence[Sequence[Candidate]],
@@ -194,7 +207,7 @@ def _prior_alignment(R_prior: Array | None, src: Array, candidates: Sequence[Seq
                      cs: _CandidateArrays | None, cd: list[Array], cfg: MatchConfig,
                      geo: CylinderGeometry,
                      fit: Callable[[Array, Array], Array] = absolute_orientation,
-                     v_tol: float | None = None) -> Alignment:
+                     v_tol: float | None = None, directions: CandidateDirections | None = None) -> Alignment:
     """The alignment when RANSAC finds no valid hypothesis: with a prior rotation, the
     annotations placed by it after a least-squares refinement on the matches it explains (two
     at least; kept only within the compass error of the prior); without one, nothing."""
@@ -205,7 +218,7 @@ def _prior_alignment(R_prior: Array | None, src: Array, candidates: Sequence[Seq
         R = _refine_on_placements(R_prior, src, cs, cd, geo, cfg, 2, fit)
         if float(trace_angle(R_prior.T @ R)) > cfg.prior_window_px / geo.f:
             R = R_prior
-    placements = place_annotations(R, src, candidates, cfg, geo, v_tol)
+    placements = place_annotations(R, src, candidates, cfg, geo, v_tol, directions=directions, arrays=cs)
     return Alignment(R, placements, [p.index for p in placements if p.status == 'matched'], v_tol=v_tol)
 
 def _refine_on_placements(R: Array, src: Array, cs: _CandidateArrays, cd: list[Array],

@@ -80,6 +80,55 @@ def offset_from_prediction_px(p: Placement, geometry: CylinderGeometry) -> float
     return float(geometry.map_distance(p.u, p.v, u, v))
 
 
+class CandidateDirections:
+    """Unit directions of candidates' map positions (:meth:`CylinderGeometry.unproject`), kept
+    from one alignment to the next: between two ``result`` calls the candidates of a few
+    annotations change, and each call unprojected all of them three or four times. Two forms,
+    each computed as before: a candidate list as one array (RANSAC's hypotheses and fits), a
+    single candidate from 0-d arrays (its placement) - numpy may round the two ways differently
+    in the last bit. The arrays are read-only. :meth:`next_round` forgets what the last round
+    did not use."""
+
+    def __init__(self, geometry: CylinderGeometry) -> None:
+        self.geometry = geometry
+        self._lists: dict[tuple[Candidate, ...], Array] = {}
+        self._points: dict[tuple[float, float], Array] = {}
+        self._last_lists: dict[tuple[Candidate, ...], Array] = {}
+        self._last_points: dict[tuple[float, float], Array] = {}
+
+    def next_round(self) -> None:
+        """Start a round: what the round before used stays available, the rest is dropped."""
+        self._last_lists, self._lists = self._lists, {}
+        self._last_points, self._points = self._points, {}
+
+    def of_list(self, candidates: Sequence[Candidate]) -> Array:
+        """(k, 3) directions of a candidate list, unprojected as one array ((0, 3) for none)."""
+        key = tuple(candidates)
+        d = self._lists.get(key)
+        if d is None:
+            d = self._last_lists.get(key)
+            if d is None:
+                if key:
+                    d = self.geometry.unproject(np.array([c.u for c in key]), np.array([c.v for c in key]))
+                else:
+                    d = np.zeros((0, 3))
+                d.flags.writeable = False
+            self._lists[key] = d
+        return d
+
+    def of(self, c: Candidate) -> Array:
+        """(3,) direction of one candidate, unprojected from 0-d arrays."""
+        key = (c.u, c.v)
+        d = self._points.get(key)
+        if d is None:
+            d = self._last_points.get(key)
+            if d is None:
+                d = self.geometry.unproject(np.array(c.u), np.array(c.v))
+                d.flags.writeable = False
+            self._points[key] = d
+        return d
+
+
 def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
                               geometry: CylinderGeometry) -> list[Placement]:
     """Without alignment: every annotation with a candidate at its best one (sec. 3.2)."""
@@ -93,28 +142,35 @@ def best_candidate_placements(candidates: Sequence[Sequence[Candidate]],
 
 def place_annotations(R: Array, source_dirs: Array, candidates: Sequence[Sequence[Candidate]],
                       config: MatchConfig | None = None, geometry: CylinderGeometry | None = None,
-                      v_tol: float | None = None, predicted: Array | None = None) -> list[Placement]:
+                      v_tol: float | None = None, predicted: Array | None = None,
+                      directions: CandidateDirections | None = None,
+                      arrays: _CandidateArrays | None = None) -> list[Placement]:
     """Every annotation placed by the rotation R (sec. 4.3): at its candidate within
     ``placement_px`` of where R puts it with the best NCC minus ``placement_penalty`` x
     distance / ``placement_px`` (matched; the NCC, not the prior-penalised score: the rotation
     supersedes the compass), or, with none there, at that position (inferred). ``v_tol``: a
     candidate further above or below than this is none (``gravity_v_px``). ``predicted`` (n, 3):
-    the directions to use instead of R's (the rotation with the parallax model)."""
+    the directions to use instead of R's (the rotation with the parallax model); ``directions``:
+    the candidates' directions kept from earlier calls (default: computed here); ``arrays``: the
+    same candidates with the same ``v_tol`` as :class:`_CandidateArrays`, when the caller has
+    them (RANSAC)."""
     cfg = config or MatchConfig()
     geo = geometry or CylinderGeometry()
+    dirs = directions if directions is not None else CandidateDirections(geo)
     src = np.asarray(source_dirs, float).reshape(-1, 3)
     pred = src @ np.asarray(R, float).T if predicted is None else np.asarray(predicted, float)
     with_c = [i for i in range(len(src)) if candidates[i]]
     best: dict[int, int] = {}
     if with_c:
-        cs = _CandidateArrays(candidates, with_c, v_tol)
+        cs = arrays if arrays is not None else _CandidateArrays(candidates, with_c, v_tol)
+        assert cs.with_c == with_c and cs.v_tol == v_tol
         value = cs.values(cs.distances_from(pred[with_c][None], geo)[0], cfg)
         best = {i: int(np.argmax(value[r])) for r, i in enumerate(with_c) if np.isfinite(value[r]).any()}
     out = []
     for i in range(len(src)):
         if i in best:
             c = candidates[i][best[i]]
-            out.append(Placement(i, c.u, c.v, geo.unproject(np.array(c.u), np.array(c.v)), 'matched', c.ncc,
+            out.append(Placement(i, c.u, c.v, dirs.of(c), 'matched', c.ncc,
                                  predicted=pred[i]))
         else:
             pu, pv = geo.project(pred[i])

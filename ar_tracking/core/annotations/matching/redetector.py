@@ -5,7 +5,7 @@ follows an alignment is in :mod:`.guided` (guided search, parallax model, look-a
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import OrderedDict, deque
 from typing import Sequence
 
 import numpy as np
@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from ...panorama.cylinder import CylinderGeometry
 from .config import MatchConfig
-from .placement import Alignment, best_candidate_placements
+from .placement import Alignment, CandidateDirections, best_candidate_placements
 from .alignment import ransac_alignment
 from .guided import GuidedSearch
 from .support import SupportTest
@@ -84,6 +84,18 @@ class ReDetector(GuidedSearch, SupportTest):
         self.tiles_done = 0
         self._cache: tuple[str | None, Alignment] | None = None
         self._map: tuple[NDArray[np.float32], NDArray[np.bool_] | None] | None = None
+        self._ncc_surfaces = {}
+        self._finishes = 0
+        self._directions = CandidateDirections(geo)
+        self._parallax_fits = OrderedDict()
+
+    def _clear_kept(self) -> None:
+        """Forget what is kept from one :meth:`result` to the next (the NCC surfaces of the
+        guided search, the candidates' directions, the parallax fits): the next result is computed from scratch,
+        and is the same."""
+        self._ncc_surfaces.clear()
+        self._directions = CandidateDirections(self.geometry)
+        self._parallax_fits.clear()
 
     @property
     def n(self) -> int:
@@ -136,6 +148,7 @@ class ReDetector(GuidedSearch, SupportTest):
         if self._cache is not None and not self.dirty:
             return self._cache
         self.dirty = False
+        self._directions.next_round()
         best: tuple[float, str | None, Alignment] = (-1.0, None, Alignment(None))
         for g in dict.fromkeys(self.groups):
             ids = [i for i, gi in enumerate(self.groups) if gi == g]
@@ -148,7 +161,7 @@ class ReDetector(GuidedSearch, SupportTest):
                 continue
             if self.config.ransac:
                 al = ransac_alignment(self.source_dirs[ids], cands, self.config, self.geometry,
-                                      R_prior=self._prior_rotation(ids), up=self._up())
+                                      R_prior=self._prior_rotation(ids), up=self._up(), directions=self._directions)
                 if al.R_target_source is None:
                     al.placements = best_candidate_placements(cands, self.geometry)
             else:
