@@ -234,6 +234,28 @@ def best_effort_outputs(nodes: list[Any]) -> set[str]:
     return topics
 
 
+def publisher_counts(nodes: list[Any]) -> dict[str, int]:
+    """Publishers per topic in the graph: the node processes' (as they reported them) and the
+    in-process nodes' (the feeder, the recorder, threads)."""
+    counts: dict[str, int] = defaultdict(int)
+    for n in nodes:
+        topics = n.publisher_topics if hasattr(n, 'node_class') else [p.topic_name for p in getattr(n, 'publishers', ())]
+        for topic in topics:
+            counts[topic] += 1
+    return counts
+
+
+def _wait_readers_matched(nodes: list[Any], publishers: dict[str, int], timeout_s: float = 10.0) -> None:
+    """Wait until this process's subscriptions (the recorder's) have matched the publishers of
+    their topics - a reader drops what a writer it has not discovered yet sends - or until
+    ``timeout_s`` (then the run goes on; a late match shows as a missing first output)."""
+    subs = [s for n in nodes if not hasattr(n, 'node_class') for s in getattr(n, 'subscriptions', ())
+            if publishers.get(s.topic_name, 0) > 0]
+    deadline = time.monotonic() + timeout_s
+    while any(s.get_publisher_count() < publishers[s.topic_name] for s in subs) and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
 def connect_node_processes(nodes: list[Any], ledger: DeliveryLedger) -> None:
     """Wait for every node process to build its node, tell each how many subscribers its
     outputs have (other node processes and this process's recorder), wait until they have
@@ -248,10 +270,12 @@ def connect_node_processes(nodes: list[Any], ledger: DeliveryLedger) -> None:
                 subscribers[topic] += 1
         for topic in ledger.by_topic:
             subscribers[topic] += ledger.subscribers(topic)
+        publishers = publisher_counts(nodes)
         for h in handles:
-            h.expect(subscribers)
+            h.expect(subscribers, publishers)
         for h in handles:
             h.wait_ready()
+        _wait_readers_matched(nodes, publishers)
     except NodeProcessError as exc:
         raise RunError(f'cannot start {exc}') from exc
     for h in handles:

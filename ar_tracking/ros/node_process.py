@@ -7,9 +7,9 @@ player (feeder) and the recorder in its own process and talks to each node proce
 
 1. the child starts rclpy on the runner's domain, builds the node (parameters as in-process),
    hands it the bag's static transforms, and reports its subscriptions and publishers;
-2. the runner answers with how many subscribers each of the child's output topics will have;
-   the child spins until its publishers have matched them (so that no first message is lost
-   to discovery) and reports ready;
+2. the runner answers with how many subscribers each of the child's output topics and how many
+   publishers each of its input topics will have; the child spins until both sides have
+   matched them (so that no first message is lost to discovery) and reports ready;
 3. after the playback and the drain, the runner asks for the child's counts (callbacks per
    input topic with their durations, messages published per topic) - the live report's
    figures - and the child shuts down cleanly. With the request come the numbers of messages
@@ -36,6 +36,9 @@ logger = logging.getLogger(__name__)
 
 #: How long a child may take to import, build its node and match its subscribers, s.
 START_TIMEOUT_S = 60.0
+#: How long a child waits for its subscriptions to match their topics' publishers, s (a
+#: publisher with a QoS the subscription cannot match never does: the run then goes on).
+READER_MATCH_TIMEOUT_S = 10.0
 #: How long a child may take to report its counts and exit, s.
 STOP_TIMEOUT_S = 10.0
 
@@ -91,11 +94,17 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         executor.add_node(node)
         conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers],
                    [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]))
-        expected: dict[str, int] = conn.recv()
+        expected, publishers = conn.recv()
         deadline = time.monotonic() + START_TIMEOUT_S
         pubs = [p for p in node.publishers if expected.get(p.topic_name, 0) > 0]
+        subs = [s for s in node.subscriptions if publishers.get(s.topic_name, 0) > 0]
+        subs_deadline = time.monotonic() + READER_MATCH_TIMEOUT_S
         while time.monotonic() < deadline and not stop.is_set():
-            if all(p.get_subscription_count() >= expected[p.topic_name] for p in pubs):
+            # Matched on both sides: a best-effort reader drops what a writer it has not yet
+            # discovered sends, even when that writer already counts it as matched.
+            if (all(p.get_subscription_count() >= expected[p.topic_name] for p in pubs)
+                    and (time.monotonic() > subs_deadline
+                         or all(s.get_publisher_count() >= publishers[s.topic_name] for s in subs))):
                 break
             executor.spin_once(timeout_sec=0.02)
         conn.send(('ready', None))
@@ -198,9 +207,11 @@ class NodeProcess:
             self._receive('created', START_TIMEOUT_S))
         self._created = True
 
-    def expect(self, subscribers: dict[str, int]) -> None:
-        """Tell the child how many subscribers each of its output topics will have."""
-        self._conn.send({t: subscribers.get(t, 0) for t in self.publisher_topics})
+    def expect(self, subscribers: dict[str, int], publishers: dict[str, int]) -> None:
+        """Tell the child how many subscribers each of its output topics and how many
+        publishers each of its input topics will have (it waits until it has matched them)."""
+        self._conn.send(({t: subscribers.get(t, 0) for t in self.publisher_topics},
+                         {t: publishers.get(t, 0) for t in self.subscription_topics}))
 
     def wait_ready(self) -> None:
         self._receive('ready', START_TIMEOUT_S)
