@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.blas import dger
 
-from .rotations import (QuatFloats, quat_wxyz_log_along, quat_wxyz_mul_floats,
+from .rotations import (QuatFloats, quat_wxyz_conj_floats, quat_wxyz_log_along, quat_wxyz_mul_floats,
                         quat_wxyz_of_rows)
 
 
@@ -376,40 +376,20 @@ class AzimuthDistortion:
         if c_i is None or knots_i is None:
             return
         u = axes[0]
-        # d = log(A_j G^T A_i^T) along up with G = C_i^T C_j, written out: the products and the
-        # logarithm of .rotations' quat_wxyz_mul_floats and quat_wxyz_log_along, the same
-        # operations in the same order (their calls were a fifth of a comparison's cost).
-        aw, ax, ay, az = c_i[0], -c_i[1], -c_i[2], -c_i[3]  # C_i^T
-        bw, bx, by, bz = c_j
-        g = (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-             aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
-        aw, ax, ay, az = qa_j
-        bw, bx, by, bz = g[0], -g[1], -g[2], -g[3]  # G^T
-        pw, px, py, pz = (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                          aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
-        qa_i_inv = (qa_i[0], -qa_i[1], -qa_i[2], -qa_i[3])
-        bw, bx, by, bz = qa_i_inv
-        w = pw * bw - px * bx - py * by - pz * bz
-        x = pw * bx + px * bw + py * bz - pz * by
-        y = pw * by - px * bz + py * bw + pz * bx
-        z = pw * bz + px * by - py * bx + pz * bw
-        if w < 0.0:
-            w, x, y, z = -w, -x, -y, -z
-        n = math.sqrt(x * x + y * y + z * z)
-        d = (2.0 if n < 1e-12 else 2.0 * math.atan2(n, w) / n) * (x * u[0] + y * u[1] + z * u[2])
+        # d = log(A_j G^T A_i^T) along up, with G = C_i^T C_j (on Python floats, .rotations)
+        g = quat_wxyz_mul_floats(quat_wxyz_conj_floats(c_i), c_j)
+        qa_i_inv = quat_wxyz_conj_floats(qa_i)
+        d = quat_wxyz_log_along(quat_wxyz_mul_floats(quat_wxyz_mul_floats(qa_j, quat_wxyz_conj_floats(g)), qa_i_inv), u)
         dt = (t_ns - t_i) * 1e-9
         K = cfg.knots
-        # h's four knot entries summed as Python floats (two may share a knot), then set in a
-        # zero array: np.array of the 38 floats cost three times that.
-        hl = [0.0] * K
+        # h: the two frames' knot weights (two may share a knot), the bias's -dt, the scale's
         j0, j1, fj = knots_j
         i0, i1, fi = knots_i
-        hl[j0] += 1.0 - fj
-        hl[j1] += fj
-        hl[i0] -= 1.0 - fi
-        hl[i1] -= fi
         h = np.zeros(K + 2)
-        h[j0], h[j1], h[i0], h[i1] = hl[j0], hl[j1], hl[i0], hl[i1]
+        h[j0] += 1.0 - fj
+        h[j1] += fj
+        h[i0] -= 1.0 - fi
+        h[i1] -= fi
         h[K] = -dt
         if cfg.scale_sigma > 0:  # the gyro's turn about up, for its scale error (0: not estimated)
             h[K + 1] = -quat_wxyz_log_along(quat_wxyz_mul_floats(quat_wxyz_mul_floats(qa_i, g), qa_i_inv), u)

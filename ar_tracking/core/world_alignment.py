@@ -81,8 +81,6 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
-
-
 # The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
 _SKEW_AT = np.array([1, 2, 3, 5, 6, 7])
 _SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
@@ -583,9 +581,10 @@ class WorldAlignment:
             + c.tilt_floor_rad ** 2
         heading_var = (field_var + c.heading_floor_rad ** 2
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
-        # (Positional, in the fields' order: keywords cost a fifth more of the per-call time.)
         self._estimate = WorldAlignmentEstimate(
-            R_pano_enu, np.array((tilt_var, 0.0, 0.0, 0.0, tilt_var, 0.0, 0.0, 0.0, heading_var)).reshape(3, 3),
-            field[3], field[1], gravity[1], self._soft_iron, self._field_scale)
+            R_pano_enu=R_pano_enu,
+            covariance_enu=np.array((tilt_var, 0.0, 0.0, 0.0, tilt_var, 0.0, 0.0, 0.0, heading_var)).reshape(3, 3),
+            field_outlier_share=field[3], hard_iron=field[1], accel_bias=gravity[1], soft_iron=self._soft_iron,
+            field_scale=self._field_scale)
         self._dirty = False
         return self._estimate
