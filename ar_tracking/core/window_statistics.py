@@ -31,7 +31,11 @@ def row_medians(x: Array) -> Array:
 
 
 def median(x: Array) -> float:
-    """The median of a 1-D array (:func:`row_medians` of its one row)."""
+    """The median of a 1-D array as ``np.median`` gives it, NaN for an empty array or one that
+    holds a NaN (:func:`row_medians` of its one row); also the parallax fit's (annotations)."""
+    x = np.asarray(x, dtype=float).reshape(-1)
+    if x.size == 0 or np.isnan(x).any():
+        return math.nan
     return float(row_medians(x[None, :])[0])
 
 

@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..rotations import cross3, rotations_about_axis
+from ..window_statistics import median
 
 Array = NDArray[np.float64]
 
@@ -52,19 +53,6 @@ def _horizontal_axes(up: Array) -> tuple[Array, Array]:
     e1 = cross3(up, helper)
     e1 /= np.linalg.norm(e1)
     return e1, cross3(up, e1)
-
-
-def _median(x: Array) -> float:
-    """``np.median`` of a 1-D array, the same value without its ~20 us of overhead (the
-    leave-one-out parallax fits take two medians each, ~50 per ``result``): the middle of the
-    sorted values, or the mean of the two middle ones (their sum halved, as ``np.mean`` rounds
-    it); NaN for an empty array or one holding NaN."""
-    s = np.sort(np.asarray(x, float).reshape(-1))
-    n = s.size
-    if n == 0 or math.isnan(s[-1]):
-        return math.nan
-    h = n // 2
-    return float(s[h]) if n % 2 else float((s[h - 1] + s[h]) / 2.0)
 
 
 def _elevation_factor(up: Array, dirs: Array) -> Array:
@@ -164,7 +152,7 @@ def fit_parallax(predicted: Array, observed: Array, up: Array, sigma_match: floa
         y = np.concatenate([r[keep] / sigma_match, [0.0, 0.0]])
         coef = np.linalg.lstsq(A, y, rcond=None)[0]
         res = np.abs(r - X @ coef)
-        keep = res <= max(trim_sigmas * 1.4826 * _median(res), sigma_match / 5)
+        keep = res <= max(trim_sigmas * 1.4826 * median(res), sigma_match / 5)
     c, a, b = coef
     return ParallaxModel(k, float(c), float(a), float(b), elevation)
 
