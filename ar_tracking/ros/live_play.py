@@ -245,17 +245,6 @@ def publisher_counts(nodes: list[Any]) -> dict[str, int]:
     return counts
 
 
-def _wait_readers_matched(nodes: list[Any], publishers: dict[str, int], timeout_s: float = 10.0) -> None:
-    """Wait until this process's subscriptions (the recorder's) have matched the publishers of
-    their topics - a reader drops what a writer it has not discovered yet sends - or until
-    ``timeout_s`` (then the run goes on; a late match shows as a missing first output)."""
-    subs = [s for n in nodes if not hasattr(n, 'node_class') for s in getattr(n, 'subscriptions', ())
-            if publishers.get(s.topic_name, 0) > 0]
-    deadline = time.monotonic() + timeout_s
-    while any(s.get_publisher_count() < publishers[s.topic_name] for s in subs) and time.monotonic() < deadline:
-        time.sleep(0.01)
-
-
 def connect_node_processes(nodes: list[Any], ledger: DeliveryLedger) -> None:
     """Wait for every node process to build its node, tell each how many subscribers its
     outputs have (other node processes and this process's recorder), wait until they have
@@ -275,7 +264,6 @@ def connect_node_processes(nodes: list[Any], ledger: DeliveryLedger) -> None:
             h.expect(subscribers, publishers)
         for h in handles:
             h.wait_ready()
-        _wait_readers_matched(nodes, publishers)
     except NodeProcessError as exc:
         raise RunError(f'cannot start {exc}') from exc
     for h in handles:

@@ -47,8 +47,8 @@ from ..io.static_tf import TF_STATIC_TOPIC, static_transforms
 from .graph_plan import (EXECUTOR_CHOICES, GRAPH_CHOICES, GRAPH_NODES, NAMED_GRAPHS, ROTATION_IN_PLACE_TOPIC,
                          RunError, check_rate, choose_nodes, load_node_class, plan_nodes, transport_probe_graph)
 from .live_play import (IMAGE_TYPES, SENSOR_STAMP_TYPES, RealtimePlayback, best_effort_outputs, connect_node_processes, latency_stamp_topics, live_report,
-                        stop_node_processes)
-from .node_process import NodeProcess
+                        publisher_counts, stop_node_processes)
+from .node_process import READER_MATCH_TIMEOUT_S, NodeProcess
 from .params import params_for_node, to_overrides
 from .run_state import DeliveryLedger, Recorder, RunResult, RunSession, header_stamp_ns
 from .signals import StopOnSignal
@@ -366,7 +366,7 @@ class GraphRunner:
             connect_node_processes(s.nodes, ledger)
         # Realtime with per-node threads: each processing node gets its own executor; the
         # feeder and the recorder stay on the main executor.
-        if s.realtime and self._live_kind() == 'threads':
+        if s.realtime and self._executor == 'threads':
             from .node_base import node_executor
 
             for n in s.nodes[:-2]:
@@ -495,24 +495,27 @@ class GraphRunner:
             return MultiThreadedExecutor(num_threads=max(2, len(self.graph) + 1), context=context)
         return SingleThreadedExecutor(context=context)
 
-    def _live_kind(self) -> str:
-        """Realtime executor layout: 'threads' (each node on its own thread and executor,
-        :func:`~ar_tracking.ros.node_base.node_executor`; the default) or 'shared' (every node on one executor of the
-        kind asked for: single, events or multi)."""
-        return 'threads' if self._executor in ('auto', 'threads') else 'shared'
-
     def _wait_for_discovery(self, executor: Any, nodes: list[Any], timeout_s: float = 15.0) -> None:
-        """Spin until every publisher sees the subscriptions of its topic in this graph."""
+        """Spin until every publisher sees the subscriptions of its topic in this graph and, with
+        node processes, this process's subscriptions see their publishers (a best-effort reader
+        drops what a writer it has not yet discovered sends; waited for at most
+        READER_MATCH_TIMEOUT_S: a QoS that never matches does not hold the run)."""
         deadline = time.monotonic() + timeout_s
         subscribers = self._ledger.subscribers
         pubs = [p for n in nodes for p in getattr(n, 'publishers', ()) if subscribers(p.topic_name)]
         handles = [n for n in nodes if hasattr(n, 'node_class')]
+        publishers = publisher_counts(nodes) if handles else {}
+        readers = [r for n in nodes if not hasattr(n, 'node_class') for r in getattr(n, 'subscriptions', ())
+                   if publishers.get(r.topic_name)]
+        readers_deadline = time.monotonic() + READER_MATCH_TIMEOUT_S
         while time.monotonic() < deadline:
             for h in handles:
                 why = h.died()
                 if why is not None:
                     raise RunError(f'{h.name} died while starting: {why}')
-            if all(p.get_subscription_count() >= subscribers(p.topic_name) for p in pubs):
+            if (all(p.get_subscription_count() >= subscribers(p.topic_name) for p in pubs)
+                    and (time.monotonic() > readers_deadline
+                         or all(r.get_publisher_count() >= publishers[r.topic_name] for r in readers))):
                 # Every reader matched; let the writers' side settle too.
                 executor.spin_once(timeout_sec=0.01)
                 return

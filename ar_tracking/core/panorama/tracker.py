@@ -102,7 +102,8 @@ class TrackResult:
     #: The inliers of the fit, for the readout's estimate (:mod:`.readout`); None on failure.
     row_fit: RowFit | None = None
     #: The rotation fitted to the inliers, also when the ratios rejected it (where a lost
-    #: camera's view was found); None when nothing was fitted.
+    #: camera's view was found; the prediction when fewer than 3 agreed); None when the attempt
+    #: ended before the fit.
     R_fit: Array | None = None
 
 
