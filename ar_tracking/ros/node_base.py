@@ -92,7 +92,11 @@ class _CountingPublisher:
         self._topic = publisher.topic_name
 
     def publish(self, msg: Any) -> None:
-        self._publisher.publish(msg)
+        tap = self._node.publish_tap
+        if tap is None:
+            self._publisher.publish(msg)
+        else:  # lockstep over node processes: the runner carries it (ros/parallel_lockstep.py)
+            tap(self._topic, msg)
         self._node.publish_counts[self._topic] += 1
         hooks = self._node.lockstep_hooks
         if hooks is not None:
@@ -117,6 +121,9 @@ class TrackingNode(Node):
     INPUTS: dict[str, str] = {}
     #: Topics the node publishes -> message type (relative names, for the runner and recorder).
     OUTPUTS: dict[str, str] = {}
+    #: (topic, message or CDR bytes) -> None: takes every publication instead of DDS (set in a
+    #: node process of a lockstep run, ros/parallel_lockstep.py; None: publish as usual)
+    publish_tap: Callable[[str, Any], None] | None = None
 
     def __init__(self, node_name: str, **kwargs: Any) -> None:
         kwargs.setdefault('automatically_declare_parameters_from_overrides', False)

@@ -66,10 +66,13 @@ def _parent_log_level() -> int | None:
 
 
 def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, transforms: list[Any],
-                conn: Any, stop: Any, log_level: int | None = None) -> None:
+                conn: Any, stop: Any, log_level: int | None = None, lockstep: bool = False) -> None:
     """Entry point of the child process (spawned: nothing of the parent's DDS state is inherited,
-    so the parent's log level comes as ``log_level``)."""
+    so the parent's log level comes as ``log_level``). ``lockstep``: the runner carries the
+    node's messages over the pipe (:mod:`~ar_tracking.ros.parallel_lockstep`), not DDS."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the runner, which stops us
+    if lockstep:  # nothing goes over DDS: no discovery traffic with anyone
+        os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     import rclpy
     import rclpy.logging
@@ -78,14 +81,19 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         rclpy.logging.set_logger_level('', log_level)
     from rclpy.qos import ReliabilityPolicy
 
-    from .node_base import node_executor
+    from .node_base import TrackingNode, node_executor
     from .params import to_overrides
 
     context = rclpy.Context()
     node = None
+    outbox: list[tuple[str, bytes]] = []
     try:
         rclpy.init(context=context, domain_id=domain_id)
         cls = load_node_class(spec)
+        if lockstep:
+            from .parallel_lockstep import publication_tap
+
+            TrackingNode.publish_tap = staticmethod(publication_tap(outbox, cls.OUTPUTS))
         node = cls(context=context, parameter_overrides=to_overrides(params))
         node.lockstep_hooks = None
         if transforms and callable(getattr(node, 'on_static_transforms', None)):
@@ -93,7 +101,17 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         executor = node_executor(context)
         executor.add_node(node)
         conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers],
-                   [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]))
+                   [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT],
+                   {s.topic_name: _depth(s.qos_profile) for s in node.subscriptions}))
+        if lockstep:
+            from .parallel_lockstep import serve_steps
+
+            conn.send(('ready', list(outbox)))
+            outbox.clear()
+            serve_steps(node, conn, outbox)
+            conn.send(('counts', {t: list(s.durations_ms) for t, s in node.callback_stats.items()},
+                       dict(node.publish_counts), time.process_time()))
+            return
         expected, publishers = conn.recv()
         deadline = time.monotonic() + START_TIMEOUT_S
         pubs = [p for p in node.publishers if expected.get(p.topic_name, 0) > 0]
@@ -128,6 +146,13 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         rclpy.try_shutdown(context=context)
 
 
+def _depth(qos: Any) -> int | None:
+    """A subscription's KEEP_LAST depth (None: KEEP_ALL)."""
+    from rclpy.qos import HistoryPolicy
+
+    return None if qos.history == HistoryPolicy.KEEP_ALL else max(1, int(qos.depth))
+
+
 def _take_the_rest(node: Any, executor: Any, expected: dict[str, int]) -> None:
     """Once asked to stop: take the inputs still queued or in flight, as the in-process drain
     would. ``expected`` (fully qualified topic -> messages its publishers sent, from the runner;
@@ -153,16 +178,21 @@ class NodeProcess:
     """Runner-side handle of one node running in a child process (module docstring)."""
 
     def __init__(self, name: str, spec: Any, params: dict[str, Any], domain_id: int,
-                 transforms: list[Any] | None = None) -> None:
+                 transforms: list[Any] | None = None, lockstep: bool = False) -> None:
         self.name = name
+        #: the runner carries this node's messages over the pipe (parallel_lockstep)
+        self.lockstep = lockstep
         self.node_class = load_node_class(spec)
         mp = multiprocessing.get_context('spawn')
         self._stop = mp.Event()
         self._conn, child_conn = mp.Pipe()
         self.process = mp.Process(
             target=_child_main, name=f'ar_tracking_{name}', daemon=True,
-            args=(name, spec, params, domain_id, list(transforms or []), child_conn, self._stop, _parent_log_level()))
+            args=(name, spec, params, domain_id, list(transforms or []), child_conn, self._stop, _parent_log_level(),
+                  lockstep))
         self.subscription_topics: list[str] = []
+        #: subscribed topic -> its KEEP_LAST depth (None: KEEP_ALL)
+        self.subscription_depths: dict[str, int | None] = {}
         self.publisher_topics: list[str] = []
         #: Output topics the child's node publishes best effort (a reliable reader never matches).
         self.best_effort_topics: list[str] = []
@@ -203,8 +233,8 @@ class NodeProcess:
         """Block until the child has built its node (its topics are then known); once."""
         if self._created:
             return
-        self.subscription_topics, self.publisher_topics, self.best_effort_topics = (  # type: ignore[assignment]
-            self._receive('created', START_TIMEOUT_S))
+        (self.subscription_topics, self.publisher_topics, self.best_effort_topics,
+         self.subscription_depths) = self._receive('created', START_TIMEOUT_S)
         self._created = True
 
     def expect(self, subscribers: dict[str, int], publishers: dict[str, int]) -> None:
@@ -213,8 +243,32 @@ class NodeProcess:
         self._conn.send(({t: subscribers.get(t, 0) for t in self.publisher_topics},
                          {t: publishers.get(t, 0) for t in self.subscription_topics}))
 
-    def wait_ready(self) -> None:
-        self._receive('ready', START_TIMEOUT_S)
+    def wait_ready(self) -> tuple[Any, ...]:
+        """Block until the child is ready; in lockstep, its report holds what the node
+        published before its first input."""
+        return self._receive('ready', START_TIMEOUT_S)
+
+    # Lockstep over the pipe (parallel_lockstep).
+    @property
+    def connection(self) -> Any:
+        return self._conn
+
+    def send_steps(self, chunk: list[tuple[int, list[tuple[str, bytes]]]]) -> None:
+        """Send the child the inputs of some steps, (seq, [(topic, raw), ...]) in step order."""
+        self._conn.send(('steps', chunk))
+
+    def receive_outputs(self) -> list[tuple[int, list[tuple[str, bytes]], list[str]]]:
+        """One report of the child: per step of a chunk sent, (seq, what it published, the
+        topics of inputs it could not read); NodeProcessError if it failed or is gone."""
+        try:
+            msg = self._conn.recv()
+        except (EOFError, OSError):
+            self.failure = self.failure or f'exited with code {self.process.exitcode}'
+            raise NodeProcessError(f'{self.name}: {self.failure}') from None
+        if msg[0] == 'error':
+            self.failure = msg[1]
+            raise NodeProcessError(f'{self.name}: {msg[1]}')
+        return msg[1]
 
     def died(self) -> str | None:
         """Why the child is gone while it should run (None while it runs)."""
@@ -264,6 +318,11 @@ class NodeProcess:
         """Stop the child, collect its counts and let it exit (killed if it does not)."""
         if self.process.pid is None:
             return
+        if self.lockstep and not self._stop.is_set():
+            try:
+                self._conn.send(('stop',))
+            except OSError:  # the child is gone: reported below
+                pass
         self._stop.set()
         if not self.reported() and self.process.is_alive():
             try:

@@ -6,6 +6,7 @@ share one :class:`RunSession`, and each part reads and books what it needs there
 """
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections import defaultdict
@@ -14,6 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from ..io.bags import BagReader, BagWriter
+from ..io.static_tf import TF_STATIC_TOPIC, static_transforms
+
+logger = logging.getLogger('ar_tracking.ros.runner')  # what it logs is the runner's
 
 #: Realtime: after the last input, spin until the nodes have processed nothing more for
 #: this long (their queues are empty), at most DRAIN_MAX_S.
@@ -289,3 +293,42 @@ class RunSession:
     #: lockstep: the one LockstepHooks (ros.node_base) every in-process node, the feeder and the
     #: recorder report through; None in realtime (each node counts only its own messages)
     lockstep_hooks: Any = None
+    #: lockstep over node processes: the ParallelLockstep that feeds them (ros.parallel_lockstep)
+    parallel: Any = None
+
+
+def hand_static_transforms(reader: BagReader, nodes: list[Any]) -> None:
+    """Give the bag's /tf_static to every node with an ``on_static_transforms`` method.
+
+    The pip-only ROS has no tf2_msgs, so no node can subscribe to /tf_static; the runner
+    reads it with rosbags (io.static_tf.static_transforms) and calls the method with the list of
+    StaticTransform (parent, child, rotation, translation) before the first message. A
+    node that fails on them keeps running without (one warning).
+    """
+    if TF_STATIC_TOPIC not in reader.topics:
+        return
+    receivers = [n for n in nodes if callable(getattr(n, 'on_static_transforms', None))]
+    if not receivers:
+        return
+    transforms = static_transforms(reader)
+    if not transforms:
+        return
+    for node in receivers:
+        try:
+            node.on_static_transforms(transforms)
+        except Exception as exc:  # a node's bug must not end the run
+            logger.warning('%s: cannot use /tf_static (%s: %s)', node.get_name(), type(exc).__name__, exc)
+        else:
+            logger.info('%s: %d static transforms from the bag\'s /tf_static', node.get_name(), len(transforms))
+
+
+def log_drops(result: RunResult) -> None:
+    """One line per node and topic whose queue a burst overflowed (INFO for depth-1
+    latest-value subscriptions, WARNING for the others: the node may have needed them)."""
+    for node, topics in sorted(result.superseded.items()):
+        for topic, n in sorted(topics.items()):
+            logger.info('%s: %d messages on %s superseded by newer ones (depth 1: latest value only)',
+                        node, n, topic)
+    for node, topics in sorted(result.dropped.items()):
+        for topic, n in sorted(topics.items()):
+            logger.warning('%s: %d messages on %s dropped: a burst overflowed its queue', node, n, topic)

@@ -50,7 +50,7 @@ from .live_play import (IMAGE_TYPES, SENSOR_STAMP_TYPES, RealtimePlayback, best_
                         publisher_counts, stop_node_processes)
 from .node_process import READER_MATCH_TIMEOUT_S, NodeProcess
 from .params import params_for_node, to_overrides
-from .run_state import DeliveryLedger, Recorder, RunResult, RunSession, header_stamp_ns
+from .run_state import DeliveryLedger, Recorder, RunResult, RunSession, hand_static_transforms, header_stamp_ns, log_drops
 from .signals import StopOnSignal
 
 __all__ = [
@@ -169,9 +169,8 @@ class GraphRunner:
         self.rate = check_rate(self.rate, lockstep=True)
         if self.executor_kind not in EXECUTOR_CHOICES:
             raise RunError(f'unknown executor {self.executor_kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
-        if self.executor_kind in ('multi', 'processes') and self.rate == 0:
-            raise RunError(f'--executor {self.executor_kind} is for realtime runs (--rate R); '
-                           'lockstep spins one node at a time')
+        if self.executor_kind == 'multi' and self.rate == 0:
+            raise RunError('--executor multi is for realtime runs (--rate R); lockstep spins one node at a time')
         self._executor = self._resolve_executor()
         reader = BagReader(self.bag_path)
         reader.open()
@@ -198,8 +197,7 @@ class GraphRunner:
         result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names, not_started=not_started)
         self._ledger = DeliveryLedger()
         realtime = self.rate > 0
-        session = RunSession(reader, result, realtime=realtime,
-                             in_processes=realtime and self._executor == 'processes')
+        session = RunSession(reader, result, realtime=realtime, in_processes=self._executor == 'processes')
         session.lockstep_hooks = self._hooks()
         try:
             self._start_nodes(session, names, node_params, context, domain_id)
@@ -251,7 +249,7 @@ class GraphRunner:
             if s.realtime:
                 params['use_sim_time'] = True
             if s.in_processes:
-                handle = NodeProcess(name, self.graph[name], params, domain_id, transforms)
+                handle = NodeProcess(name, self.graph[name], params, domain_id, transforms, lockstep=not s.realtime)
                 handle.start()
                 s.nodes.append(handle)
                 continue
@@ -263,7 +261,7 @@ class GraphRunner:
             node.lockstep_hooks = hooks
             s.nodes.append(node)
         if not s.in_processes:
-            self._hand_static_transforms(reader, s.nodes)
+            hand_static_transforms(reader, s.nodes)
 
     def _wire(self, s: RunSession, names: list[str], context: Any) -> None:
         """The feeder (a publisher per consumed bag topic, /clock in realtime), the recorder
@@ -273,6 +271,7 @@ class GraphRunner:
 
         bag_types = s.reader.topics
         hooks = s.lockstep_hooks
+        parallel = s.in_processes and not s.realtime
         consumed = {t for n in s.nodes for t in _node_class(n).INPUTS}
         produced = {t for n in s.nodes for t in _node_class(n).OUTPUTS}
         output_types: dict[str, str] = {}
@@ -286,8 +285,8 @@ class GraphRunner:
             if topic.lstrip('/') in produced:
                 logger.warning('%s is in the bag and produced by a node: the node wins', topic)
                 continue
-            if topic.lstrip('/') in consumed:
-                s.feed_pubs[topic] = feeder.advertise(message_class(msgtype), topic, RELIABLE_QOS)
+            if topic.lstrip('/') in consumed:  # (a lockstep over node processes feeds them over pipes)
+                s.feed_pubs[topic] = (None if parallel else feeder.advertise(message_class(msgtype), topic, RELIABLE_QOS))
         if s.realtime:
             from rosgraph_msgs.msg import Clock
 
@@ -301,15 +300,18 @@ class GraphRunner:
             and (self.copy_images or ty not in IMAGE_TYPES)
             and t not in output_types
         }
-        self._open_output(s, names, output_types, recorder_node)
-        self._make_executors(s, context)
-        self._wait_for_discovery(s.executor, s.nodes)
+        self._open_output(s, names, output_types, None if parallel else recorder_node)
+        if parallel:
+            self._connect_parallel(s, output_types)
+        else:
+            self._make_executors(s, context)
+            self._wait_for_discovery(s.executor, s.nodes)
         s.total = s.reader.message_count(set(s.feed_pubs) | s.copy_topics)
         if self.max_messages is not None:
             s.total = min(s.total, self.max_messages)
 
     def _open_output(self, s: RunSession, names: list[str], output_types: dict[str, str], recorder_node: Any) -> None:
-        """Open the output bag and subscribe the recorder node to every node output."""
+        """Open the output bag and subscribe the recorder node (if any) to every node output."""
         from .conversions import message_class
         from .node_base import RECORDER_BEST_EFFORT_QOS, RECORDER_QOS
 
@@ -324,12 +326,25 @@ class GraphRunner:
         s.clock_ns = [s.reader.start_ns]
         # The recorder keeps every message (KEEP_ALL) with the reliability its publishers offer
         # (as rosbag2: a reliable reader never matches a best-effort publisher).
-        best_effort = best_effort_outputs(s.nodes)
-        for topic, msgtype in sorted(output_types.items()):
+        best_effort = best_effort_outputs(s.nodes) if recorder_node is not None else set()
+        for topic, msgtype in sorted(output_types.items() if recorder_node is not None else ()):
             qos = RECORDER_BEST_EFFORT_QOS if topic in best_effort else RECORDER_QOS
             recorder_node.subscribe(message_class(msgtype), topic,
                                     self._tapped(self._record_callback(s, topic, output_types), topic, msgtype),
                                     qos, raw=True)
+
+    def _connect_parallel(self, s: RunSession, output_types: dict[str, str]) -> None:
+        """Lockstep over node processes: wait for them to start, and the runner's
+        :class:`~ar_tracking.ros.parallel_lockstep.ParallelLockstep` that feeds them."""
+        from .parallel_lockstep import ParallelLockstep
+
+        recorder = s.recorder
+        assert recorder is not None
+        record = {t: self._tapped(lambda raw, t=t: recorder.add(t, raw), t, ty)  # type: ignore[misc]
+                  for t, ty in output_types.items()}
+        s.parallel = ParallelLockstep([n for n in s.nodes if hasattr(n, 'node_class')], recorder, s.result,
+                                      lambda topic, raw: record[topic](raw))
+        s.parallel.connect()
 
     def _record_callback(self, s: RunSession, topic: str, output_types: dict[str, str]) -> Callable[[bytes], None]:
         """How the recorder takes one output: in lockstep into the step's batch (written in a
@@ -387,6 +402,9 @@ class GraphRunner:
                     s.stamp_topics = latency_stamp_topics(s.feed_pubs, s.reader.topics)
                     RealtimePlayback(s, rate=self.rate, max_messages=self.max_messages, progress=self.progress,
                                      stop=self._stop).run()
+                elif s.parallel is not None:
+                    s.parallel.play(s.reader.messages(set(s.feed_pubs) | s.copy_topics), set(s.feed_pubs),
+                                    s.copy_topics, self._stop, self.max_messages, self.progress, s.total)
                 else:
                     self._play_lockstep(s)
             result.interrupted = stop.requested.is_set()
@@ -400,14 +418,17 @@ class GraphRunner:
         """After the feed: stop the node processes, then the counts into the result."""
         result, ledger = s.result, self._ledger
         assert s.recorder is not None
-        if s.in_processes:
+        if s.in_processes and s.realtime:
             stop_node_processes(s.nodes, s.executor, s.recorder)
+        for n in s.nodes:  # lockstep over node processes: their counts
+            if hasattr(n, 'node_class') and not s.realtime:
+                n.stop()
         result.output_messages = s.recorder.count
         if s.realtime:
             live_report(s.nodes, result)
         else:
             ledger.report(result)
-            self._log_drops(result)
+            log_drops(result)
             if ledger.corrections:
                 logger.debug('delivery ledger: %d messages booked as replaced were delivered', ledger.corrections)
         for n in s.nodes[:-2]:
@@ -448,31 +469,6 @@ class GraphRunner:
                     logger.warning('%s: output tap failed (%s); left out', topic, exc)
                     taps.remove(tap)
         return record_and_tap
-
-    @staticmethod
-    def _hand_static_transforms(reader: BagReader, nodes: list[Any]) -> None:
-        """Give the bag's /tf_static to every node with an ``on_static_transforms`` method.
-
-        The pip-only ROS has no tf2_msgs, so no node can subscribe to /tf_static; the runner
-        reads it with rosbags (io.static_tf.static_transforms) and calls the method with the list of
-        StaticTransform (parent, child, rotation, translation) before the first message. A
-        node that fails on them keeps running without (one warning).
-        """
-        if TF_STATIC_TOPIC not in reader.topics:
-            return
-        receivers = [n for n in nodes if callable(getattr(n, 'on_static_transforms', None))]
-        if not receivers:
-            return
-        transforms = static_transforms(reader)
-        if not transforms:
-            return
-        for node in receivers:
-            try:
-                node.on_static_transforms(transforms)
-            except Exception as exc:  # a node's bug must not end the run
-                logger.warning('%s: cannot use /tf_static (%s: %s)', node.get_name(), type(exc).__name__, exc)
-            else:
-                logger.info('%s: %d static transforms from the bag\'s /tf_static', node.get_name(), len(transforms))
 
     def _make_executor(self, context: Any, realtime: bool) -> Any:
         from rclpy.executors import SingleThreadedExecutor
@@ -585,16 +581,3 @@ class GraphRunner:
                     )
                 return
         self._consecutive_losses[topic] = 0
-
-    @staticmethod
-    def _log_drops(result: RunResult) -> None:
-        """One line per node and topic whose queue a burst overflowed (INFO for depth-1
-        latest-value subscriptions, WARNING for the others: the node may have needed them)."""
-        for node, topics in sorted(result.superseded.items()):
-            for topic, n in sorted(topics.items()):
-                logger.info('%s: %d messages on %s superseded by newer ones (depth 1: latest value only)',
-                            node, n, topic)
-        for node, topics in sorted(result.dropped.items()):
-            for topic, n in sorted(topics.items()):
-                logger.warning('%s: %d messages on %s dropped: a burst overflowed its queue', node, n, topic)
-

@@ -85,3 +85,70 @@ class BestEffortRelay(TrackingNode):
         super().__init__('relay', **kwargs)
         self.pub = self.advertise(Imu, 'relay/imu', STREAM_QOS)
         self.subscribe(Imu, 'imu/data_raw', self.pub.publish, STREAM_QOS)
+
+
+class Relay(TrackingNode):
+    """Republishes each IMU sample on relay/imu at once (reliable, as the graph's nodes)."""
+
+    INPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+    OUTPUTS = {'relay/imu': 'sensor_msgs/msg/Imu'}
+
+    def __init__(self, **kwargs: Any) -> None:
+        from ar_tracking.ros.node_base import STREAM_QOS
+
+        super().__init__('relay', **kwargs)
+        self.pub = self.advertise(Imu, 'relay/imu')
+        self.subscribe(Imu, 'imu/data_raw', self.pub.publish, STREAM_QOS)
+
+
+class TripleRelay(TrackingNode):
+    """Publishes every field sample three times on relay/mag, each with its own z."""
+
+    INPUTS = {'imu/mag': 'sensor_msgs/msg/MagneticField'}
+    OUTPUTS = {'relay/mag': 'sensor_msgs/msg/MagneticField'}
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('triple', **kwargs)
+        self.pub = self.advertise(MagneticField, 'relay/mag')
+        self.subscribe(MagneticField, 'imu/mag', self.on_mag)
+
+    def on_mag(self, msg: MagneticField) -> None:
+        for k in range(3):
+            msg.magnetic_field.z = float(k)
+            self.pub.publish(msg)
+
+
+class LatestField(TrackingNode):
+    """Takes relay/mag with depth 1 (the latest value only) and relay/imu, and publishes on
+    joined/imu each IMU sample with the z of the last field it took as its orientation.w."""
+
+    INPUTS = {'relay/mag': 'sensor_msgs/msg/MagneticField', 'relay/imu': 'sensor_msgs/msg/Imu'}
+    OUTPUTS = {'joined/imu': 'sensor_msgs/msg/Imu'}
+
+    def __init__(self, **kwargs: Any) -> None:
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        super().__init__('latest', **kwargs)
+        self.z = -1.0
+        self.pub = self.advertise(Imu, 'joined/imu')
+        self.subscribe(MagneticField, 'relay/mag', self.on_mag, QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        self.subscribe(Imu, 'relay/imu', self.on_imu, QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+
+    def on_mag(self, msg: MagneticField) -> None:
+        self.z = msg.magnetic_field.z
+
+    def on_imu(self, msg: Imu) -> None:
+        msg.orientation.w = self.z
+        self.pub.publish(msg)
+
+
+class Echo(TrackingNode):
+    """Takes relay/imu and publishes it on imu/data_raw: with Relay, a cycle."""
+
+    INPUTS = {'relay/imu': 'sensor_msgs/msg/Imu'}
+    OUTPUTS = {'imu/data_raw': 'sensor_msgs/msg/Imu'}
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('echo', **kwargs)
+        self.pub = self.advertise(Imu, 'imu/data_raw')
+        self.subscribe(Imu, 'relay/imu', self.pub.publish)

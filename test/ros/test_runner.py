@@ -14,8 +14,8 @@ import pytest
 pytest.importorskip('rclpy')
 
 from ar_tracking.eval.metrics import evaluate_bag  # noqa: E402
-from ar_tracking.io.bags import BagReader  # noqa: E402
-from ar_tracking.ros.runner import GraphRunner, RunError  # noqa: E402
+from ar_tracking.io.bags import BagReader, read_metadata  # noqa: E402
+from ar_tracking.ros.runner import RUN_METADATA, GraphRunner, RunError  # noqa: E402
 from bagfactory import write_turning_imu_bag  # noqa: E402
 
 CLI = [sys.executable, '-m', 'ar_tracking.cli']
@@ -625,7 +625,41 @@ def test_a_best_effort_publisher_is_recorded(tmp_path, executor):
         assert out.message_count(['/relay/imu']) >= 15  # best effort on one machine: ~all of 20
 
 
-def test_processes_executor_is_for_realtime_runs(tmp_path):
-    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.2)
-    with pytest.raises(RunError, match='processes is for realtime runs'):
-        GraphRunner(bag, tmp_path / 'out.mcap', executor='processes').run()
+def test_lockstep_over_node_processes_equals_one_process(tmp_path):
+    """Lockstep with every node in a process of its own (``--executor processes`` without
+    ``--rate``; the runner carries the messages over pipes): the same output bag, byte for byte,
+    as the one-process lockstep, a node downstream of two others included, and a burst into a
+    depth-1 subscription booked as superseded in the same way."""
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import Imu
+
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=1.0, rate_hz=50.0)
+    graph = {'relay': 'live_test_nodes:Relay', 'triple': 'live_test_nodes:TripleRelay',
+             'latest': 'live_test_nodes:LatestField'}
+    one = GraphRunner(bag, tmp_path / 'one.mcap', graph=graph).run()
+    many = GraphRunner(bag, tmp_path / 'many.mcap', graph=graph, executor='processes').run()
+    with BagReader(bag) as inp:
+        fields = inp.message_count(['/imu/mag'])
+    assert fields >= 40 and many.lost_deliveries == 0 and many.failed_nodes == {}
+    assert many.superseded == one.superseded == {'latest': {'/relay/mag': 2 * fields}}
+    assert many.input_messages == one.input_messages and many.output_messages == one.output_messages > 4 * fields
+    assert (tmp_path / 'many.mcap').read_bytes() == (tmp_path / 'one.mcap').read_bytes()
+    with BagReader(tmp_path / 'many.mcap') as out:
+        ws = [deserialize_message(m.rawdata, Imu).orientation.w for m in out.messages(['/joined/imu'])]
+    assert len(ws) >= 40 and set(ws) <= {-1.0, 2.0} and ws[-1] == 2.0  # the last of each burst
+    assert set(many.timings_ms) == {'relay', 'triple', 'latest'}
+
+
+def test_lockstep_over_node_processes_refuses_a_cycle_and_reports_a_dead_node(tmp_path):
+    bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=0.5)
+    cycle = {'relay': 'live_test_nodes:Relay', 'echo': 'live_test_nodes:Echo'}
+    with pytest.raises(RunError, match='cycle'):
+        GraphRunner(bag, tmp_path / 'cycle.mcap', graph=cycle, executor='processes').run()
+    dying = {'relay': 'live_test_nodes:Relay', 'dying': 'live_test_nodes:DyingNode'}
+    with pytest.raises(RunError, match='dying died: RuntimeError: sensor driver lost'):
+        GraphRunner(bag, tmp_path / 'dying.mcap', graph=dying, executor='processes').run()
+    # closed cleanly, with the steps every node had finished (none here: the dying node's first
+    # batch held them all)
+    assert read_metadata(tmp_path / 'dying.mcap', RUN_METADATA)['clock'] == 'lockstep'
+    with BagReader(tmp_path / 'dying.mcap') as out:
+        assert out.recovered is None
