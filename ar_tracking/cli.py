@@ -164,6 +164,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         'out': str(result.out_path), 'nodes': result.nodes, 'not_started': result.not_started,
         'input_messages': result.input_messages,
         'output_messages': result.output_messages, 'wall_s': round(result.wall_s, 3),
+        'start_s': round(result.start_s, 3), 'executor': result.executor,
         'bag_duration_s': round(result.bag_duration_s, 3), 'realtime_factor': round(result.realtime_factor, 2),
         'interrupted': result.interrupted,
         'lost_deliveries': result.lost_deliveries,
@@ -181,7 +182,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         print(f'{result.out_path}: {result.output_messages} messages from {", ".join(result.nodes)} '
-              f'({result.input_messages} inputs, {result.wall_s:.1f} s, {result.realtime_factor:.1f}x realtime)'
+              f'({result.input_messages} inputs, {result.wall_s:.1f} s, {result.realtime_factor:.1f}x realtime; '
+              f'{result.start_s:.1f} s to start, executor {result.executor})'
               + (' - interrupted' if result.interrupted else ''))
         for kind, table in (('superseded (latest value only)', result.superseded),
                             ('dropped (queue overflow)', result.dropped), ('lost (not delivered)', result.lost)):
@@ -448,10 +450,12 @@ def build_parser() -> argparse.ArgumentParser:
                         'the overlay images, files ~1.6x larger; rosbags, mcap and Foxglove read all three)')
     p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
     p.add_argument('--executor', default='auto', choices=['auto', 'threads', 'processes', 'single', 'events', 'multi'],
-                   help='rclpy executor (default auto: events in lockstep; with --rate, processes: each node in its '
-                        'own process, as ros2 launch starts them, so a slow node cannot stall the others; threads: each '
-                        'node on its own thread and executor in this process); single/events/multi '
-                        'with --rate put every node on one executor (multi: MultiThreadedExecutor, realtime only)')
+                   help='how the nodes run (default auto: processes with --rate, and in lockstep for 2+ nodes on a '
+                        'bag of 30 s or more; events otherwise). processes: each node in its own process, as ros2 '
+                        'launch starts them, so a slow node cannot stall the others (in lockstep the runner carries '
+                        'the messages in a fixed order: the same output, nodes working in parallel); threads: each '
+                        'node on its own thread and executor in this process (realtime); single/events/multi put '
+                        'every node on one executor of this process (multi: MultiThreadedExecutor, realtime only)')
     p.add_argument('--json', action='store_true', help='print the run summary as JSON')
     p.add_argument('--foxglove', type=int, nargs='?', const=8765, default=None, metavar='PORT',
                    help='serve the outputs live over the Foxglove WebSocket protocol on 127.0.0.1:PORT '

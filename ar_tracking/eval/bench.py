@@ -40,7 +40,8 @@ LIVE_EXECUTORS = ('processes', 'threads')
 
 def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
                 live_executors: tuple[str, ...] = LIVE_EXECUTORS) -> dict[str, Any]:
-    """realtime_factor of the lockstep graph, the transport floor, per-node processing times;
+    """realtime_factor of the lockstep graph (as ``run`` chooses its executor, and with every
+    node in one process: ``one_process``), the transport floor, per-node processing times;
     and with ``live_rate`` > 0 a realtime pass at that rate per executor in ``live_executors``
     (inputs dropped per node, ``orientation/global`` latency p50/p95 in ms). The first is
     ``live`` (DESIGN names ``graph.live.dropped`` and ``graph.live.latency_ms_p95``): every node
@@ -52,6 +53,8 @@ def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
     bag = benchmark_bag(workdir, duration_s)
     params = [p for p in [bag.with_name(bag.stem + '.params.yaml')] if p.exists()]
     full = GraphRunner(bag, workdir / 'graph.out.mcap', params_files=params).run()
+    # the same graph with every node in the runner's process (the lockstep before session 26)
+    one = GraphRunner(bag, workdir / 'graph.one_process.out.mcap', params_files=params, executor='events').run()
     floor = GraphRunner(bag, workdir / 'transport.out.mcap', graph=transport_probe_graph()).run()
     nodes = {}
     callbacks_s = 0.0
@@ -65,6 +68,12 @@ def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
         'input_messages': full.input_messages,
         'wall_s': round(full.wall_s, 3),
         'realtime_factor': round(full.realtime_factor, 3),
+        # 'auto': on this bag every node in a process of its own (ros/parallel_lockstep.py)
+        'executor': full.executor,
+        'start_s': round(full.start_s, 3),
+        'cpu_s': {node: round(cpu, 3) for node, cpu in sorted(full.live_cpu_s.items())},
+        'one_process': {'realtime_factor': round(one.realtime_factor, 3), 'wall_s': round(one.wall_s, 3),
+                        'start_s': round(one.start_s, 3), 'lost_deliveries': one.lost_deliveries},
         'transport_floor_factor': round(floor.realtime_factor, 3),
         'transport_wall_s': round(floor.wall_s, 3),
         # Where the wall goes: the nodes' own callbacks, and the rest (runner, transport,

@@ -53,7 +53,12 @@ class RunResult:
     out_path: Path
     input_messages: int = 0
     output_messages: int = 0
+    #: the playback's wall time (what ``realtime_factor`` divides by), s
     wall_s: float = 0.0
+    #: from the run's start to the playback's: starting the nodes (their processes) and matching, s
+    start_s: float = 0.0
+    #: which executor layout ran the nodes (``--executor`` with 'auto' resolved)
+    executor: str = ''
     bag_duration_s: float = 0.0
     interrupted: bool = False
     lost_deliveries: int = 0
@@ -76,7 +81,7 @@ class RunResult:
     #: realtime only: how late the player published inputs against the bag schedule, ms (p95);
     #: large values mean the player itself was starved, not the nodes
     live_player_late_ms_p95: float = 0.0
-    #: realtime only: CPU seconds of each node's process (``--executor processes``: all its
+    #: CPU seconds of each node process (``--executor processes``, lockstep too: all its
     #: threads, DDS's included) or of the thread that spun it (threads); where the live time goes
     live_cpu_s: dict[str, float] = field(default_factory=dict)
     #: node name -> why it stopped working (its thread died); the run ends non-zero

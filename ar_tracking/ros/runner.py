@@ -67,6 +67,8 @@ RUN_METADATA = 'ar_tracking.run'
 
 #: Topics copied from the input bag to the output by default (prefix match).
 COPY_PREFIXES = ('/ground_truth/', '/tf_static', '/tf', '/gps/', '/imu/')
+#: Lockstep: 'auto' runs the nodes in processes of their own on bags at least this long, s.
+PARALLEL_LOCKSTEP_MIN_S = 30.0
 #: Realtime: the output whose end-to-end latency the run measures (input stamp -> received).
 LATENCY_TOPIC = '/orientation/global'
 
@@ -171,7 +173,6 @@ class GraphRunner:
             raise RunError(f'unknown executor {self.executor_kind!r}; known: {", ".join(EXECUTOR_CHOICES)}')
         if self.executor_kind == 'multi' and self.rate == 0:
             raise RunError('--executor multi is for realtime runs (--rate R); lockstep spins one node at a time')
-        self._executor = self._resolve_executor()
         reader = BagReader(self.bag_path)
         reader.open()
         try:
@@ -179,22 +180,30 @@ class GraphRunner:
         finally:
             reader.close()
 
-    def _resolve_executor(self) -> str:
-        """The executor layout of this run: ``executor_kind``, where 'auto' is the
-        EventsExecutor in lockstep and, in realtime, one process per node (the deployment
-        shape; the graph bench's live pass: no input dropped, orientation latency p95 ~30 ms,
-        against 36 dropped frames and 108 ms with the nodes on threads of one process, which
-        share its interpreter) when every node of the graph can start in a process of its own
-        (a "module:Class" spec), else one thread per node."""
-        if self.executor_kind != 'auto' or self.rate == 0:
+    def _resolve_executor(self, names: list[str], duration_s: float) -> str:
+        """The executor layout of this run: ``executor_kind``, where 'auto' is one process per
+        node when every node of the graph can start in a process of its own (a "module:Class"
+        spec) - in realtime always (the deployment shape; the graph bench's live pass: no input
+        dropped, orientation latency p95 ~30 ms, against 36 dropped frames and 108 ms with the
+        nodes on threads of one process, which share its interpreter), in lockstep for two nodes
+        or more on a bag of PARALLEL_LOCKSTEP_MIN_S or longer (ros/parallel_lockstep.py: the
+        nodes work in parallel; starting their processes costs a few seconds) - and otherwise
+        one thread per node in realtime, the EventsExecutor in lockstep."""
+        if self.executor_kind != 'auto':
             return self.executor_kind
-        return 'processes' if all(isinstance(spec, str) for spec in self.graph.values()) else 'threads'
+        importable = all(isinstance(self.graph[name], str) for name in names)
+        if self.rate > 0:
+            return 'processes' if importable else 'threads'
+        return 'processes' if importable and len(names) >= 2 and duration_s >= PARALLEL_LOCKSTEP_MIN_S else 'events'
 
     def _run_with(self, reader: BagReader, rclpy: Any, context: Any) -> RunResult:
         """Set up the graph, feed it the bag, drain it, and tear it down on every exit path."""
+        started = time.perf_counter()
         names, not_started, node_params = self._plan(reader.topics)
+        self._executor = self._resolve_executor(names, reader.duration_s)
         domain_id = _init_private_context(rclpy, context, lockstep=self.rate == 0)
-        result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names, not_started=not_started)
+        result = RunResult(self.out_path, bag_duration_s=reader.duration_s, nodes=names, not_started=not_started,
+                           executor=self._executor)
         self._ledger = DeliveryLedger()
         realtime = self.rate > 0
         session = RunSession(reader, result, realtime=realtime, in_processes=self._executor == 'processes')
@@ -202,6 +211,7 @@ class GraphRunner:
         try:
             self._start_nodes(session, names, node_params, context, domain_id)
             self._wire(session, names, context)
+            result.start_s = time.perf_counter() - started
             self._feed(session)
             self._finish(session)
         finally:
@@ -420,9 +430,11 @@ class GraphRunner:
         assert s.recorder is not None
         if s.in_processes and s.realtime:
             stop_node_processes(s.nodes, s.executor, s.recorder)
-        for n in s.nodes:  # lockstep over node processes: their counts
+        for n in s.nodes:  # lockstep over node processes: their counts and CPU time
             if hasattr(n, 'node_class') and not s.realtime:
                 n.stop()
+                if n.cpu_s is not None:
+                    result.live_cpu_s[n.name] = n.cpu_s
         result.output_messages = s.recorder.count
         if s.realtime:
             live_report(s.nodes, result)
