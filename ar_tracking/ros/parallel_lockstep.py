@@ -43,6 +43,11 @@ logger = logging.getLogger(__name__)
 #: How many steps (bag messages) the runner reads ahead of the oldest one not yet written: the
 #: slack that lets an upstream node run ahead of a slow one (~2 s of the bench bag).
 WINDOW_STEPS = 512
+#: A node process sends the outputs of the steps it has done once it has worked this long
+#: since it last sent, s (else at the end of the runner's batch): a node downstream of a slow
+#: one (the hybrid behind the mapper) gets each step's outputs as they are done, while a fast
+#: node's outputs still go back a batch at a time.
+SEND_AFTER_S = 0.002
 #: A node that returns nothing for this long while it has inputs is reported and the run ends.
 STEP_TIMEOUT_S = 120.0
 #: After this many inputs in a row on one topic that a node could not read, the run stops.
@@ -59,7 +64,8 @@ def serve_steps(node: Any, conn: Any, outbox: list[tuple[str, bytes]]) -> None:
     ``publish_tap``) for each step. Returns when the runner sends ``('stop',)``.
 
     A pipe reader thread takes the runner's messages as they come, so that the runner never
-    waits on a node busy with a step while it sends it the next ones."""
+    waits on a node busy with a step while it sends it the next ones. Outputs go back at the
+    end of each batch, or as soon as ``SEND_AFTER_S`` of work has passed since the last send."""
     from rclpy.serialization import deserialize_message
 
     subscriptions: dict[str, list[Any]] = defaultdict(list)
@@ -72,6 +78,7 @@ def serve_steps(node: Any, conn: Any, outbox: list[tuple[str, bytes]]) -> None:
         if item[0] != 'steps':
             return
         results = []
+        sent = time.perf_counter()
         for seq, batch in item[1]:
             unread: list[str] = []
             for topic, raw in batch:
@@ -87,7 +94,11 @@ def serve_steps(node: Any, conn: Any, outbox: list[tuple[str, bytes]]) -> None:
                     sub.callback(msg)  # the node's guarded callback: a failure is logged, not raised
             results.append((seq, list(outbox), unread))
             outbox.clear()
-        conn.send(('outs', results))
+            if time.perf_counter() - sent > SEND_AFTER_S:  # a slow node's outputs go out at once
+                conn.send(('outs', results))
+                results, sent = [], time.perf_counter()
+        if results:
+            conn.send(('outs', results))
 
 
 def _read_pipe(conn: Any, inbox: queue.SimpleQueue[Any]) -> None:
