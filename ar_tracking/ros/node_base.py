@@ -135,6 +135,8 @@ class TrackingNode(Node):
         #: live accounting: published to a subscription vs processed by its callback). Each
         #: node publishes from its own thread only, so a plain counter is enough.
         self.publish_counts: dict[str, int] = defaultdict(int)
+        #: messages that did not read as their subscription's type (never reached a callback)
+        self.unreadable = 0
         self._validators: dict[str, Callable[[Any], str | None]] = {}
         self._live: dict[str, Callable[[Any], None]] = {}
         #: Set by a node that has finished its job (a replay at the end of its bag): the node
@@ -263,6 +265,7 @@ class TrackingNode(Node):
                 try:
                     msg = decode(msg)
                 except Exception as exc:  # not the declared type: dropped, as rclpy would
+                    self.unreadable += 1
                     logger.error(f'{topic}: message does not read as {msg_type.__name__} '
                                  f'({type(exc).__name__}: {exc}), dropped', throttle_duration_sec=5.0)
                     return

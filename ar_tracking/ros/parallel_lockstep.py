@@ -91,7 +91,10 @@ def serve_steps(node: Any, conn: Any, outbox: list[tuple[str, bytes]]) -> None:
                         except Exception:  # noqa: BLE001 - not the declared type: dropped, as rclpy would
                             unread.append(topic)
                             continue
+                    before = getattr(node, 'unreadable', 0)
                     sub.callback(msg)  # the node's guarded callback: a failure is logged, not raised
+                    if getattr(node, 'unreadable', 0) != before:  # a view that could not read it
+                        unread.append(topic)
             results.append((seq, list(outbox), unread))
             outbox.clear()
             if time.perf_counter() - sent > SEND_AFTER_S:  # a slow node's outputs go out at once
@@ -204,7 +207,7 @@ class ParallelLockstep:
         self.in_flight = [0] * len(handles)   # per node: steps sent, outputs not yet back
         #: per node: what it published before its first input
         self._preludes: list[Batch] = [[] for _ in handles]
-        self._losses: dict[str, int] = defaultdict(int)
+        self._losses: dict[tuple[int, str], int] = defaultdict(int)  # (node, fed topic) -> in a row
         self._last_heard = time.monotonic()
 
     # -- start ------------------------------------------------------------------------
@@ -388,14 +391,15 @@ class ParallelLockstep:
             name = self.handles[i].name
             self.result.lost.setdefault(name, {})[topic] = self.result.lost.get(name, {}).get(topic, 0) + 1
         if fed is not None and fed in self.depths[i]:
+            key = (i, fed)
             if fed in unread:
-                self._losses[fed] += 1
+                self._losses[key] += 1
                 logger.warning('%s: %s message does not read as its type; lost', self.handles[i].name, fed)
-                if self._losses[fed] >= MAX_CONSECUTIVE_LOSSES:
-                    raise RunError(f'the nodes received none of the last {self._losses[fed]} messages on {fed}; '
+                if self._losses[key] >= MAX_CONSECUTIVE_LOSSES:
+                    raise RunError(f'the nodes received none of the last {self._losses[key]} messages on {fed}; '
                                    'stopping (are they of the declared type?)')
             else:
-                self._losses[fed] = 0
+                self._losses[key] = 0
 
     def _write_ready(self) -> None:
         """Write every step, oldest first, whose outputs are all known."""

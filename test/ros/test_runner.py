@@ -148,8 +148,10 @@ def test_ctrl_c_closes_the_output_bag(tmp_path):
         assert len(list(bag.messages(['/imu/data']))) == n
 
 
-def test_undecodable_messages_end_the_run_with_one_error(tmp_path):
-    """Bytes that are not the declared type never reach a callback: the run stops, it does not hang."""
+@pytest.mark.parametrize('executor', ['events', 'processes'])
+def test_undecodable_messages_end_the_run_with_one_error(tmp_path, executor):
+    """Bytes that are not the declared type never reach a callback: the run stops, it does not
+    hang (in one process, and with the nodes in processes of their own)."""
     from ar_tracking.io.bags import BagWriter
     from bagfactory import mag_msg
 
@@ -160,7 +162,7 @@ def test_undecodable_messages_end_the_run_with_one_error(tmp_path):
             w.write('/imu/data_raw', t, b'\x00\x01\x00\x00garbage', msgtype='sensor_msgs/msg/Imu')
             w.write('/imu/mag', t, mag_msg(t, (0.0, 2e-5, -4e-5)))
     with pytest.raises(RunError, match='received none'):
-        GraphRunner(path, tmp_path / 'out.mcap', step_timeout_s=0.5).run()
+        GraphRunner(path, tmp_path / 'out.mcap', step_timeout_s=0.5, executor=executor).run()
     with BagReader(tmp_path / 'out.mcap') as out:  # closed cleanly all the same
         assert out.message_count(['/imu/mag']) > 0
 
