@@ -136,6 +136,9 @@ class AzimuthDistortion:
         #: Frames the gyro has not reached yet (a frame may arrive before the IMU samples of its
         #: time): (stamp, R_pano_cam, up).
         self._waiting: deque[tuple[int, Array, Array | None]] = deque(maxlen=64)
+        #: The last frame's forward axis, the axes its azimuth was taken about and its knots
+        #: there: :meth:`correct` of that frame about the same axes reuses them.
+        self._last_view: tuple[list[float], _Axes, _Knots | None] | None = None
         self.pairs = 0
         self.outliers = 0
 
@@ -182,6 +185,8 @@ class AzimuthDistortion:
         ts = self._gyro_t
         if not ts or t_ns < ts[0] or t_ns > ts[-1]:
             return None
+        if t_ns == ts[-1]:  # a frame whose stamp the gyro has just reached (the stamps increase)
+            return self._gyro_q[-1]
         k = bisect.bisect_left(ts, t_ns)
         a = self._gyro_q[k]
         if ts[k] != t_ns:  # normalised linear interpolation: one sample's turn apart
@@ -235,11 +240,14 @@ class AzimuthDistortion:
             axes = self._axes_of(up_pano)
             psi = None if axes is None else self._azimuth_about(forward, axes)
             knots = None if psi is None else self._knots_of(psi)
+            if axes is not None:
+                self._last_view = (forward, axes, knots)
             self._compare(t_ns, forward, q_pano_imu, C, axes, knots)
         frames, stamps = self._frames, self._frame_t
         frames.append((t_ns, forward, q_pano_imu, C, self._chain, axes, knots))
         stamps.append(t_ns)
-        while frames and t_ns - stamps[0] > int(1e9 * self.config.max_pair_s):
+        oldest_ns = t_ns - int(1e9 * self.config.max_pair_s)
+        while frames and stamps[0] < oldest_ns:
             frames.popleft()
             stamps.popleft()
 
@@ -251,11 +259,23 @@ class AzimuthDistortion:
         return self._distortion_at(np.asarray(R_pano_cam, dtype=float)[:, 2].tolist(), up_pano)
 
     def _distortion_at(self, forward: list[float], up_pano: Array | None) -> float:
-        """:meth:`distortion` of the camera's forward axis (floats, panorama frame)."""
-        psi = self._azimuth(forward, up_pano)
-        if psi is None:
+        """:meth:`distortion` of the camera's forward axis (floats, panorama frame); the knots of
+        the last frame's azimuth when it is that frame about the same axes (a frame is usually
+        corrected right after it was compared)."""
+        if self.e1 is None or up_pano is None:
             return 0.0
-        k0, k1, f = self._knots_of(psi)
+        axes = self._axes_of(up_pano)
+        if axes is None:
+            return 0.0
+        last = self._last_view
+        if last is not None and last[1] is axes and last[0] == forward:
+            knots = last[2]
+        else:
+            psi = self._azimuth_about(forward, axes)
+            knots = None if psi is None else self._knots_of(psi)
+        if knots is None:
+            return 0.0
+        k0, k1, f = knots
         return (1.0 - f) * self.x.item(k0) + f * self.x.item(k1)
 
     def correct(self, R_pano_cam: Array, up_pano: Array | None) -> Array:
@@ -312,18 +332,9 @@ class AzimuthDistortion:
                 self._axes = (tuple(up.tolist()), tuple(e1.tolist()), tuple(e2.tolist()))
         return self._axes
 
-    def _azimuth(self, forward: list[float], up_pano: Array | None) -> float | None:
-        """Azimuth (rad) of the camera's forward axis (floats, panorama frame) about up; None
-        before the panorama's azimuth 0 is known or when it looks too steeply up or down."""
-        if self.e1 is None or up_pano is None:
-            return None
-        axes = self._axes_of(up_pano)
-        if axes is None:
-            return None
-        return self._azimuth_about(forward, axes)
-
     def _azimuth_about(self, forward: list[float], axes: _Axes) -> float | None:
-        """:meth:`_azimuth` about the axes of :meth:`_axes_of` (not None)."""
+        """Azimuth (rad) of the camera's forward axis (floats, panorama frame) about the axes of
+        :meth:`_axes_of` (not None); None when it looks too steeply up or down."""
         u, e1, e2 = axes
         fx, fy, fz = forward
         if abs(fx * u[0] + fy * u[1] + fz * u[2]) > math.sin(self.config.max_elevation_rad):

@@ -129,14 +129,21 @@ def flat_rows(flat: list[float], width: int) -> Array:
     return np.fromiter(flat, float, len(flat)).reshape(-1, width)
 
 
-def add_rotated_rows(ws: WindowSums, k: int, flat: list[float], name: str) -> Array:
+def add_rotated_rows(ws: WindowSums, k: int, flat: list[float], name: str, x_name: str) -> Array:
     """Add samples kept as flat rows of 12 floats (R_pano_imu row-major, then a vector x in the
-    IMU frame) to window k: its count, S = sum R_imu_P and ``name`` = sum R_P_imu x. Returns the
-    x, (n, 3). The sums are matrix products over the rows (batched einsums cost more)."""
+    IMU frame) to window k: its count, S = sum R_imu_P, ``name`` = sum R_P_imu x and ``x_name`` =
+    sum x. Returns the x, (n, 3). The sums are matrix products over the rows (batched einsums
+    cost more); S and sum x are one reduction over the rows (numpy adds rows in order along
+    axis 0, so each column's sum is the one a reduction of that column alone gives)."""
     arr = flat_rows(flat, 12)
     R, x = arr[:, :9], arr[:, 9:12]
     ws.n[k] += len(arr)
-    ws.sums['S'][k] += R.sum(axis=0).reshape(3, 3).T
-    # sum_n R_n x_n: entry i is sum_j of (R^T x)[(i, j), j]
-    ws.sums[name][k] += R.T.dot(x).reshape(3, 3, 3).trace(axis1=1, axis2=2)
+    total = arr.sum(axis=0)
+    sums = ws.sums
+    sums['S'][k] += total[:9].reshape(3, 3).T
+    sums[x_name][k] += total[9:]
+    # sum_n R_n x_n: entry i is sum_j of (R^T x)[(i, j), j], the columns 0, 4, 8 of (R^T x)
+    # as (3, 9), added in the order trace(axis1=1, axis2=2) adds them.
+    Rtx = R.T.dot(x).reshape(3, 9)
+    sums[name][k] += Rtx[:, 0] + Rtx[:, 4] + Rtx[:, 8]
     return x

@@ -62,9 +62,10 @@ __all__ = ['WorldAlignment', 'WorldAlignmentConfig', 'WorldAlignmentEstimate']
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class WorldAlignmentEstimate:
-    """R_pano_enu (rotates ENU vectors into the panorama frame) and its uncertainty."""
+    """R_pano_enu (rotates ENU vectors into the panorama frame) and its uncertainty. (Slots: one
+    is made per estimate, and a frozen dataclass with slots is made in about half the time.)"""
 
     R_pano_enu: Array
     #: Covariance of the error of R_enu_pano in ENU axes (x, y: tilt, z: heading), rad^2.
@@ -81,10 +82,10 @@ class WorldAlignmentEstimate:
     field_scale: float = 1.0
 
 
-# The cross-product matrix [alpha]x in a flat row-major 3x3: entries, alpha's component, sign.
-_SKEW_AT = np.array([1, 2, 3, 5, 6, 7])
-_SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
-_SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+# The cross-product matrix [alpha]x, flat row-major, is alpha.dot(_SKEW): each entry is one
+# component of alpha times +-1 (exact; one product instead of fancy-indexed updates).
+_SKEW = np.zeros((3, 9))
+_SKEW[(2, 1, 2, 0, 1, 0), (1, 2, 3, 5, 6, 7)] = (-1.0, 1.0, 1.0, -1.0, -1.0, 1.0)
 
 
 def solve_due_after_ns(config: WorldAlignmentConfig, period_ns: int, t_ns: int, t_first_ns: int | None) -> int:
@@ -241,7 +242,8 @@ class WorldAlignment:
         gain = min(1.0, dt / self.config.lever_arm_tau_s)
         wx0, wy0, wz0, ax0, ay0, az0 = lp
         wx, wy, wz = wx0 + gain * (omega[0] - wx0), wy0 + gain * (omega[1] - wy0), wz0 + gain * (omega[2] - wz0)
-        self._lever_lp = [wx, wy, wz, ax0 + gain * (ax - ax0), ay0 + gain * (ay - ay0), az0 + gain * (az - az0)]
+        ax, ay, az = ax0 + gain * (ax - ax0), ay0 + gain * (ay - ay0), az0 + gain * (az - az0)
+        self._lever_lp = [wx, wy, wz, ax, ay, az]
         self._prev_omega_t_ns = t_ns
         self._lever_count += 1
         if self._lever_count % 2:
@@ -249,8 +251,7 @@ class WorldAlignment:
         # R_pano_imu (9), low-passed specific force (3), rate (3), angular acceleration (3).
         rows = self._lever_rows
         rows += row
-        rows += self._lever_lp[3:]
-        rows += (wx, wy, wz, (wx - wx0) / dt, (wy - wy0) / dt, (wz - wz0) / dt)
+        rows += (ax, ay, az, wx, wy, wz, (wx - wx0) / dt, (wy - wy0) / dt, (wz - wz0) / dt)
 
     def _flush_gravity(self) -> None:
         """Add the kept samples to the open gravity window's sums (S = sum R_imu_P, Rta = sum
@@ -259,9 +260,8 @@ class WorldAlignment:
         if not self._g_rows:
             return
         k, sums = self._g_window, self._gw.sums
-        a = add_rotated_rows(self._gw, k, self._g_rows, 'Rta')
+        add_rotated_rows(self._gw, k, self._g_rows, 'Rta', 'a')
         self._g_rows = []
-        sums['a'][k] += a.sum(axis=0)
         if self._lever_rows:
             lever = flat_rows(self._lever_rows, 18)
             self._lever_rows = []
@@ -271,7 +271,7 @@ class WorldAlignment:
             # K = w w^T - |w|^2 I + [alpha]x, flat row-major per sample, times 2.
             K = (w[:, :, None] * w[:, None, :]).reshape(n, 9)
             K[:, 0::4] -= (w * w).sum(axis=1, keepdims=True)
-            K[:, _SKEW_AT] += alpha[:, _SKEW_OF] * _SKEW_SIGN
+            K += alpha.dot(_SKEW)
             K *= 2.0
             K_rows = K.reshape(3 * n, 3)  # rows (sample, j) of each K
             # sum R K, sum K, sum K^T K / 2 and sum K^T a_lp as products over the rows.
@@ -286,9 +286,8 @@ class WorldAlignment:
         if not self._f_rows:
             return
         k, sums = self._f_window, self._fw.sums
-        m = add_rotated_rows(self._fw, k, self._f_rows, 'Rtm')
+        m = add_rotated_rows(self._fw, k, self._f_rows, 'Rtm', 'm')
         self._f_rows = []
-        sums['m'][k] += m.sum(axis=0)
         sums['norm'][k] += np.sqrt((m * m).sum(axis=1)).sum()
 
     def reanchor(self, Q: Array, sigma_rad: float) -> None:
@@ -555,14 +554,13 @@ class WorldAlignment:
 
     def estimate(self) -> WorldAlignmentEstimate | None:
         """The current R_pano_enu with its covariance (None before any field sample)."""
-        if not self.ready:
+        field = self._field
+        if self._n == 0 or field is None:  # (not ready)
             return None
         if not self._dirty and self._estimate is not None:
             return self._estimate
         c = self.config
         gravity = self._solve_gravity()
-        field = self._field
-        assert field is not None  # ready
         geometry = self._geometry
         if geometry is None or not (geometry[0][0] is gravity and geometry[0][1] is field
                                     and geometry[0][2] is c.declination_rad):
@@ -581,9 +579,11 @@ class WorldAlignment:
             + c.tilt_floor_rad ** 2
         heading_var = (field_var + c.heading_floor_rad ** 2
                        + tilt_var * tan_dip ** 2 + self._ambiguity_var)
+        covariance = np.zeros((3, 3))  # (three item assignments cost less than an array of nine floats)
+        covariance[0, 0] = covariance[1, 1] = tilt_var
+        covariance[2, 2] = heading_var
         self._estimate = WorldAlignmentEstimate(
-            R_pano_enu=R_pano_enu,
-            covariance_enu=np.array((tilt_var, 0.0, 0.0, 0.0, tilt_var, 0.0, 0.0, 0.0, heading_var)).reshape(3, 3),
+            R_pano_enu=R_pano_enu, covariance_enu=covariance,
             field_outlier_share=field[3], hard_iron=field[1], accel_bias=gravity[1], soft_iron=self._soft_iron,
             field_scale=self._field_scale)
         self._dirty = False
