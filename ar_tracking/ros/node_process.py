@@ -69,7 +69,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
                 conn: Any, stop: Any, log_level: int | None = None, lockstep: bool = False) -> None:
     """Entry point of the child process (forked from the forkserver or spawned: nothing of the parent's DDS state is inherited,
     so the parent's log level comes as ``log_level``). ``lockstep``: the runner carries the
-    node's messages over the pipe (:mod:`~ar_tracking.ros.parallel_lockstep`), not DDS."""
+    node's messages over the pipe (:mod:`~ar_tracking.ros.lockstep_child`), not DDS."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the runner, which stops us
     if lockstep:  # nothing goes over DDS: no discovery traffic with anyone
         os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'OFF'
@@ -91,7 +91,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         rclpy.init(context=context, domain_id=domain_id)
         cls = load_node_class(spec)
         if lockstep:
-            from .parallel_lockstep import publication_tap
+            from .lockstep_child import publication_tap
 
             TrackingNode.publish_tap = staticmethod(publication_tap(outbox, cls.OUTPUTS))
         node = cls(context=context, parameter_overrides=to_overrides(params))
@@ -104,7 +104,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
                    [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT],
                    {s.topic_name: _depth(s.qos_profile) for s in node.subscriptions}))
         if lockstep:
-            from .parallel_lockstep import serve_steps
+            from .lockstep_child import serve_steps
 
             conn.send(('ready', list(outbox)))
             outbox.clear()
@@ -177,7 +177,7 @@ def _take_the_rest(node: Any, executor: Any, expected: dict[str, int]) -> None:
 #: What the forkserver imports once, so that each node process forked from it starts with
 #: them loaded (~1.2 s of CPU per process otherwise: rclpy, numpy, OpenCV, scipy's rotations).
 FORKSERVER_PRELOAD = ['rclpy', 'rclpy.serialization', 'numpy', 'cv2', 'scipy.spatial.transform',
-                      'ar_tracking.ros.node_base', 'ar_tracking.ros.parallel_lockstep', 'ar_tracking.ros.conversions']
+                      'ar_tracking.ros.node_base', 'ar_tracking.ros.lockstep_child', 'ar_tracking.ros.conversions']
 
 
 def _process_context() -> Any:
