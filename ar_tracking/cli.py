@@ -178,6 +178,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.rate > 0:
         # realtime: inputs published to each node vs processed, orientation/global latency
         summary['live'] = result.live_summary()
+    elif result.live_cpu_s:  # lockstep over node processes: where the time went
+        summary['cpu_s'] = {node: round(cpu, 3) for node, cpu in sorted(result.live_cpu_s.items())}
     if args.json:
         print(json.dumps(summary))
     else:
