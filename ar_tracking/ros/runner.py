@@ -352,8 +352,11 @@ class GraphRunner:
         assert recorder is not None
         record = {t: self._tapped(lambda raw, t=t: recorder.add(t, raw), t, ty)  # type: ignore[misc]
                   for t, ty in output_types.items()}
-        s.parallel = ParallelLockstep([n for n in s.nodes if hasattr(n, 'node_class')], recorder, s.result,
-                                      lambda topic, raw: record[topic](raw))
+        def take(topic: str, raw: bytes) -> None:
+            keep = record.get(topic)  # a topic no node class declares is not recorded, as in one process
+            if keep is not None:
+                keep(raw)
+        s.parallel = ParallelLockstep([n for n in s.nodes if hasattr(n, 'node_class')], recorder, s.result, take)
         s.parallel.connect()
 
     def _record_callback(self, s: RunSession, topic: str, output_types: dict[str, str]) -> Callable[[bytes], None]:

@@ -102,7 +102,8 @@ class Relay(TrackingNode):
 
 
 class TripleRelay(TrackingNode):
-    """Publishes every field sample three times on relay/mag, each with its own z."""
+    """Publishes every field sample three times on relay/mag, each with its own z (and once on
+    relay/debug, a topic it does not declare: no one records it)."""
 
     INPUTS = {'imu/mag': 'sensor_msgs/msg/MagneticField'}
     OUTPUTS = {'relay/mag': 'sensor_msgs/msg/MagneticField'}
@@ -110,9 +111,11 @@ class TripleRelay(TrackingNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('triple', **kwargs)
         self.pub = self.advertise(MagneticField, 'relay/mag')
+        self.debug = self.advertise(MagneticField, 'relay/debug')
         self.subscribe(MagneticField, 'imu/mag', self.on_mag)
 
     def on_mag(self, msg: MagneticField) -> None:
+        self.debug.publish(msg)
         for k in range(3):
             msg.magnetic_field.z = float(k)
             self.pub.publish(msg)
