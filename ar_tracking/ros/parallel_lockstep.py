@@ -230,6 +230,9 @@ class ParallelLockstep:
         return batch
 
     def _within_depth(self, i: int, batch: Batch) -> Batch:
+        """``batch`` without the oldest messages of each KEEP_LAST subscription of node ``i``
+        that it holds more of than the depth, booked in the run result (superseded for depth
+        1, dropped for deeper queues)."""
         counts: dict[str, int] = defaultdict(int)
         for topic, _ in batch:
             counts[topic] += 1
