@@ -53,8 +53,10 @@ def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
     bag = benchmark_bag(workdir, duration_s)
     params = [p for p in [bag.with_name(bag.stem + '.params.yaml')] if p.exists()]
     full = GraphRunner(bag, workdir / 'graph.out.mcap', params_files=params).run()
-    # the same graph with every node in the runner's process (the lockstep before session 26)
-    one = GraphRunner(bag, workdir / 'graph.one_process.out.mcap', params_files=params, executor='events').run()
+    # the same graph with every node in the runner's process (the lockstep before session 26;
+    # the run above itself when 'auto' chose that, on a short bag)
+    one = full if full.executor == 'events' else GraphRunner(
+        bag, workdir / 'graph.one_process.out.mcap', params_files=params, executor='events').run()
     floor = GraphRunner(bag, workdir / 'transport.out.mcap', graph=transport_probe_graph()).run()
     nodes = {}
     callbacks_s = 0.0
