@@ -350,8 +350,9 @@ class GraphRunner:
 
         recorder = s.recorder
         assert recorder is not None
-        record = {t: self._tapped(lambda raw, t=t: recorder.add(t, raw), t, ty)  # type: ignore[misc]
-                  for t, ty in output_types.items()}
+        # each output as the in-process recorder node takes it (the step's batch, the taps)
+        record = {t: self._tapped(self._record_callback(s, t, output_types), t, ty) for t, ty in output_types.items()}
+
         def take(topic: str, raw: bytes) -> None:
             keep = record.get(topic)  # a topic no node class declares is not recorded, as in one process
             if keep is not None:
