@@ -453,7 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--copy-images', action='store_true', help='also copy the camera images into the output')
     p.add_argument('--executor', default='auto', choices=['auto', 'threads', 'processes', 'single', 'events', 'multi'],
                    help='how the nodes run (default auto: processes with --rate, and in lockstep for 2+ nodes on a '
-                        'bag of 15 s or more; events otherwise). processes: each node in its own process, as ros2 '
+                        'bag of 30 s or more; events otherwise). processes: each node in its own process, as ros2 '
                         'launch starts them, so a slow node cannot stall the others (in lockstep the runner carries '
                         'the messages in a fixed order: the same output, nodes working in parallel); threads: each '
                         'node on its own thread and executor in this process (realtime); single/events/multi put '

@@ -68,7 +68,7 @@ RUN_METADATA = 'ar_tracking.run'
 #: Topics copied from the input bag to the output by default (prefix match).
 COPY_PREFIXES = ('/ground_truth/', '/tf_static', '/tf', '/gps/', '/imu/')
 #: Lockstep: 'auto' runs the nodes in processes of their own on bags at least this long, s.
-PARALLEL_LOCKSTEP_MIN_S = 15.0
+PARALLEL_LOCKSTEP_MIN_S = 30.0
 #: Realtime: the output whose end-to-end latency the run measures (input stamp -> received).
 LATENCY_TOPIC = '/orientation/global'
 

@@ -20,7 +20,7 @@ def test_bench_reports_the_design_names(tmp_path):
     for key in ('realtime_factor', 'transport_floor_factor', 'wall_s', 'input_messages'):
         assert key in graph
     assert graph['realtime_factor'] > 0 and graph['transport_floor_factor'] > 0
-    # a 2 s bag: 'auto' keeps the nodes in the runner's process (processes pay off from 15 s)
+    # a 2 s bag: 'auto' keeps the nodes in the runner's process (processes pay off from 30 s)
     assert graph['executor'] == 'events' and graph['one_process']['realtime_factor'] > 0 and graph['start_s'] > 0
     # 2 s of IMU + magnetometer at 100 Hz, and camera images + camera_info at 30 Hz
     assert graph['input_messages'] == 400 + 120

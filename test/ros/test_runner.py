@@ -638,14 +638,20 @@ def test_lockstep_over_node_processes_equals_one_process(tmp_path):
     bag = write_turning_imu_bag(tmp_path / 'in.mcap', seconds=1.0, rate_hz=50.0)
     graph = {'relay': 'live_test_nodes:Relay', 'triple': 'live_test_nodes:TripleRelay',
              'latest': 'live_test_nodes:LatestField'}
-    one = GraphRunner(bag, tmp_path / 'one.mcap', graph=graph).run()
-    many = GraphRunner(bag, tmp_path / 'many.mcap', graph=graph, executor='processes').run()
+    tapped: dict[str, list[bytes]] = {'one': [], 'many': []}
+
+    def taps(run: str):  # an output tap (the Foxglove view's hook) sees every recorded output
+        return [lambda topic, msgtype: tapped[run].append]
+    one = GraphRunner(bag, tmp_path / 'one.mcap', graph=graph, output_taps=taps('one')).run()
+    many = GraphRunner(bag, tmp_path / 'many.mcap', graph=graph, executor='processes',
+                       output_taps=taps('many')).run()
     with BagReader(bag) as inp:
         fields = inp.message_count(['/imu/mag'])
     assert fields >= 40 and many.lost_deliveries == 0 and many.failed_nodes == {}
     assert many.superseded == one.superseded == {'latest': {'/relay/mag': 2 * fields}}
     assert many.input_messages == one.input_messages and many.output_messages == one.output_messages > 4 * fields
     assert (tmp_path / 'many.mcap').read_bytes() == (tmp_path / 'one.mcap').read_bytes()
+    assert len(tapped['many']) == many.output_messages and sorted(tapped['many']) == sorted(tapped['one'])
     with BagReader(tmp_path / 'many.mcap') as out:
         ws = [deserialize_message(m.rawdata, Imu).orientation.w for m in out.messages(['/joined/imu'])]
     assert len(ws) >= 40 and set(ws) <= {-1.0, 2.0} and ws[-1] == 2.0  # the last of each burst
