@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .graph_plan import load_node_class
-from .run_state import DRAIN_QUIET_S
+from .run_state import DRAIN_QUIET_S, history_depth
 from ..errors import ArTrackingError
 
 logger = logging.getLogger(__name__)
@@ -102,7 +102,7 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         executor.add_node(node)
         conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers],
                    [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT],
-                   {s.topic_name: _depth(s.qos_profile) for s in node.subscriptions}))
+                   {s.topic_name: history_depth(s.qos_profile) for s in node.subscriptions}))
         if lockstep:
             from .lockstep_child import serve_steps
 
@@ -144,13 +144,6 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
                 close()
             node.destroy_node()
         rclpy.try_shutdown(context=context)
-
-
-def _depth(qos: Any) -> int | None:
-    """A subscription's KEEP_LAST depth (None: KEEP_ALL)."""
-    from rclpy.qos import HistoryPolicy
-
-    return None if qos.history == HistoryPolicy.KEEP_ALL else max(1, int(qos.depth))
 
 
 def _take_the_rest(node: Any, executor: Any, expected: dict[str, int]) -> None:

@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterable
 
 from .graph_plan import RunError
 from .node_process import NodeProcess, NodeProcessError
-from .run_state import Recorder, RunResult
+from .run_state import Recorder, RunResult, book
 
 logger = logging.getLogger(__name__)
 
@@ -246,10 +246,9 @@ class ParallelLockstep:
                 skip[topic] -= 1  # the oldest of the step's messages on it
                 continue
             kept.append((topic, raw))
-        name = self.handles[i].name
         for topic, n in over.items():
-            kind = self.result.superseded if self.depths[i][topic] == 1 else self.result.dropped
-            kind.setdefault(name, {})[topic] = kind.get(name, {}).get(topic, 0) + n
+            book(self.result.superseded if self.depths[i][topic] == 1 else self.result.dropped,
+                 self.handles[i].name, topic, n)
         return kept
 
     def _send(self, i: int, chunk: list[tuple[int, Batch]]) -> None:
@@ -299,8 +298,7 @@ class ParallelLockstep:
         fed = step.feed[0] if step.feed is not None else None
         for topic in unread:
             self.result.lost_deliveries += 1
-            name = self.handles[i].name
-            self.result.lost.setdefault(name, {})[topic] = self.result.lost.get(name, {}).get(topic, 0) + 1
+            book(self.result.lost, self.handles[i].name, topic, 1)
         if fed is not None and fed in self.depths[i]:
             key = (i, fed)
             if fed in unread:

@@ -175,11 +175,7 @@ class DeliveryLedger:
         self.corrections = 0
 
     def add(self, node: str, subscription: Any) -> None:
-        from rclpy.qos import HistoryPolicy
-
-        qos = subscription.qos_profile
-        depth = None if qos.history == HistoryPolicy.KEEP_ALL else max(1, int(qos.depth))
-        account = SubscriptionAccount(node, subscription.topic_name, depth)
+        account = SubscriptionAccount(node, subscription.topic_name, history_depth(subscription.qos_profile))
         self.by_topic[subscription.topic_name].append(account)
         self.by_sub[id(subscription)] = account
 
@@ -236,10 +232,22 @@ class DeliveryLedger:
         for accounts in self.by_topic.values():
             for a in accounts:
                 if a.superseded:
-                    kind = result.superseded if a.depth == 1 else result.dropped
-                    kind.setdefault(a.node, {})[a.topic] = kind.get(a.node, {}).get(a.topic, 0) + a.superseded
+                    book(result.superseded if a.depth == 1 else result.dropped, a.node, a.topic, a.superseded)
                 if a.lost:
-                    result.lost.setdefault(a.node, {})[a.topic] = result.lost.get(a.node, {}).get(a.topic, 0) + a.lost
+                    book(result.lost, a.node, a.topic, a.lost)
+
+
+def history_depth(qos: Any) -> int | None:
+    """A subscription's KEEP_LAST depth (None: KEEP_ALL): how many messages its history holds."""
+    from rclpy.qos import HistoryPolicy
+
+    return None if qos.history == HistoryPolicy.KEEP_ALL else max(1, int(qos.depth))
+
+
+def book(table: dict[str, dict[str, int]], node: str, topic: str, n: int) -> None:
+    """Add ``n`` to a node -> topic -> count table of the run result (superseded, dropped, lost)."""
+    counts = table.setdefault(node, {})
+    counts[topic] = counts.get(topic, 0) + n
 
 
 class Recorder:
