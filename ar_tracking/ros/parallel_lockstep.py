@@ -139,6 +139,14 @@ class ParallelLockstep:
             self.steps[-1] = _Step(0, None, None, [None] * len(self.handles))
             self._preludes = preludes
 
+    def finish(self) -> None:
+        """After the feed: stop every node process, with its counts (callbacks, publications)
+        and its CPU seconds into the run result."""
+        for h in self.handles:
+            h.stop()
+            if h.cpu_s is not None:
+                self.result.live_cpu_s[h.name] = h.cpu_s
+
     # -- the feed ---------------------------------------------------------------------
 
     def play(self, messages: Iterable[Any], feed_topics: set[str], copy_topics: set[str], stop: threading.Event,

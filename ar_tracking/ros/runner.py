@@ -334,10 +334,12 @@ class GraphRunner:
         })
         s.recorder = Recorder(writer, output_types)
         s.clock_ns = [s.reader.start_ns]
+        if recorder_node is None:  # lockstep over node processes: outputs come over the pipes
+            return
         # The recorder keeps every message (KEEP_ALL) with the reliability its publishers offer
         # (as rosbag2: a reliable reader never matches a best-effort publisher).
-        best_effort = best_effort_outputs(s.nodes) if recorder_node is not None else set()
-        for topic, msgtype in sorted(output_types.items() if recorder_node is not None else ()):
+        best_effort = best_effort_outputs(s.nodes)
+        for topic, msgtype in sorted(output_types.items()):
             qos = RECORDER_BEST_EFFORT_QOS if topic in best_effort else RECORDER_QOS
             recorder_node.subscribe(message_class(msgtype), topic,
                                     self._tapped(self._record_callback(s, topic, output_types), topic, msgtype),
@@ -434,11 +436,8 @@ class GraphRunner:
         assert s.recorder is not None
         if s.in_processes and s.realtime:
             stop_node_processes(s.nodes, s.executor, s.recorder)
-        for n in s.nodes:  # lockstep over node processes: their counts and CPU time
-            if hasattr(n, 'node_class') and not s.realtime:
-                n.stop()
-                if n.cpu_s is not None:
-                    result.live_cpu_s[n.name] = n.cpu_s
+        if s.parallel is not None:
+            s.parallel.finish()
         result.output_messages = s.recorder.count
         if s.realtime:
             live_report(s.nodes, result)
