@@ -98,8 +98,6 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
         node.lockstep_hooks = None
         if transforms and callable(getattr(node, 'on_static_transforms', None)):
             node.on_static_transforms(transforms)
-        executor = node_executor(context)
-        executor.add_node(node)
         conn.send(('created', [s.topic_name for s in node.subscriptions], [p.topic_name for p in node.publishers],
                    [p.topic_name for p in node.publishers if p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT],
                    {s.topic_name: history_depth(s.qos_profile) for s in node.subscriptions}))
@@ -109,26 +107,8 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
             conn.send(('ready', list(outbox)))
             outbox.clear()
             serve_steps(node, conn, outbox)
-            conn.send(('counts', {t: list(s.durations_ms) for t, s in node.callback_stats.items()},
-                       dict(node.publish_counts), time.process_time()))
-            return
-        expected, publishers = conn.recv()
-        deadline = time.monotonic() + START_TIMEOUT_S
-        pubs = [p for p in node.publishers if expected.get(p.topic_name, 0) > 0]
-        subs = [s for s in node.subscriptions if publishers.get(s.topic_name, 0) > 0]
-        subs_deadline = time.monotonic() + READER_MATCH_TIMEOUT_S
-        while time.monotonic() < deadline and not stop.is_set():
-            # Matched on both sides: a best-effort reader drops what a writer it has not yet
-            # discovered sends, even when that writer already counts it as matched.
-            if (all(p.get_subscription_count() >= expected[p.topic_name] for p in pubs)
-                    and (time.monotonic() > subs_deadline
-                         or all(s.get_publisher_count() >= publishers[s.topic_name] for s in subs))):
-                break
-            executor.spin_once(timeout_sec=0.02)
-        conn.send(('ready', None))
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-        _take_the_rest(node, executor, conn.recv()[1] if conn.poll() else {})
+        else:
+            _serve_live(node, node_executor(context), conn, stop)
         conn.send(('counts', {t: list(s.durations_ms) for t, s in node.callback_stats.items()},
                    dict(node.publish_counts), time.process_time()))
     except BaseException as exc:  # reported to the runner, which ends the run with the node's name
@@ -144,6 +124,30 @@ def _child_main(name: str, spec: Any, params: dict[str, Any], domain_id: int, tr
                 close()
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def _serve_live(node: Any, executor: Any, conn: Any, stop: Any) -> None:
+    """Realtime: match the runner's counts of subscribers and publishers (at most
+    START_TIMEOUT_S; the readers' side READER_MATCH_TIMEOUT_S), report ready, spin until asked
+    to stop, then take what is still queued or in flight."""
+    executor.add_node(node)
+    expected, publishers = conn.recv()
+    deadline = time.monotonic() + START_TIMEOUT_S
+    pubs = [p for p in node.publishers if expected.get(p.topic_name, 0) > 0]
+    subs = [s for s in node.subscriptions if publishers.get(s.topic_name, 0) > 0]
+    subs_deadline = time.monotonic() + READER_MATCH_TIMEOUT_S
+    while time.monotonic() < deadline and not stop.is_set():
+        # Matched on both sides: a best-effort reader drops what a writer it has not yet
+        # discovered sends, even when that writer already counts it as matched.
+        if (all(p.get_subscription_count() >= expected[p.topic_name] for p in pubs)
+                and (time.monotonic() > subs_deadline
+                     or all(s.get_publisher_count() >= publishers[s.topic_name] for s in subs))):
+            break
+        executor.spin_once(timeout_sec=0.02)
+    conn.send(('ready', None))
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.05)
+    _take_the_rest(node, executor, conn.recv()[1] if conn.poll() else {})
 
 
 def _take_the_rest(node: Any, executor: Any, expected: dict[str, int]) -> None:
