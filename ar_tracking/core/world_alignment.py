@@ -554,9 +554,10 @@ class WorldAlignment:
 
     def estimate(self) -> WorldAlignmentEstimate | None:
         """The current R_pano_enu with its covariance (None before any field sample)."""
-        field = self._field
-        if self._n == 0 or field is None:  # (not ready)
+        if not self.ready:
             return None
+        field = self._field
+        assert field is not None  # ready
         if not self._dirty and self._estimate is not None:
             return self._estimate
         c = self.config

@@ -58,13 +58,9 @@ def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
     one = full if full.executor == 'events' else GraphRunner(
         bag, workdir / 'graph.one_process.out.mcap', params_files=params, executor='events').run()
     floor = GraphRunner(bag, workdir / 'transport.out.mcap', graph=transport_probe_graph()).run()
-    nodes = {}
-    callbacks_s = 0.0
-    for node, topics in full.timings_ms.items():
-        merged = [v for values in topics.values() for v in values]
-        nodes[node] = percentiles_ms(merged)
-        callbacks_s += sum(merged) * 1e-3
-    one_callbacks_s = sum(v for topics in one.timings_ms.values() for values in topics.values() for v in values) * 1e-3
+    nodes = {node: percentiles_ms([v for values in topics.values() for v in values])
+             for node, topics in full.timings_ms.items()}
+    callbacks_s, one_callbacks_s = _callbacks_s(full), _callbacks_s(one)
     return {
         'bag': str(bag),
         'bag_duration_s': round(full.bag_duration_s, 3),
@@ -95,6 +91,11 @@ def bench_graph(workdir: Path, duration_s: float, live_rate: float = 1.0,
         **{('live' if k == 0 else f'live_{executor}'): _live_pass(bag, params, workdir, live_rate, executor)
            for k, executor in enumerate(live_executors) if live_rate > 0},
     }
+
+
+def _callbacks_s(result: Any) -> float:
+    """The nodes' callback time of a run, summed over nodes and topics, s."""
+    return sum(v for topics in result.timings_ms.values() for values in topics.values() for v in values) * 1e-3
 
 
 def bench_photo_worlds(workdir: Path, seeds: range = range(301, 306)) -> dict[str, Any]:
