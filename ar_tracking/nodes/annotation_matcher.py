@@ -45,6 +45,7 @@ from ..core.annotations.store import Annotation, Landmark, PanoramaInfo, StoreEr
 from ..core.panorama.cylinder import CylinderGeometry
 from ..core.rotations import nearest_rotation, quat_xyzw_to_matrix
 from ..io.stores import RetryBackoff, describe, open_store
+from ..ros.cdr_views import image_view, imu_view, transform_stamped_view
 from ..ros.conversions import ConversionError, image_to_array, rotation_from_quaternion, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.param_table import ParamSpec, declare_params
@@ -269,12 +270,14 @@ class AnnotationMatcherNode(TrackingNode):
 
         self.pub_markers = self.advertise(MarkerArray, 'annotations/markers', LATCHED_QOS)
         self.pub_alignment = self.advertise(TransformStamped, 'annotations/alignment', RELIABLE_QOS)
-        self.subscribe(Image, 'panorama/image', self.on_map, LATCHED_QOS)
-        self.subscribe(Image, 'panorama/tiles', self.on_tiles, LATCHED_QOS)
+        self.subscribe(Image, 'panorama/image', self.on_map, LATCHED_QOS, view=image_view)
+        self.subscribe(Image, 'panorama/tiles', self.on_tiles, LATCHED_QOS, view=image_view)
         self.subscribe(NavSatFix, 'gps/fix', self.on_fix, SENSOR_QOS)
-        self.subscribe(TransformStamped, 'orientation/panorama_in_world', self.on_panorama_in_world, RELIABLE_QOS)
-        self.subscribe(Imu, 'orientation/global', self.on_global, RELIABLE_QOS)
-        self.subscribe(TransformStamped, 'panorama/orientation', self.on_panorama_orientation, RELIABLE_QOS)
+        self.subscribe(TransformStamped, 'orientation/panorama_in_world', self.on_panorama_in_world, RELIABLE_QOS,
+                       view=transform_stamped_view)
+        self.subscribe(Imu, 'orientation/global', self.on_global, RELIABLE_QOS, view=imu_view)
+        self.subscribe(TransformStamped, 'panorama/orientation', self.on_panorama_orientation, RELIABLE_QOS,
+                       view=transform_stamped_view)
         if not self.store_path:
             self.get_logger().warning('annotation_matcher: no store_path set; nothing to match (in a params '
                                       'file: annotation_matcher: {ros__parameters: {store_path: notes.db}})')

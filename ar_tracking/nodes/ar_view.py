@@ -20,8 +20,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.annotations.overlay import Label, draw_labels, project_labels
 from ..core.rectification import RectificationError, check_distortion
-from ..ros.conversions import (ConversionError, array_to_image, compressed_to_array, image_to_array,
-                               rotation_from_quaternion, stamp_ns, to_stamp)
+from ..ros.conversions import (ConversionError, compressed_to_array, image_to_array, rotation_from_quaternion,
+                               stamp_ns)
+from ..ros.cdr_views import (camera_info_view, compressed_image_view, image_cdr, image_view, imu_view,
+                             transform_stamped_view)
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.param_table import ParamSpec, declare_params
 
@@ -64,13 +66,16 @@ class ArViewNode(TrackingNode):
         self.pending: dict[int, np.ndarray] = {}
         self.published = 0
         self.pub = self.advertise(Image, 'ar/overlay', RELIABLE_QOS)
-        self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS)
-        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
-        self.subscribe(CameraInfo, 'camera/camera_info', self.on_info, SENSOR_QOS)
+        self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS, view=image_view)
+        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS,
+                       view=compressed_image_view)
+        self.subscribe(CameraInfo, 'camera/camera_info', self.on_info, SENSOR_QOS, view=camera_info_view)
         self.subscribe(MarkerArray, 'annotations/markers', self.on_markers, LATCHED_QOS)
-        self.subscribe(TransformStamped, 'panorama/orientation', self.on_pano_orientation, RELIABLE_QOS)
-        self.subscribe(Imu, 'orientation/global', self.on_global, RELIABLE_QOS)
-        self.subscribe(TransformStamped, 'orientation/panorama_in_world', self.on_pano_in_world, RELIABLE_QOS)
+        self.subscribe(TransformStamped, 'panorama/orientation', self.on_pano_orientation, RELIABLE_QOS,
+                       view=transform_stamped_view)
+        self.subscribe(Imu, 'orientation/global', self.on_global, RELIABLE_QOS, view=imu_view)
+        self.subscribe(TransformStamped, 'orientation/panorama_in_world', self.on_pano_in_world, RELIABLE_QOS,
+                       view=transform_stamped_view)
 
     def on_info(self, msg: CameraInfo) -> None:
         K = np.asarray(msg.k, float).reshape(3, 3)
@@ -171,10 +176,10 @@ class ArViewNode(TrackingNode):
             self.warn_throttled('ar_view: no camera_info yet, frame not drawn')
             return
         placed = project_labels(self.labels, R_pano_cam, self.K, rgb.shape[:2], self.D, self.model)
-        out = array_to_image(draw_labels(rgb, placed, self.text_scale), 'rgb8')
-        out.header.stamp = to_stamp(t)
-        out.header.frame_id = header.frame_id if header is not None else 'camera_optical'
-        self.pub.publish(out)
+        sec, nanosec = divmod(int(t), 1_000_000_000)
+        frame_id = header.frame_id if header is not None else 'camera_optical'
+        # as CDR bytes (ros.cdr_views): the pixels are not copied into an Image message
+        self.pub.publish(image_cdr(sec, nanosec, frame_id, draw_labels(rgb, placed, self.text_scale), 'rgb8'))
         self.published += 1
 
 

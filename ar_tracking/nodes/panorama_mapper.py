@@ -32,7 +32,7 @@ from ..core.panorama import EDR_CORRECTIONS, MapConfig, MapperConfig, PanoramaEr
 from ..core.panorama.exposure import OFFSET_EXPOSURE
 from ..core.rectification import Rectification, RectificationCache, RectificationError, check_distortion
 from ..core.stamp_pairing import NearestStampPairer
-from ..ros.cdr_views import image_view, rotation_transform_cdr
+from ..ros.cdr_views import camera_info_view, compressed_image_view, image_view, rotation_transform_cdr
 from ..ros.conversions import (
     ConversionError,
     array_to_image,
@@ -217,8 +217,9 @@ class PanoramaMapperNode(TrackingNode):
         self.pub_tiles = self.advertise(Image, 'panorama/tiles', LATCHED_QOS)
         # read in place from the received bytes (ros.cdr_views), not copied into a message
         self.subscribe(Image, 'camera/image_raw', self.on_image, CAMERA_QOS, view=image_view)
-        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, CAMERA_QOS)
-        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, CAMERA_QOS)
+        self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, CAMERA_QOS,
+                       view=compressed_image_view)
+        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, CAMERA_QOS, view=camera_info_view)
         self.get_logger().info(f'panorama_mapper: {"EDR" if edr else "8-bit"} {"colour" if color else "grey"} map 2048x512, tiles {tile} px')
 
     # -- inputs ----------------------------------------------------------------------------

@@ -210,7 +210,8 @@ def compressed_to_array(msg: Any) -> NDArray[np.uint8]:
     """sensor_msgs/CompressedImage (jpeg/png) -> BGR or grey array."""
     import cv2
 
-    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    data = msg.data  # a memoryview (a CompressedImage view of the received bytes) is read in place
+    buf = np.frombuffer(data if isinstance(data, memoryview) else bytes(data), dtype=np.uint8)
     if buf.size == 0:
         raise ConversionError('compressed image is empty')
     img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)

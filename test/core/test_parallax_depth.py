@@ -177,3 +177,32 @@ def test_inferred_label_far_from_bunched_matches_is_approximate_with_prediction_
     assert without.status == with_it.status == 'inferred'
     assert al.prediction_sigma[gone] > np.radians(0.55)
     assert without.supported and not with_it.supported
+
+
+@pytest.mark.parametrize('trim, elevation, scale_sigma', [(0.0, False, 0.3), (3.0, True, 0.3), (3.0, False, 0.0),
+                                                          (3.0, True, 0.5)])
+def test_leave_one_out_predictions_equal_one_fit_per_match(trim, elevation, scale_sigma):
+    """The batched leave-one-out (one solve of m normal equations) gives what fitting the model
+    on the other matches one by one gives: to rounding, with the trimmed refit, the elevation and
+    the annotations' depth scale - also with an outlier among the matches and with 2 matches."""
+    from ar_tracking.core.annotations.parallax import leave_one_out_predictions
+
+    rng = np.random.default_rng(17)
+    for m in (2, 3, 9, 25):
+        up = UP + rng.normal(0, 0.03, 3)
+        az, el = rng.uniform(-np.pi, np.pi, m), rng.uniform(-0.3, 0.3, m)
+        predicted = np.stack([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)], axis=1)
+        turn = 0.004 + 0.01 * np.cos(az) + rng.normal(0, 0.002, m)
+        turn[m // 2] += 0.08  # a near tree among the matches
+        observed = np.stack([np.cos(az + turn) * np.cos(el), np.sin(az + turn) * np.cos(el), np.sin(el)], axis=1)
+        ann = np.arange(m) % 2 == 0
+        got = leave_one_out_predictions(predicted, observed, up, 0.01, 0.02, trim, elevation,
+                                        ann if scale_sigma > 0 else None, scale_sigma)
+        for r in range(m):
+            others = np.arange(m) != r
+            loo = fit_parallax(predicted[others], observed[others], up, 0.01, 0.02, trim, elevation)
+            if scale_sigma > 0 and ann[r]:
+                loo = loo.scaled(fit_depth_scale(loo, predicted[others & ann], observed[others & ann], 0.01,
+                                                 scale_sigma))
+            assert np.allclose(got[r], loo.apply(predicted[r])[0], rtol=0, atol=1e-12)
+        assert not np.allclose(got, predicted, atol=1e-4)  # it moved them

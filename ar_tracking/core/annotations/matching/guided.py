@@ -13,7 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...panorama.cylinder import CylinderGeometry
-from ..parallax import ParallaxModel, depth_scale_sigma, fit_depth_scale, fit_parallax, prediction_sigma
+from ..parallax import (ParallaxModel, depth_scale_sigma, fit_depth_scale, fit_parallax, leave_one_out_predictions,
+                        prediction_sigma)
 from .config import MatchConfig
 from .placement import Alignment, CandidateDirections, Placement, offset_from_prediction_px, place_annotations
 from .tiles import Candidate
@@ -316,13 +317,10 @@ class GuidedSearch:
             sig = prediction_sigma(model, predicted[matched], observed, predicted[rows], cfg.parallax_sigma_match,
                                    cfg.parallax_sigma)
             sigmas = {ids[k]: float(x) for k, x in zip(rows, sig)}
-        # A matched annotation's own position comes from the others only (leave-one-out): a
-        # look-alike match must not pull the prediction it is judged against towards itself.
-        for r, k in enumerate(matched):
-            others = every.copy()
-            others[r] = False
-            loo = fit(others)
-            corrected[k] = (scaled(loo, others) if shown[k] else loo).apply(predicted[k])[0]
+        # A matched annotation's own position comes from the others only (leave-one-out).
+        corrected[matched] = leave_one_out_predictions(
+            predicted[matched], observed, up, cfg.parallax_sigma_match, cfg.parallax_sigma, cfg.parallax_trim_sigmas,
+            cfg.parallax_elevation, ann if cfg.parallax_scale_sigma > 0 else None, cfg.parallax_scale_sigma)
         gate = self._parallax_gate(corrected[matched], observed) if cfg.parallax_gate_sigmas > 0 else float('nan')
         corrected.flags.writeable = False
         fitted = _ParallaxFit(model, corrected, depth_ratio_sigma, sigmas, gate)
