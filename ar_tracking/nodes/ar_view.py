@@ -63,7 +63,8 @@ class ArViewNode(TrackingNode):
         self.pano_cam: dict[int, np.ndarray] = {}
         self.enu_cam: tuple[int, np.ndarray] | None = None
         self.enu_pano: np.ndarray | None = None
-        self.pending: dict[int, np.ndarray] = {}
+        #: images waiting for their frame's panorama/orientation: stamp -> (rgb, the image's header)
+        self.pending: dict[int, tuple[np.ndarray, Any]] = {}
         self.published = 0
         self.pub = self.advertise(Image, 'ar/overlay', RELIABLE_QOS)
         self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS, view=image_view)
@@ -116,7 +117,7 @@ class ArViewNode(TrackingNode):
         while len(self.pano_cam) > 30:
             self.pano_cam.pop(next(iter(self.pano_cam)))
         if t in self.pending:  # the image came first
-            self._draw(t, self.pending.pop(t), R)
+            self._draw(t, *self.pending.pop(t), R)
 
     def on_global(self, msg: Imu) -> None:
         try:
@@ -165,21 +166,20 @@ class ArViewNode(TrackingNode):
                 and abs(self.enu_cam[0] - t) <= self.max_gap_ns:
             R = self.enu_pano.T @ self.enu_cam[1]
         if R is None:
-            self.pending[t] = rgb  # panorama/orientation of this frame may still come
+            self.pending[t] = (rgb, header)  # panorama/orientation of this frame may still come
             while len(self.pending) > 5:
                 self.pending.pop(next(iter(self.pending)))
             return
-        self._draw(t, rgb, R, header)
+        self._draw(t, rgb, header, R)
 
-    def _draw(self, t: int, rgb: np.ndarray, R_pano_cam: np.ndarray, header: Any = None) -> None:
+    def _draw(self, t: int, rgb: np.ndarray, header: Any, R_pano_cam: np.ndarray) -> None:
         if self.K is None:
             self.warn_throttled('ar_view: no camera_info yet, frame not drawn')
             return
         placed = project_labels(self.labels, R_pano_cam, self.K, rgb.shape[:2], self.D, self.model)
         sec, nanosec = divmod(int(t), 1_000_000_000)
-        frame_id = header.frame_id if header is not None else 'camera_optical'
         # as CDR bytes (ros.cdr_views): the pixels are not copied into an Image message
-        self.pub.publish(image_cdr(sec, nanosec, frame_id, draw_labels(rgb, placed, self.text_scale), 'rgb8'))
+        self.pub.publish(image_cdr(sec, nanosec, header.frame_id, draw_labels(rgb, placed, self.text_scale), 'rgb8'))
         self.published += 1
 
 

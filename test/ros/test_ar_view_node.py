@@ -54,6 +54,7 @@ def test_overlay_draws_labels_at_their_anchor(ros_context):
     pub_img.publish(f32)
     img = array_to_image(np.full((240, 320, 3), 100, np.uint8), 'rgb8')
     img.header.stamp = to_stamp(T0 + 1)
+    img.header.frame_id = 'phone_cam_optical'
     pub_img.publish(img)
     tf = TransformStamped()
     tf.header.stamp = to_stamp(T0 + 1)
@@ -62,6 +63,8 @@ def test_overlay_draws_labels_at_their_anchor(ros_context):
     assert spin_until(ex, lambda: bool(out), 5.0)
     o = image_to_array(out[0])
     assert out[0].header.stamp.nanosec == 1 and o.shape == (240, 320, 3)
+    # drawn when its orientation came (after the image): still in the image's own frame
+    assert out[0].header.frame_id == 'phone_cam_optical' and out[0].encoding == 'rgb8'
     assert tuple(o[120, 160]) == COLOURS_RGB['matched']
     assert all(s.failures == 0 for s in node.callback_stats.values())
     node.destroy_node()
