@@ -133,6 +133,10 @@ class FrameResult:
     intensity_gain: float = 1.0
 
 
+#: What :meth:`PanoramaMapper._painting` takes for a map pixel of no painted frame's (rate unknown).
+_UNPAINTED: tuple[Array, None, float] = (np.eye(3), None, 0.0)
+
+
 def _grey_std(gray: NDArray[np.uint8]) -> float:
     """Standard deviation of the grey levels (cv2: a tenth of numpy's time at 320 x 240)."""
     return float(cv2.meanStdDev(gray)[1][0, 0])
@@ -419,18 +423,23 @@ class PanoramaMapper:
         uv = self.map.keypoints()[1][fit.keypoints]
         ids = self.map.contribution[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)]
         frames, which = np.unique(ids, return_inverse=True)
-        recs = [self._painted.get(j, (np.eye(3), None, 0.0)) for j in frames.tolist()]
-        known = np.array([w is not None for _, w, _ in recs])[which]
+        recs = [self._painted.get(j, _UNPAINTED) for j in frames.tolist()]
+        # Only the rays painted by a frame of known rate are computed (each ray's values are its own).
+        known = np.flatnonzero(np.array([w is not None for _, w, _ in recs])[which])
+        if known.size == 0:
+            return None, None
+        which = which[known]
         R_j = np.stack([R for R, _, _ in recs])[which]  # (n, 3, 3) the painting frame of each ray
         w_j = np.stack([np.zeros(3) if w is None else w for _, w, _ in recs])[which]
-        _, y, _ = project_to_image(K, np.einsum('nji,nj->ni', R_j, fit.rays + fit.residuals))
-        rows = np.where(known, (y + 0.5) / height, np.nan)
+        _, y, _ = project_to_image(K, np.einsum('nji,nj->ni', R_j, fit.rays[known] + fit.residuals[known]))
+        rows = (y + 0.5) / height
         omega = np.einsum('nij,nj->ni', R_j, w_j)
         readout = np.array([s_j for _, _, s_j in recs])[which]
         keep = np.isfinite(rows)
         if not keep.any():
             return None, None
-        sub = RowFit(fit.rays[keep], fit.residuals[keep], fit.rows[keep], fit.keypoints[keep])
+        ray = known[keep]
+        sub = RowFit(fit.rays[ray], fit.residuals[ray], fit.rows[ray], fit.keypoints[ray])
         return sub, Painting(omega[keep], rows[keep], readout[keep])
 
     def _row_motion(self, omega: Array | None) -> tuple[Array, float] | None:
