@@ -196,10 +196,10 @@ class ActiveSearchTracker:
     def __init__(self, config: TrackerConfig | None = None) -> None:
         self.config = cfg = config or TrackerConfig()
         self._rng = np.random.default_rng(cfg.seed)
-        half = cfg.patch_size // 2
-        self._grid = np.arange(-half, half + 1, dtype=float)
         #: ((K bytes, h, w), the widest angle of the frame's corner rays from the optical axis)
         self._corner_angle: tuple[tuple[bytes, int, int], float] | None = None
+        #: ((K bytes, h, w), every pixel's ray (h w, 3)): see _template_rays
+        self._pixel_rays: tuple[tuple[bytes, int, int], Array] | None = None
 
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.config.seed)
@@ -246,8 +246,7 @@ class ActiveSearchTracker:
         # Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on (xr, yr), x (n, 1, P)
         # and y (n, P, 1) broadcast; then one (n P P, 3) x (3, 3) product (a stack of n P small
         # ones costs more; same values).
-        grid = self._grid
-        rays = camera_rays(K, xr[:, None, None] + grid, yr[:, None, None] + grid[:, None], unit=False)
+        rays = self._template_rays(K, h, w, xr, yr)
         if row_motion is None:
             u, v = pano.geometry.project((rays.reshape(-1, 3) @ R_pred.T).reshape(rays.shape))
         else:  # each template turned by its row's rotation
@@ -378,6 +377,21 @@ class ActiveSearchTracker:
             fit = RowFit(rays, d[inl] - rays, (my[inl] + 0.5) / h, idx[k][inl])
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
                            log_gain, log_se, pairs_used, offset_se, fit, R)
+
+    def _template_rays(self, K: Array, h: int, w: int, xr: NDArray[np.int64], yr: NDArray[np.int64]) -> Array:
+        """Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on the integer pixels
+        (xr, yr) (inside the frame), gathered from a table of every pixel's ray kept for the
+        camera: :func:`.cylinder.camera_rays` of each pixel (the same values), without computing
+        them again for every frame."""
+        key = (K.tobytes(), h, w)
+        if self._pixel_rays is None or self._pixel_rays[0] != key:
+            table = camera_rays(K, np.arange(w, dtype=float)[None, :], np.arange(h, dtype=float)[:, None], unit=False)
+            self._pixel_rays = (key, table.reshape(h * w, 3))
+        P = self.config.patch_size
+        half = P // 2
+        grid = np.arange(P)
+        corner = (yr - half) * w + (xr - half)
+        return np.take(self._pixel_rays[1], corner[:, None, None] + (grid[:, None] * w + grid), axis=0)
 
     def _cone_cos(self, K: Array, h: int, w: int, row_motion: tuple[Array, float] | None) -> float:
         """A lower bound of the optical-axis component of every unit direction (camera axes at
