@@ -153,7 +153,7 @@ def to_row_cameras(row_motion: tuple[Array, float], y: Array, height: int, px: A
     rate = float(np.linalg.norm(w))
     if rate < 1e-12 or readout <= 0.0:
         return px, py, pz
-    kx, ky, kz = (float(c) for c in w / rate)
+    kx, ky, kz = (w / rate).tolist()
     theta = -rate * _row_times(readout, y, height)  # turning back
     c, s = np.cos(theta), np.sin(theta)
     dot = (kx * px + ky * py + kz * pz) * (1.0 - c)

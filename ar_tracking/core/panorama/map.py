@@ -246,9 +246,10 @@ class PanoramaMap:
         key = (K.tobytes(), np.asarray(R_pano_cam, float).tobytes(), tuple(size))
         if self._footprint is not None and self._footprint[0] == key:
             return self._footprint[1]
-        d = self._outline(K, size) @ R_pano_cam.T
+        # the outline's directions and, last, the optical axis's: one projection
+        d = np.concatenate([self._outline(K, size) @ R_pano_cam.T, R_pano_cam[None, :, 2]])
         u, v = self.geometry.project(d)
-        uc, _ = self.geometry.project(R_pano_cam[:, 2])
+        u, v, uc = u[:-1], v[:-1], u[-1]
         W = self.config.width
         du = np.mod(u - uc + W / 2, W) - W / 2
         u0 = int(np.floor(uc + du.min())) - 1
