@@ -113,22 +113,20 @@ def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
     return align_directions(b, d, w)
 
 
-def _pair_frames(v: Array) -> Array:
+def _pair_frames(v: Array, F: Array) -> None:
     """Orthonormal frames (M, 3, 3), as columns (s, t, s x t), of M pairs of unit directions
-    v (M, 2, 3), with s along v0 + v1 and t along v0 - v1 (orthogonal, as |v0| = |v1|); a
-    degenerate pair (v0 = +-v1) gives a non-finite frame."""
+    v (M, 2, 3), with s along v0 + v1 and t along v0 - v1 (orthogonal, as |v0| = |v1|), written
+    into ``F`` (M, 3, 3); a degenerate pair (v0 = +-v1) gives a non-finite frame (the caller
+    silences numpy's invalid and divide warnings)."""
     s = v[:, 0] + v[:, 1]
     t = v[:, 0] - v[:, 1]
-    with np.errstate(invalid='ignore', divide='ignore'):
-        s /= np.sqrt((s * s).sum(axis=1))[:, None]
-        t /= np.sqrt((t * t).sum(axis=1))[:, None]
-    F = np.empty((v.shape[0], 3, 3))
+    s /= np.sqrt((s * s).sum(axis=1))[:, None]
+    t /= np.sqrt((t * t).sum(axis=1))[:, None]
     F[:, :, 0] = s
     F[:, :, 1] = t
     F[:, 0, 2] = s[:, 1] * t[:, 2] - s[:, 2] * t[:, 1]
     F[:, 1, 2] = s[:, 2] * t[:, 0] - s[:, 0] * t[:, 2]
     F[:, 2, 2] = s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0]
-    return F
 
 
 def pair_rotation_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Array | None, thr: float
@@ -143,29 +141,45 @@ def pair_rotation_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Ar
     vectors are the unit s and t directions, so R = F_d F_b^T maps the frame F_b = (s, t, s x t)
     of the bearings onto F_d of the directions. Then |R b - d| = |F_b^T b - F_d^T d|: every
     hypothesis's residuals come from two matrix products, (n, 3) x (3, 3 M), with no batched
-    SVD (4 times the cost) and no rotation formed. A degenerate pair votes for nothing."""
-    Fb = _pair_frames(b[pairs])
-    Fd = _pair_frames(d[pairs])
-    if R_pred is not None:
-        Fb = np.concatenate([Fb, np.eye(3)[None]])  # R_pred: |b - R_pred^T d|
-        Fd = np.concatenate([Fd, R_pred[None]])
-    m = Fb.shape[0]
+    SVD (4 times the cost) and no rotation formed. A degenerate pair votes for nothing.
+    (One warning context for all of it: entering numpy's costs about as much as the arithmetic.)"""
+    M = pairs.shape[0]
+    m = M + (R_pred is not None)
+    Fb = np.empty((m, 3, 3))
+    Fd = np.empty((m, 3, 3))
     n = b.shape[0]
-    diff = (b @ Fb.transpose(1, 0, 2).reshape(3, 3 * m) - d @ Fd.transpose(1, 0, 2).reshape(3, 3 * m))
-    diff = diff.reshape(n, m, 3)
-    with np.errstate(invalid='ignore'):
+    with np.errstate(invalid='ignore', divide='ignore'):
+        _pair_frames(b[pairs], Fb[:M])
+        _pair_frames(d[pairs], Fd[:M])
+        if R_pred is not None:
+            Fb[M] = _EYE  # R_pred: |b - R_pred^T d|
+            Fd[M] = R_pred
+        diff = (b @ Fb.transpose(1, 0, 2).reshape(3, 3 * m) - d @ Fd.transpose(1, 0, 2).reshape(3, 3 * m))
+        diff = diff.reshape(n, m, 3)
         return (np.einsum('nmi,nmi->mn', diff, diff) < thr * thr)
+
+
+_EYE = np.eye(3)
+_EYE.flags.writeable = False
 
 
 def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
     """Mean of the central 1 - 2 * trim of the values (robust to a few bad pairs) and its
-    standard error (spread of the kept values / sqrt(kept))."""
+    standard error (spread of the kept values / sqrt(kept)).
+
+    The mean and ``std(ddof=1)`` as numpy's ndarray methods compute them (the same sums,
+    divisions and squares, so the same values) without their generic reduction wrappers."""
     x = np.sort(x)
     k = int(trim * x.size)
     c = x[k:x.size - k] if x.size > 2 * k else x
     if c.size < 2:
         return (float(c.mean()) if c.size else 0.0), float('inf')
-    return float(c.mean()), float(c.std(ddof=1) / np.sqrt(c.size))
+    n = c.size
+    mean = np.add.reduce(c, axis=None) / n
+    dev = np.subtract(c, mean)
+    np.square(dev, out=dev)
+    std = np.sqrt(np.add.reduce(dev, axis=None) / (n - 1))
+    return float(mean), float(std / np.sqrt(n))
 
 
 def _patch_rows(windows: NDArray[np.float32], side: int, P: int) -> NDArray[np.float32]:
