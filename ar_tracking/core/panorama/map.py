@@ -332,7 +332,8 @@ class PanoramaMap:
         old = self._in_frame(K, R_pano_cam, gray.shape[:2], (u0 + ci * step) % self.config.width, v0 + ri * step)
         if old is None:
             return None
-        return self.gray[old.vv, old.uu], sample_points(gray, old.x, old.y).astype(np.float32)
+        return (np.take(self.gray.reshape(-1), old.vv * self.config.width + old.uu),
+                sample_points(gray, old.x, old.y).astype(np.float32))
 
     def new_pixels(self, K: Array, R_pano_cam: Array, size: tuple[int, int]) -> NewPixels | None:
         """The not-yet-mapped map pixels a frame of ``size`` (h, w) at R_pano_cam sees (frame
@@ -374,17 +375,19 @@ class PanoramaMap:
             col = sample_points(src, x, y).astype(np.float32)
         else:
             col = g.reshape(-1, 1)
+        # the pixels' flat indices: one gather-scatter per array instead of two index arrays each
+        flat = vv * cfg.width + uu
         if cfg.edr:
             off, gn = np.float32(offset), np.float32(gain)
             gray_val = g * gn + off
             stored = np.clip(np.rint((col * gn + off + np.float32(EDR_OFFSET)) * np.float32(EDR_SCALE)), 0, 65535)
-            self.stored[vv, uu] = stored.astype(np.uint16)
+            self.stored.reshape(-1, cfg.channels)[flat] = stored.astype(np.uint16)
         else:
             gray_val = g
-            self.stored[vv, uu] = col.astype(np.uint8)
-        self.gray[vv, uu] = gray_val
-        self.mapped[vv, uu] = True
-        self.contribution[vv, uu] = frame_index
+            self.stored.reshape(-1, cfg.channels)[flat] = col.astype(np.uint8)
+        self.gray.reshape(-1)[flat] = gray_val
+        self.mapped.reshape(-1)[flat] = True
+        self.contribution.reshape(-1)[flat] = frame_index
         self._count_tiles(uu, vv)
         self.version += 1
         self.frames_mapped += 1
