@@ -108,6 +108,12 @@ def project_xyz(K: Array, px: Array, py: Array, pz: Array) -> tuple[Array, Array
     return K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2], front
 
 
+def image_rows(K: Array, py: Array, pz: Array) -> Array:
+    """The row coordinates alone of :func:`project_xyz` (the same values): what a rolling
+    shutter's row times need before the points are projected again."""
+    return K[1, 1] * (py / np.where(pz > 1e-6, pz, 1.0)) + K[1, 2]
+
+
 def project_to_image(K: Array, p_cam: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
     """Pixel coordinates of camera-frame points (..., 3) and whether they are in front
     (:func:`project_xyz` of the three columns)."""

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .cylinder import CylinderGeometry, project_xyz, to_row_cameras
+from .cylinder import CylinderGeometry, image_rows, project_xyz, to_row_cameras
 
 logger = logging.getLogger(__name__)
 
@@ -308,9 +308,10 @@ class PanoramaMap:
         # The three coordinates as separate contiguous arrays (the (N, 3) array's strided
         # columns cost a third more in project_to_image).
         px, py, pz = (Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c for k in range(3))
-        x, y, front = project_xyz(K, px, py, pz)
-        if self.row_motion is not None:  # a rolling shutter: where the row that saw it put it
-            x, y, front = project_xyz(K, *to_row_cameras(self.row_motion, y, h, px, py, pz))
+        if self.row_motion is None:
+            x, y, front = project_xyz(K, px, py, pz)
+        else:  # a rolling shutter: where the row that saw it put it
+            x, y, front = project_xyz(K, *to_row_cameras(self.row_motion, image_rows(K, py, pz), h, px, py, pz))
         b = self.config.frame_border_px
         ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
         if not ok.any():

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from ..box_sums import window_box_sums
 from ..rotations import align_directions
-from .cylinder import camera_rays, project_to_image, row_rotations
+from .cylinder import camera_rays, image_rows, project_to_image, row_rotations
 from .map import PanoramaMap
 from .readout import RowFit
 
@@ -248,8 +248,10 @@ class ActiveSearchTracker:
         # the others are not projected (most of the map's; each keypoint's values are its own).
         cand = np.flatnonzero(cam[:, 2] >= self._cone_cos(K, h, w, row_motion))
         cam = cam[cand]
-        x, y, front = project_to_image(K, cam)
-        if row_motion is not None:  # where the row that sees a keypoint saw it (one iteration)
+        if row_motion is None:
+            x, y, front = project_to_image(K, cam)
+        else:  # where the row that sees a keypoint saw it (one iteration)
+            y = image_rows(K, cam[:, 1], cam[:, 2])
             x, y, front = project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
         m = half + r + 1
         vis = front & (x >= m) & (x < w - 1 - m) & (y >= m) & (y < h - 1 - m)
@@ -450,8 +452,10 @@ class ActiveSearchTracker:
         if o.size == 0:
             return 0
         cam = dirs[o] @ R
-        x, y, front = project_to_image(K, cam)
-        if row_motion is not None:  # where the row that saw it was read
+        if row_motion is None:
+            x, y, front = project_to_image(K, cam)
+        else:  # where the row that saw it was read
+            y = image_rows(K, cam[:, 1], cam[:, 2])
             x, y, front = project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
         dx, dy = peak_x[o] - x, peak_y[o] - y
         limit = self.config.weak_px
