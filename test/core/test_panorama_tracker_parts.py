@@ -63,18 +63,19 @@ def _camera_rays_reference(K: np.ndarray, x: np.ndarray, y: np.ndarray, unit: bo
 
 
 def test_template_rays_equal_camera_rays_of_the_pixel_grids() -> None:
-    """The tracker's call (x (n, 1, P) and y (n, P, 1) broadcast) gives the bytes of the plain
-    formula on the full pixel grids."""
+    """The tracker's template rays (gathered from its table of the frame's pixel rays) give the
+    bytes of the plain formula on the full pixel grids, also after a change of camera."""
     tracker = ActiveSearchTracker()
-    K = np.array([[300.0, 0.5, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]])
-    xr = np.array([10, 200, 311])
-    yr = np.array([15, 100, 230])
-    grid = tracker._grid
+    xr = np.array([4, 10, 200, 311, 315])
+    yr = np.array([4, 15, 100, 230, 235])
+    grid = np.arange(-4.0, 5.0)
     gx, gy = np.broadcast_arrays(xr[:, None, None] + grid[None, None, :], yr[:, None, None] + grid[None, :, None])
-    expect = _camera_rays_reference(K, gx, gy, unit=False)
-    got = camera_rays(K, xr[:, None, None] + grid, yr[:, None, None] + grid[:, None], unit=False)
-    assert got.shape == (3, grid.size, grid.size, 3)
-    assert got.tobytes() == expect.tobytes()
+    for K in (np.array([[300.0, 0.5, 160.2], [0.0, 310.0, 119.7], [0.0, 0.0, 1.0]]),
+              np.array([[277.1, 0.0, 159.5], [0.0, 277.1, 119.5], [0.0, 0.0, 1.0]])):
+        expect = _camera_rays_reference(K, gx, gy, unit=False)
+        got = tracker._template_rays(K, 240, 320, xr, yr)
+        assert got.shape == (5, grid.size, grid.size, 3)
+        assert got.tobytes() == expect.tobytes()
 
 
 @pytest.mark.parametrize('shape', [(), (7,), (5, 4)])

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -107,6 +108,12 @@ def project_xyz(K: Array, px: Array, py: Array, pz: Array) -> tuple[Array, Array
     return K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2], front
 
 
+def image_rows(K: Array, py: Array, pz: Array) -> Array:
+    """The row coordinates alone of :func:`project_xyz` (the same values): what a rolling
+    shutter's row times need before the points are projected again."""
+    return K[1, 1] * (py / np.where(pz > 1e-6, pz, 1.0)) + K[1, 2]
+
+
 def project_to_image(K: Array, p_cam: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
     """Pixel coordinates of camera-frame points (..., 3) and whether they are in front
     (:func:`project_xyz` of the three columns)."""
@@ -127,13 +134,30 @@ def row_rotations(row_motion: tuple[Array, float], y: ArrayLike, height: int) ->
     rate = math.sqrt(float(w.dot(w)))
     if rate < 1e-300:
         return np.broadcast_to(np.eye(3), dt.shape + (3, 3)).copy()
-    kx, ky, kz = (w / rate).tolist()
-    Kx = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    Kx, Kx2 = _axis_terms(w.tobytes())
     angle = rate * dt
     out = np.sin(angle)[:, None, None] * Kx
-    out += (1.0 - np.cos(angle))[:, None, None] * (Kx @ Kx)
-    out += np.eye(3)
+    out += (1.0 - np.cos(angle))[:, None, None] * Kx2
+    out += _EYE
     return out
+
+
+_EYE = np.eye(3)
+_EYE.flags.writeable = False
+
+
+@lru_cache(maxsize=8)
+def _axis_terms(omega_bytes: bytes) -> tuple[Array, Array]:
+    """[k]x and [k]x^2 (read-only) of the unit axis k of the rate ``omega`` (its float64
+    bytes), as :func:`row_rotations` computed them: kept, since the tracker turns three sets of
+    rows by the same rate per frame."""
+    w = np.frombuffer(omega_bytes, dtype=np.float64)
+    kx, ky, kz = (w / math.sqrt(float(w.dot(w)))).tolist()
+    Kx = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    Kx2 = Kx @ Kx
+    Kx.flags.writeable = False
+    Kx2.flags.writeable = False
+    return Kx, Kx2
 
 
 def _row_times(readout: float, y: ArrayLike, height: int) -> Array:
@@ -153,7 +177,7 @@ def to_row_cameras(row_motion: tuple[Array, float], y: Array, height: int, px: A
     rate = float(np.linalg.norm(w))
     if rate < 1e-12 or readout <= 0.0:
         return px, py, pz
-    kx, ky, kz = (float(c) for c in w / rate)
+    kx, ky, kz = (w / rate).tolist()
     theta = -rate * _row_times(readout, y, height)  # turning back
     c, s = np.cos(theta), np.sin(theta)
     dot = (kx * px + ky * py + kz * pz) * (1.0 - c)

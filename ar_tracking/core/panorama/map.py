@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .cylinder import CylinderGeometry, project_xyz, to_row_cameras
+from .cylinder import CylinderGeometry, image_rows, project_xyz, to_row_cameras
 
 logger = logging.getLogger(__name__)
 
@@ -246,9 +246,10 @@ class PanoramaMap:
         key = (K.tobytes(), np.asarray(R_pano_cam, float).tobytes(), tuple(size))
         if self._footprint is not None and self._footprint[0] == key:
             return self._footprint[1]
-        d = self._outline(K, size) @ R_pano_cam.T
+        # the outline's directions and, last, the optical axis's: one projection
+        d = np.concatenate([self._outline(K, size) @ R_pano_cam.T, R_pano_cam[None, :, 2]])
         u, v = self.geometry.project(d)
-        uc, _ = self.geometry.project(R_pano_cam[:, 2])
+        u, v, uc = u[:-1], v[:-1], u[-1]
         W = self.config.width
         du = np.mod(u - uc + W / 2, W) - W / 2
         u0 = int(np.floor(uc + du.min())) - 1
@@ -307,9 +308,10 @@ class PanoramaMap:
         # The three coordinates as separate contiguous arrays (the (N, 3) array's strided
         # columns cost a third more in project_to_image).
         px, py, pz = (Rt[k, 0] * s + Rt[k, 1] * hh + Rt[k, 2] * c for k in range(3))
-        x, y, front = project_xyz(K, px, py, pz)
-        if self.row_motion is not None:  # a rolling shutter: where the row that saw it put it
-            x, y, front = project_xyz(K, *to_row_cameras(self.row_motion, y, h, px, py, pz))
+        if self.row_motion is None:
+            x, y, front = project_xyz(K, px, py, pz)
+        else:  # a rolling shutter: where the row that saw it put it
+            x, y, front = project_xyz(K, *to_row_cameras(self.row_motion, image_rows(K, py, pz), h, px, py, pz))
         b = self.config.frame_border_px
         ok = front & (x >= b) & (x <= w - 1 - b) & (y >= b) & (y <= h - 1 - b)
         if not ok.any():
@@ -331,7 +333,8 @@ class PanoramaMap:
         old = self._in_frame(K, R_pano_cam, gray.shape[:2], (u0 + ci * step) % self.config.width, v0 + ri * step)
         if old is None:
             return None
-        return self.gray[old.vv, old.uu], sample_points(gray, old.x, old.y).astype(np.float32)
+        return (np.take(self.gray.reshape(-1), old.vv * self.config.width + old.uu),
+                sample_points(gray, old.x, old.y).astype(np.float32))
 
     def new_pixels(self, K: Array, R_pano_cam: Array, size: tuple[int, int]) -> NewPixels | None:
         """The not-yet-mapped map pixels a frame of ``size`` (h, w) at R_pano_cam sees (frame
@@ -373,17 +376,19 @@ class PanoramaMap:
             col = sample_points(src, x, y).astype(np.float32)
         else:
             col = g.reshape(-1, 1)
+        # the pixels' flat indices: one gather-scatter per array instead of two index arrays each
+        flat = vv * cfg.width + uu
         if cfg.edr:
             off, gn = np.float32(offset), np.float32(gain)
             gray_val = g * gn + off
             stored = np.clip(np.rint((col * gn + off + np.float32(EDR_OFFSET)) * np.float32(EDR_SCALE)), 0, 65535)
-            self.stored[vv, uu] = stored.astype(np.uint16)
+            self.stored.reshape(-1, cfg.channels)[flat] = stored.astype(np.uint16)
         else:
             gray_val = g
-            self.stored[vv, uu] = col.astype(np.uint8)
-        self.gray[vv, uu] = gray_val
-        self.mapped[vv, uu] = True
-        self.contribution[vv, uu] = frame_index
+            self.stored.reshape(-1, cfg.channels)[flat] = col.astype(np.uint8)
+        self.gray.reshape(-1)[flat] = gray_val
+        self.mapped.reshape(-1)[flat] = True
+        self.contribution.reshape(-1)[flat] = frame_index
         self._count_tiles(uu, vv)
         self.version += 1
         self.frames_mapped += 1

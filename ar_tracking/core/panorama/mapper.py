@@ -133,6 +133,42 @@ class FrameResult:
     intensity_gain: float = 1.0
 
 
+class PaintedFrames(dict[int, tuple[Array, Array | None, float]]):
+    """The frames that painted the map: index -> (R_pano_cam, rate rad/s camera axes or None
+    while unknown, readout its rows were turned by); a dict, whose items (set one at a time) are
+    also kept as arrays by row ``index + 1`` (row 0: no such frame - identity, no rate, 0 s), so
+    that the rays of a fit look their painting frames up in one gather per array
+    (:meth:`PanoramaMapper._painting`; a unique / stack of the frames per tracked frame cost
+    more than the arithmetic)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.R = np.tile(np.eye(3), (64, 1, 1))
+        self.rate = np.zeros((64, 3))
+        self.known = np.zeros(64, bool)
+        self.readout = np.zeros(64)
+
+    def __setitem__(self, index: int, value: tuple[Array, Array | None, float]) -> None:
+        super().__setitem__(index, value)
+        row = index + 1
+        if row >= self.known.size:
+            grow = max(row + 1, 2 * self.known.size) - self.known.size
+            self.R = np.concatenate([self.R, np.tile(np.eye(3), (grow, 1, 1))])
+            self.rate = np.concatenate([self.rate, np.zeros((grow, 3))])
+            self.known = np.concatenate([self.known, np.zeros(grow, bool)])
+            self.readout = np.concatenate([self.readout, np.zeros(grow)])
+        R, rate, readout = value
+        self.R[row] = R
+        self.rate[row] = 0.0 if rate is None else rate
+        self.known[row] = rate is not None
+        self.readout[row] = readout
+
+    def rows(self, index: NDArray[np.integer]) -> NDArray[np.intp]:
+        """The array rows of frame indices (0 for one that painted nothing)."""
+        index = np.asarray(index, np.intp)
+        return np.where((index >= 0) & (index < self.known.size - 1), index + 1, 0)
+
+
 def _grey_std(gray: NDArray[np.uint8]) -> float:
     """Standard deviation of the grey levels (cv2: a tenth of numpy's time at 320 x 240)."""
     return float(cv2.meanStdDev(gray)[1][0, 0])
@@ -190,7 +226,7 @@ class PanoramaMapper:
         self.readout_estimator = ReadoutEstimator(cfg.readout_estimate)
         #: Frames that painted the map: index -> (R_pano_cam, rate rad/s camera axes or None
         #: while unknown, readout its rows were turned by) - what the readout's estimate needs.
-        self._painted: dict[int, tuple[Array, Array | None, float]] = {}
+        self._painted = PaintedFrames()
         #: The readout in use, s (``readout_s``, then the estimate).
         self.readout_s = cfg.readout_s
         #: The frames mapped as a global shutter until the estimate replaces readout 0 (then
@@ -418,19 +454,24 @@ class PanoramaMapper:
         painted them (:class:`.readout.Painting`)."""
         uv = self.map.keypoints()[1][fit.keypoints]
         ids = self.map.contribution[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)]
-        frames, which = np.unique(ids, return_inverse=True)
-        recs = [self._painted.get(j, (np.eye(3), None, 0.0)) for j in frames.tolist()]
-        known = np.array([w is not None for _, w, _ in recs])[which]
-        R_j = np.stack([R for R, _, _ in recs])[which]  # (n, 3, 3) the painting frame of each ray
-        w_j = np.stack([np.zeros(3) if w is None else w for _, w, _ in recs])[which]
-        _, y, _ = project_to_image(K, np.einsum('nji,nj->ni', R_j, fit.rays + fit.residuals))
-        rows = np.where(known, (y + 0.5) / height, np.nan)
+        painted = self._painted
+        rows_all = painted.rows(ids)
+        # Only the rays painted by a frame of known rate are computed (each ray's values are its own).
+        known = np.flatnonzero(painted.known[rows_all])
+        if known.size == 0:
+            return None, None
+        which = rows_all[known]
+        R_j = painted.R[which]  # (n, 3, 3) the painting frame of each ray
+        w_j = painted.rate[which]
+        _, y, _ = project_to_image(K, np.einsum('nji,nj->ni', R_j, fit.rays[known] + fit.residuals[known]))
+        rows = (y + 0.5) / height
         omega = np.einsum('nij,nj->ni', R_j, w_j)
-        readout = np.array([s_j for _, _, s_j in recs])[which]
+        readout = painted.readout[which]
         keep = np.isfinite(rows)
         if not keep.any():
             return None, None
-        sub = RowFit(fit.rays[keep], fit.residuals[keep], fit.rows[keep], fit.keypoints[keep])
+        ray = known[keep]
+        sub = RowFit(fit.rays[ray], fit.residuals[ray], fit.rows[ray], fit.keypoints[ray])
         return sub, Painting(omega[keep], rows[keep], readout[keep])
 
     def _row_motion(self, omega: Array | None) -> tuple[Array, float] | None:

@@ -100,8 +100,8 @@ class Relocaliser:
         # The frame on the cylinder (half resolution) under the hint.
         us = np.arange(u0, u1, 1.0 / s)
         vs = np.arange(v0, v1, 1.0 / s)
-        uu, vv = np.meshgrid(us, vs)
-        d = geo.unproject(uu, vv)
+        # a column's sine and cosine once (unproject broadcasts them over the rows: the same grid)
+        d = geo.unproject(us[None, :], vs[:, None])
         x, y, front = project_to_image(K, d @ R_hint)
         x = np.where(front, x, -10).astype(np.float32)
         y = np.where(front, y, -10).astype(np.float32)

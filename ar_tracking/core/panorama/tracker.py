@@ -17,6 +17,7 @@ with its standard error) and the same mean of log intensities (``log_gain``, wit
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -26,7 +27,7 @@ from numpy.typing import NDArray
 
 from ..box_sums import window_box_sums
 from ..rotations import align_directions
-from .cylinder import camera_rays, project_to_image, row_rotations
+from .cylinder import camera_rays, image_rows, project_to_image, row_rotations
 from .map import PanoramaMap
 from .readout import RowFit
 
@@ -112,22 +113,20 @@ def kabsch(b: Array, d: Array, w: Array | None = None) -> Array:
     return align_directions(b, d, w)
 
 
-def _pair_frames(v: Array) -> Array:
+def _pair_frames(v: Array, F: Array) -> None:
     """Orthonormal frames (M, 3, 3), as columns (s, t, s x t), of M pairs of unit directions
-    v (M, 2, 3), with s along v0 + v1 and t along v0 - v1 (orthogonal, as |v0| = |v1|); a
-    degenerate pair (v0 = +-v1) gives a non-finite frame."""
+    v (M, 2, 3), with s along v0 + v1 and t along v0 - v1 (orthogonal, as |v0| = |v1|), written
+    into ``F`` (M, 3, 3); a degenerate pair (v0 = +-v1) gives a non-finite frame (the caller
+    silences numpy's invalid and divide warnings)."""
     s = v[:, 0] + v[:, 1]
     t = v[:, 0] - v[:, 1]
-    with np.errstate(invalid='ignore', divide='ignore'):
-        s /= np.sqrt((s * s).sum(axis=1))[:, None]
-        t /= np.sqrt((t * t).sum(axis=1))[:, None]
-    F = np.empty((v.shape[0], 3, 3))
+    s /= np.sqrt((s * s).sum(axis=1))[:, None]
+    t /= np.sqrt((t * t).sum(axis=1))[:, None]
     F[:, :, 0] = s
     F[:, :, 1] = t
     F[:, 0, 2] = s[:, 1] * t[:, 2] - s[:, 2] * t[:, 1]
     F[:, 1, 2] = s[:, 2] * t[:, 0] - s[:, 0] * t[:, 2]
     F[:, 2, 2] = s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0]
-    return F
 
 
 def pair_rotation_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Array | None, thr: float
@@ -142,29 +141,68 @@ def pair_rotation_votes(b: Array, d: Array, pairs: NDArray[np.int64], R_pred: Ar
     vectors are the unit s and t directions, so R = F_d F_b^T maps the frame F_b = (s, t, s x t)
     of the bearings onto F_d of the directions. Then |R b - d| = |F_b^T b - F_d^T d|: every
     hypothesis's residuals come from two matrix products, (n, 3) x (3, 3 M), with no batched
-    SVD (4 times the cost) and no rotation formed. A degenerate pair votes for nothing."""
-    Fb = _pair_frames(b[pairs])
-    Fd = _pair_frames(d[pairs])
-    if R_pred is not None:
-        Fb = np.concatenate([Fb, np.eye(3)[None]])  # R_pred: |b - R_pred^T d|
-        Fd = np.concatenate([Fd, R_pred[None]])
-    m = Fb.shape[0]
+    SVD (4 times the cost) and no rotation formed. A degenerate pair votes for nothing.
+    (One warning context for all of it: entering numpy's costs about as much as the arithmetic.)"""
+    M = pairs.shape[0]
+    m = M + (R_pred is not None)
+    Fb = np.empty((m, 3, 3))
+    Fd = np.empty((m, 3, 3))
     n = b.shape[0]
-    diff = (b @ Fb.transpose(1, 0, 2).reshape(3, 3 * m) - d @ Fd.transpose(1, 0, 2).reshape(3, 3 * m))
-    diff = diff.reshape(n, m, 3)
-    with np.errstate(invalid='ignore'):
+    with np.errstate(invalid='ignore', divide='ignore'):
+        _pair_frames(b[pairs], Fb[:M])
+        _pair_frames(d[pairs], Fd[:M])
+        if R_pred is not None:
+            Fb[M] = _EYE  # R_pred: |b - R_pred^T d|
+            Fd[M] = R_pred
+        diff = (b @ Fb.transpose(1, 0, 2).reshape(3, 3 * m) - d @ Fd.transpose(1, 0, 2).reshape(3, 3 * m))
+        diff = diff.reshape(n, m, 3)
         return (np.einsum('nmi,nmi->mn', diff, diff) < thr * thr)
+
+
+_EYE = np.eye(3)
+_EYE.flags.writeable = False
+
+
+def _row_norms(e: Array) -> Array:
+    """``np.linalg.norm(e, axis=1)`` of an (n, 3) array: its very sum of squares per row and
+    root, without the generic function's argument handling (a few us a call, three a frame)."""
+    return np.sqrt(np.add.reduce(e * e, axis=1))
 
 
 def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
     """Mean of the central 1 - 2 * trim of the values (robust to a few bad pairs) and its
-    standard error (spread of the kept values / sqrt(kept))."""
+    standard error (spread of the kept values / sqrt(kept)).
+
+    The mean and ``std(ddof=1)`` as numpy's ndarray methods compute them (the same sums,
+    divisions and squares, so the same values) without their generic reduction wrappers."""
     x = np.sort(x)
     k = int(trim * x.size)
     c = x[k:x.size - k] if x.size > 2 * k else x
     if c.size < 2:
         return (float(c.mean()) if c.size else 0.0), float('inf')
-    return float(c.mean()), float(c.std(ddof=1) / np.sqrt(c.size))
+    n = c.size
+    mean = np.add.reduce(c, axis=None) / n
+    dev = np.subtract(c, mean)
+    np.square(dev, out=dev)
+    std = np.sqrt(np.add.reduce(dev, axis=None) / (n - 1))
+    return float(mean), float(std / np.sqrt(n))
+
+
+def _patch_rows(windows: NDArray[np.float32], side: int, P: int) -> NDArray[np.float32]:
+    """(n, side * side, P * P) contiguous: row (sy, sx) of window i holds its P x P patch at
+    offset (sy, sx), row-major - ``sliding_window_view(windows, (P, P), axis=(1, 2))`` reshaped.
+
+    The same copy with each patch row (P float32) moved as one opaque item: numpy's strided copy
+    of the 5-D view moves P floats per inner loop, and at the tracker's 60 windows the items
+    take about two thirds of its time."""
+    n = windows.shape[0]
+    windows = np.ascontiguousarray(windows)
+    s0, s1, s2 = windows.strides
+    row = np.dtype((np.void, P * windows.itemsize))
+    src = np.ndarray((n, side, side, P), row, windows, 0, (s0, s1, s2, s1))
+    out = np.empty((n, side, side, P), row)
+    out[...] = src
+    return out.view(np.float32).reshape(n, side * side, P * P)
 
 
 #: From this search radius on, the NCC is computed per keypoint by OpenCV instead of as one
@@ -178,8 +216,10 @@ class ActiveSearchTracker:
     def __init__(self, config: TrackerConfig | None = None) -> None:
         self.config = cfg = config or TrackerConfig()
         self._rng = np.random.default_rng(cfg.seed)
-        half = cfg.patch_size // 2
-        self._grid = np.arange(-half, half + 1, dtype=float)
+        #: ((K bytes, h, w), the widest angle of the frame's corner rays from the optical axis)
+        self._corner_angle: tuple[tuple[bytes, int, int], float] | None = None
+        #: ((K bytes, h, w), every pixel's ray (h w, 3)): see _template_rays
+        self._pixel_rays: tuple[tuple[bytes, int, int], Array] | None = None
 
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.config.seed)
@@ -204,25 +244,31 @@ class ActiveSearchTracker:
             return fail
         # 1. Active search: project the keypoints with the prediction, keep the visible ones.
         cam = dirs @ R_pred
-        x, y, front = project_to_image(K, cam)
-        if row_motion is not None:  # where the row that sees a keypoint saw it (one iteration)
+        # Only the keypoints within the frame's cone (widened by the rows' turn) can be in view:
+        # the others are not projected (most of the map's; each keypoint's values are its own).
+        cand = np.flatnonzero(cam[:, 2] >= self._cone_cos(K, h, w, row_motion))
+        cam = cam[cand]
+        if row_motion is None:
+            x, y, front = project_to_image(K, cam)
+        else:  # where the row that sees a keypoint saw it (one iteration)
+            y = image_rows(K, cam[:, 1], cam[:, 2])
             x, y, front = project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
         m = half + r + 1
         vis = front & (x >= m) & (x < w - 1 - m) & (y >= m) & (y < h - 1 - m)
-        idx = np.flatnonzero(vis)
-        if idx.size < cfg.min_inliers:
-            fail.reason = f'{idx.size} map keypoints in view'
+        pos = np.flatnonzero(vis)  # positions in cand
+        if pos.size < cfg.min_inliers:
+            fail.reason = f'{pos.size} map keypoints in view'
             return fail
-        idx = self._spread(idx, x[idx], y[idx], score[idx], w, h)
+        pos = self._spread(pos, x[pos], y[pos], score[cand[pos]], w, h)
+        idx = cand[pos]
         n = idx.size
-        px, py = x[idx], y[idx]
+        px, py = x[pos], y[pos]
         xr, yr = np.rint(px).astype(np.int64), np.rint(py).astype(np.int64)
         # 2. Templates: the map warped into the predicted view around each keypoint.
         # Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on (xr, yr), x (n, 1, P)
         # and y (n, P, 1) broadcast; then one (n P P, 3) x (3, 3) product (a stack of n P small
         # ones costs more; same values).
-        grid = self._grid
-        rays = camera_rays(K, xr[:, None, None] + grid, yr[:, None, None] + grid[:, None], unit=False)
+        rays = self._template_rays(K, h, w, xr, yr)
         if row_motion is None:
             u, v = pano.geometry.project((rays.reshape(-1, 3) @ R_pred.T).reshape(rays.shape))
         else:  # each template turned by its row's rotation
@@ -242,7 +288,10 @@ class ActiveSearchTracker:
         t_norm = np.sqrt(np.einsum('nij,nij->n', Tz, Tz))
         # 3. Search windows in the frame and NCC at every offset within the radius.
         S = P + 2 * r
-        Wu = sliding_window_view(frame, (S, S))[yr - half - r, xr - half - r]  # (n, S, S) uint8
+        # (n, S, S) uint8 windows gathered by flat index (a window view's fancy indexing costs more)
+        grid = np.arange(S)
+        Wu = np.take(np.ascontiguousarray(frame).reshape(-1),
+                     ((yr - half - r) * w + (xr - half - r))[:, None, None] + (grid[:, None] * w + grid))
         Wn = Wu.astype(np.float32)
         side = 2 * r + 1
         # Window sums of the values and their squares from integral images: integers, exact in
@@ -253,7 +302,7 @@ class ActiveSearchTracker:
         if r < _PER_WINDOW_RADIUS_PX:
             # Cross-correlation of each template with every window position as one batched
             # matrix product (float32: exact enough for 8-bit pixels, and about twice as fast).
-            views = sliding_window_view(Wn, (P, P), axis=(1, 2)).reshape(n, side * side, P * P)
+            views = _patch_rows(Wn, side, P)
             num = np.matmul(views, Tz.astype(np.float32).reshape(n, P * P, 1)).reshape(n, side, side)
             ncc = np.where(denom > 1e-6 * P * P, num.astype(np.float64) / np.maximum(denom, 1e-12), -1.0)
         else:
@@ -301,14 +350,20 @@ class ActiveSearchTracker:
         inside = pair_rotation_votes(b, d, pairs, R_pred, thr)
         inl = inside[int(np.argmax(inside.sum(axis=1)))]
         R = R_pred
+        resid = None  # the residuals of R (once there is a fit)
         for _ in range(2):
             if np.count_nonzero(inl) < 3:
                 break
             R = kabsch(b[inl], d[inl])
-            resid = np.linalg.norm(b @ R.T - d, axis=1)
-            inl = resid < thr
+            resid = _row_norms(b @ R.T - d)
+            refit = resid < thr
+            unchanged = np.array_equal(refit, inl)
+            inl = refit
+            if unchanged:  # a refit on the same inliers is the same rotation
+                break
         n_in = int(np.count_nonzero(inl))
-        resid = np.linalg.norm(b @ R.T - d, axis=1)
+        if resid is None:
+            resid = _row_norms(b @ R.T - d)
         rms = float(np.sqrt(np.mean(resid[inl] ** 2)) * f) if n_in else float('nan')
         # 6. EDR offset: map patch mean minus the frame patch mean at the match (sec. 4.1).
         # The frame patch mean at the sub-pixel match: bilinear in the patch-mean surface.
@@ -348,6 +403,39 @@ class ActiveSearchTracker:
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
                            log_gain, log_se, pairs_used, offset_se, fit, R)
 
+    def _template_rays(self, K: Array, h: int, w: int, xr: NDArray[np.int64], yr: NDArray[np.int64]) -> Array:
+        """Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on the integer pixels
+        (xr, yr) (inside the frame), gathered from a table of every pixel's ray kept for the
+        camera: :func:`.cylinder.camera_rays` of each pixel (the same values), without computing
+        them again for every frame."""
+        key = (K.tobytes(), h, w)
+        if self._pixel_rays is None or self._pixel_rays[0] != key:
+            table = camera_rays(K, np.arange(w, dtype=float)[None, :], np.arange(h, dtype=float)[:, None], unit=False)
+            self._pixel_rays = (key, table.reshape(h * w, 3))
+        P = self.config.patch_size
+        half = P // 2
+        grid = np.arange(P)
+        corner = (yr - half) * w + (xr - half)
+        return np.take(self._pixel_rays[1], corner[:, None, None] + (grid[:, None] * w + grid), axis=0)
+
+    def _cone_cos(self, K: Array, h: int, w: int, row_motion: tuple[Array, float] | None) -> float:
+        """A lower bound of the optical-axis component of every unit direction (camera axes at
+        the stamp) that the frame can see: the cosine of the widest angle between the optical
+        axis and a ray through the image's corners, plus the rows' largest turn (a row's camera is
+        the stamp's turned by at most ``|omega| readout (h + 0.5) / h``, :func:`.cylinder.row_rotations`)
+        and a margin; -inf (everything) when that cone reaches 90 degrees. The frame's view is
+        bounded by its corners (the rays through a convex image region fill a cone whose widest
+        ray is a corner's), so a keypoint below the bound is out of view whatever its row."""
+        key = (K.tobytes(), h, w)
+        if self._corner_angle is None or self._corner_angle[0] != key:
+            corners = camera_rays(K, np.array([-1.0, w, -1.0, w]), np.array([-1.0, -1.0, h, h]))
+            self._corner_angle = (key, float(np.arccos(np.clip(corners[:, 2], -1.0, 1.0)).max()))
+        angle = self._corner_angle[1] + 1e-3
+        if row_motion is not None:
+            omega, readout = row_motion
+            angle += float(np.linalg.norm(omega)) * abs(float(readout)) * (h + 0.5) / h
+        return math.cos(angle) if angle < 0.5 * math.pi - 1e-3 else -math.inf
+
     def _weak_agreements(self, o: NDArray[np.int64], dirs: Array, R: Array, K: Array, peak_x: Array,
                          peak_y: Array, row_motion: tuple[Array, float] | None, h: int) -> int:
         """How many of the keypoints ``o`` (indices into the searched ones, whose NCC peak stayed
@@ -364,8 +452,10 @@ class ActiveSearchTracker:
         if o.size == 0:
             return 0
         cam = dirs[o] @ R
-        x, y, front = project_to_image(K, cam)
-        if row_motion is not None:  # where the row that saw it was read
+        if row_motion is None:
+            x, y, front = project_to_image(K, cam)
+        else:  # where the row that saw it was read
+            y = image_rows(K, cam[:, 1], cam[:, 2])
             x, y, front = project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
         dx, dy = peak_x[o] - x, peak_y[o] - y
         limit = self.config.weak_px
