@@ -51,17 +51,20 @@ def replay_matcher(out_bag: str | Path, store_path: str | Path, replayed_bag: st
         for pub in node.publishers:
             if pub.topic_name in outputs:
                 pub.publish = lambda m, t=pub.topic_name: published.append((t, m))  # type: ignore[method-assign, misc]
-        # the node's own (guarded) subscription callbacks: a message that raises is skipped, as in the graph
-        callbacks = {s.topic_name: s.callback for s in node.subscriptions}
+        # the node's own (guarded) subscription callbacks: a message that raises is skipped, as in the
+        # graph; a raw subscription (a CDR view, ros.cdr_views) takes the bytes as they are
+        callbacks = {s.topic_name: (s.callback, s.raw) for s in node.subscriptions}
         with BagReader(out_bag) as bag, BagWriter(replayed_bag, overwrite=True) as writer:
             for msg in bag.messages():
                 if msg.topic in outputs:
                     continue
                 writer.write(msg.topic, msg.log_time_ns, msg.rawdata, msgtype=msg.msgtype)
                 if msg.topic in callbacks:
-                    callbacks[msg.topic](decode(bytes(msg.rawdata), msg.msgtype))
+                    callback, raw = callbacks[msg.topic]
+                    callback(bytes(msg.rawdata) if raw else decode(bytes(msg.rawdata), msg.msgtype))
                     for topic, out in published:
-                        writer.write(topic, msg.log_time_ns, serialize_message(out), msgtype=outputs[topic])
+                        data = bytes(out) if isinstance(out, (bytes, bytearray, memoryview)) else serialize_message(out)
+                        writer.write(topic, msg.log_time_ns, data, msgtype=outputs[topic])
                     published.clear()
     finally:
         if node is not None:
