@@ -163,6 +163,11 @@ class PaintedFrames(dict[int, tuple[Array, Array | None, float]]):
         self.known[row] = rate is not None
         self.readout[row] = readout
 
+    def _not_mirrored(self, *args: object, **kwargs: object) -> None:
+        raise TypeError('PaintedFrames: items are set one at a time (the arrays mirror __setitem__ only)')
+
+    __delitem__ = pop = popitem = clear = update = setdefault = _not_mirrored  # type: ignore[assignment]
+
     def rows(self, index: NDArray[np.integer]) -> NDArray[np.intp]:
         """The array rows of frame indices (0 for one that painted nothing)."""
         index = np.asarray(index, np.intp)
