@@ -236,7 +236,7 @@ def compressed_image_view(raw: bytes) -> CompressedImageView:
 
 def camera_info_view(raw: bytes) -> CameraInfoView:
     """A :class:`CameraInfoView` of little-endian CDR bytes of a sensor_msgs/CameraInfo.
-    rclpy builds this message through a checked setter per array (~240 us); here ~10 us."""
+    rclpy builds this message through a checked setter per array (~240 us); here ~14 us."""
     header, pos = _header(raw)
     pos = _align(pos, 4)
     height, width = _IMAGE_DIMS.unpack_from(raw, pos)
