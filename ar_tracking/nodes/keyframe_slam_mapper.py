@@ -33,6 +33,7 @@ from ..core.rectification import RectificationError, check_distortion
 from ..core.slam.camera import Rectifier, camera_in_world
 from ..core.slam.system import SlamConfig, SlamSystem
 from ..core.stamp_pairing import NearestStampPairer
+from ..ros.cdr_views import camera_info_view
 from ..ros.conversions import ConversionError, compressed_to_gray_u8, image_to_gray_u8, set_quaternion, stamp_ns, to_stamp
 from ..ros.node_base import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TrackingNode, run_node
 from ..ros.param_table import ParamSpec, declare_params, frame_name
@@ -146,7 +147,7 @@ class KeyframeSlamMapperNode(TrackingNode):
             self.get_logger().warning('publish_tf: tf2_msgs is not installed here; no TF is published')
         self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS)
         self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
-        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, SENSOR_QOS)
+        self.subscribe(CameraInfo, 'camera/camera_info', self.on_camera_info, SENSOR_QOS, view=camera_info_view)
         self.get_logger().info(f'keyframe_slam_mapper: map frame {self.frame_id}, rolling-shutter readout {self.readout_s * 1e3:.1f} ms')
         if self.readout_s == 0.0:  # a phone camera unmodelled costs ~20 % of the accuracy (issue 20)
             self.get_logger().info(

@@ -36,6 +36,7 @@ from ..core.markers import MarkerError
 from ..core.markers.detection import REFINEMENTS, MarkerDetector
 from ..core.markers.lens_model import LENS_KINDS, LensModel
 from ..core.markers.pose import MarkerMap, estimate_camera_pose
+from ..ros.cdr_views import camera_info_view
 from ..ros.conversions import (
     ConversionError,
     compressed_to_gray_u8,
@@ -170,7 +171,7 @@ class MarkerTrackerNode(TrackingNode):
 
         self.pub_pose = self.advertise(PoseWithCovarianceStamped, 'markers/pose', RELIABLE_QOS)
         self.pub_det = self.advertise(MarkerArray, 'markers/detections', RELIABLE_QOS)
-        self.subscribe(CameraInfo, 'camera/camera_info', self.on_info, SENSOR_QOS)
+        self.subscribe(CameraInfo, 'camera/camera_info', self.on_info, SENSOR_QOS, view=camera_info_view)
         self.subscribe(Image, 'camera/image_raw', self.on_image, SENSOR_QOS)
         self.subscribe(CompressedImage, 'camera/image_raw/compressed', self.on_compressed, SENSOR_QOS)
         self.get_logger().info(f'marker_tracker: {len(self.marker_map.markers)} markers in the map ({dictionary}, corners: {refinement})')
