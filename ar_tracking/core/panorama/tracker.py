@@ -169,6 +169,17 @@ def _row_norms(e: Array) -> Array:
     return np.sqrt(np.add.reduce(e * e, axis=1))
 
 
+def _project_rows(K: Array, cam: Array, row_motion: tuple[Array, float] | None, h: int
+                  ) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Pixel coordinates and in-front flags of camera-frame directions (n, 3) at the stamp; with
+    a rolling shutter, where the row that sees each one saw it (one iteration: the stamp's row,
+    then that row's camera)."""
+    if row_motion is None:
+        return project_to_image(K, cam)
+    y = image_rows(K, cam[:, 1], cam[:, 2])
+    return project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
+
+
 def _trimmed_mean_se(x: Array, trim: float = 0.2) -> tuple[float, float]:
     """Mean of the central 1 - 2 * trim of the values (robust to a few bad pairs) and its
     standard error (spread of the kept values / sqrt(kept)).
@@ -216,10 +227,9 @@ class ActiveSearchTracker:
     def __init__(self, config: TrackerConfig | None = None) -> None:
         self.config = cfg = config or TrackerConfig()
         self._rng = np.random.default_rng(cfg.seed)
-        #: ((K bytes, h, w), the widest angle of the frame's corner rays from the optical axis)
-        self._corner_angle: tuple[tuple[bytes, int, int], float] | None = None
-        #: ((K bytes, h, w), every pixel's ray (h w, 3)): see _template_rays
-        self._pixel_rays: tuple[tuple[bytes, int, int], Array] | None = None
+        #: the camera's tables: ((K bytes, h, w), every pixel's ray (h w, 3), the widest angle of
+        #: the frame's corner rays from the optical axis) - see :meth:`_camera`
+        self._camera_tables: tuple[tuple[bytes, int, int], Array, float] | None = None
 
     def reset(self) -> None:
         self._rng = np.random.default_rng(self.config.seed)
@@ -247,12 +257,7 @@ class ActiveSearchTracker:
         # Only the keypoints within the frame's cone (widened by the rows' turn) can be in view:
         # the others are not projected (most of the map's; each keypoint's values are its own).
         cand = np.flatnonzero(cam[:, 2] >= self._cone_cos(K, h, w, row_motion))
-        cam = cam[cand]
-        if row_motion is None:
-            x, y, front = project_to_image(K, cam)
-        else:  # where the row that sees a keypoint saw it (one iteration)
-            y = image_rows(K, cam[:, 1], cam[:, 2])
-            x, y, front = project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
+        x, y, front = _project_rows(K, cam[cand], row_motion, h)
         m = half + r + 1
         vis = front & (x >= m) & (x < w - 1 - m) & (y >= m) & (y < h - 1 - m)
         pos = np.flatnonzero(vis)  # positions in cand
@@ -403,20 +408,28 @@ class ActiveSearchTracker:
         return TrackResult(ok, R if ok else R_pred, n, nk, n_in, rms, offset, reason,
                            log_gain, log_se, pairs_used, offset_se, fit, R)
 
+    def _camera(self, K: Array, h: int, w: int) -> tuple[Array, float]:
+        """(every pixel's ray (h w, 3) as :func:`.cylinder.camera_rays` gives it, the widest angle
+        of the rays through the frame's corners from the optical axis), kept while the camera
+        (K and the frame size) stays the same."""
+        key = (K.tobytes(), h, w)
+        if self._camera_tables is None or self._camera_tables[0] != key:
+            rays = camera_rays(K, np.arange(w, dtype=float)[None, :], np.arange(h, dtype=float)[:, None], unit=False)
+            corners = camera_rays(K, np.array([-1.0, w, -1.0, w]), np.array([-1.0, -1.0, h, h]))
+            self._camera_tables = (key, rays.reshape(h * w, 3),
+                                   float(np.arccos(np.clip(corners[:, 2], -1.0, 1.0)).max()))
+        return self._camera_tables[1], self._camera_tables[2]
+
     def _template_rays(self, K: Array, h: int, w: int, xr: NDArray[np.int64], yr: NDArray[np.int64]) -> Array:
         """Rays (xn, yn, 1) (n, P, P, 3) of the P x P pixel grids centred on the integer pixels
         (xr, yr) (inside the frame), gathered from a table of every pixel's ray kept for the
         camera: :func:`.cylinder.camera_rays` of each pixel (the same values), without computing
         them again for every frame."""
-        key = (K.tobytes(), h, w)
-        if self._pixel_rays is None or self._pixel_rays[0] != key:
-            table = camera_rays(K, np.arange(w, dtype=float)[None, :], np.arange(h, dtype=float)[:, None], unit=False)
-            self._pixel_rays = (key, table.reshape(h * w, 3))
         P = self.config.patch_size
         half = P // 2
         grid = np.arange(P)
         corner = (yr - half) * w + (xr - half)
-        return np.take(self._pixel_rays[1], corner[:, None, None] + (grid[:, None] * w + grid), axis=0)
+        return np.take(self._camera(K, h, w)[0], corner[:, None, None] + (grid[:, None] * w + grid), axis=0)
 
     def _cone_cos(self, K: Array, h: int, w: int, row_motion: tuple[Array, float] | None) -> float:
         """A lower bound of the optical-axis component of every unit direction (camera axes at
@@ -426,11 +439,7 @@ class ActiveSearchTracker:
         and a margin; -inf (everything) when that cone reaches 90 degrees. The frame's view is
         bounded by its corners (the rays through a convex image region fill a cone whose widest
         ray is a corner's), so a keypoint below the bound is out of view whatever its row."""
-        key = (K.tobytes(), h, w)
-        if self._corner_angle is None or self._corner_angle[0] != key:
-            corners = camera_rays(K, np.array([-1.0, w, -1.0, w]), np.array([-1.0, -1.0, h, h]))
-            self._corner_angle = (key, float(np.arccos(np.clip(corners[:, 2], -1.0, 1.0)).max()))
-        angle = self._corner_angle[1] + 1e-3
+        angle = self._camera(K, h, w)[1] + 1e-3
         if row_motion is not None:
             omega, readout = row_motion
             angle += float(np.linalg.norm(omega)) * abs(float(readout)) * (h + 0.5) / h
@@ -451,12 +460,7 @@ class ActiveSearchTracker:
         only the inliers counted, none with these) while a translating camera is still lost."""
         if o.size == 0:
             return 0
-        cam = dirs[o] @ R
-        if row_motion is None:
-            x, y, front = project_to_image(K, cam)
-        else:  # where the row that saw it was read
-            y = image_rows(K, cam[:, 1], cam[:, 2])
-            x, y, front = project_to_image(K, np.einsum('nji,nj->ni', row_rotations(row_motion, y, h), cam))
+        x, y, front = _project_rows(K, dirs[o] @ R, row_motion, h)
         dx, dy = peak_x[o] - x, peak_y[o] - y
         limit = self.config.weak_px
         return int(np.count_nonzero(front & (dx * dx + dy * dy <= limit * limit)))
