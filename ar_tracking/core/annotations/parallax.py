@@ -258,8 +258,9 @@ def leave_one_out_predictions(predicted: Array, observed: Array, up: Array, sigm
     cos, sin = np.cos(th), np.sin(th)
     if scale_rows is not None:
         rows = others & np.asarray(scale_rows, bool)[None, :]
-        p = (c[:, None] + a[:, None] * cos + b[:, None] * sin) - c[:, None]
-        rr = (r[None, :] - (c[:, None] + a[:, None] * cos + b[:, None] * sin) + math.pi) % (2 * math.pi) - math.pi
+        shift = c[:, None] + a[:, None] * cos + b[:, None] * sin  # each fit's at every match
+        p = shift - c[:, None]  # its parallax term, as fit_depth_scale takes it
+        rr = (r[None, :] - shift + math.pi) % (2 * math.pi) - math.pi
         w = 1.0 / sigma_match ** 2
         s = 1.0 + w * (rows * rr * p).sum(axis=1) / (w * (rows * p * p).sum(axis=1) + 1.0 / sigma_scale ** 2)
         s = np.where(np.asarray(scale_rows, bool), np.clip(s, *bounds), 1.0)
