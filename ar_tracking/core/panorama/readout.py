@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..rotations import cross_rows
+
 Array = NDArray[np.float64]
 
 
@@ -88,21 +90,6 @@ class Painting:
     readout_s: Array
 
 
-_NEXT = np.array([1, 2, 0])
-_PREV = np.array([2, 0, 1])
-
-
-def _cross(a: Array, b: Array) -> Array:
-    """Row-wise cross products of (n, 3) (or broadcasting (1, 3)) arrays: the same products and
-    differences as ``np.cross`` (a1 b2 - a2 b1, ...; the same values), without its axis handling,
-    which cost several times the arithmetic on the readout's few dozen rows. Written into a
-    C-ordered array as np.cross's is (the column gathers come out column-major, and a sum over
-    the rows of that layout adds in another order: different last bits)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    np.subtract(a.take(_NEXT, 1) * b.take(_PREV, 1), a.take(_PREV, 1) * b.take(_NEXT, 1), out=out)
-    return out
-
-
 def frame_reading(fit: RowFit, omega_pano: Array, readout_used_s: float, painting: Painting | None = None,
                   min_noise_rad: float = 2e-4) -> tuple[float, float] | None:
     """(readout s, information 1 / var) from one frame's fit; None when the frame cannot tell.
@@ -125,13 +112,13 @@ def frame_reading(fit: RowFit, omega_pano: Array, readout_used_s: float, paintin
     if painting is not None:
         paint = painting.rows[:, None] * painting.omega_pano  # v_j Omega_j
         q_axis, o_axis = motion - paint, o_axis - painting.readout_s[:, None] * paint
-    q = _cross(q_axis, p)  # dr/ds per ray
-    y = r + _cross(o_axis, p)  # = dtheta x p + s q
+    q = cross_rows(q_axis, p)  # dr/ds per ray
+    y = r + cross_rows(o_axis, p)  # = dtheta x p + s q
     # A_tt = sum I - p p^T; A_ts = sum p x q; A_ss = sum |q|^2; g_t = sum p x y; g_s = sum q . y
     A_tt = n * np.eye(3) - p.T @ p
-    A_ts = _cross(p, q).sum(axis=0)
+    A_ts = cross_rows(p, q).sum(axis=0)
     A_ss = float(np.einsum('ij,ij->', q, q))
-    g_t = _cross(p, y).sum(axis=0)
+    g_t = cross_rows(p, y).sum(axis=0)
     g_s = float(np.einsum('ij,ij->', q, y))
     try:
         sol = np.linalg.solve(A_tt, np.column_stack([A_ts, g_t]))
@@ -142,7 +129,7 @@ def frame_reading(fit: RowFit, omega_pano: Array, readout_used_s: float, paintin
         return None
     s = (g_s - float(A_ts @ sol[:, 1])) / info
     dtheta = sol[:, 1] - sol[:, 0] * s
-    e = y - _cross(dtheta[None, :], p) - s * q
+    e = y - cross_rows(dtheta[None, :], p) - s * q
     noise2 = max(float(np.einsum('ij,ij->', e, e)) / max(2 * n - 4, 1), min_noise_rad ** 2)
     return s, info / noise2
 
